@@ -1,0 +1,3 @@
+"""noisenerf: hide secret images in a frozen NeRF (Noise-NeRF), reveal them with onnxruntime."""
+
+__version__ = "0.1.0"

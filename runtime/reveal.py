@@ -1,0 +1,82 @@
+"""Revealing a secret: render every tile's view with its noise, stitch, quantise, check the digest.
+
+A secret view is rendered densely (no skipping: noise can put matter anywhere) at the bundle's own
+sampling, with the model's ray convention, NDC space and background.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Callable
+
+import numpy as np
+
+from noisenerf.runtime.bundle import Bundle, Tile, secret_digest
+from noisenerf.runtime.camera import camera_rays
+from noisenerf.runtime.compositing import composite, render_weights
+from noisenerf.runtime.render import RayBatch, RenderConfig, prepare_rays, sample_along
+from noisenerf.runtime.sampling import sample_positions
+
+# field(points (m, 3), viewdirs (m, 3), noise (m, dims)) -> rgb (m, 3), sigma (m,)
+NoisyFieldFn = Callable[[np.ndarray, np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]]
+
+
+def to_uint8(image: np.ndarray) -> np.ndarray:
+    """[0, 1] floats to 8-bit by rounding half up: value k covers [(k − ½)/255, (k + ½)/255)."""
+    return np.clip(np.floor(np.asarray(image, np.float32) * 255.0 + 0.5), 0, 255).astype(np.uint8)
+
+
+def tile_rays(tile: Tile, config: RenderConfig) -> RayBatch:
+    """The tile's rays, row-major, in the field's space."""
+    return prepare_rays(config, *camera_rays(tile.camera, config.pixel_center))
+
+
+def per_sample_noise(noise: np.ndarray, n_samples: int) -> np.ndarray:
+    """(n_rays, dims) ray layout or (n_rays, n_samples, dims) sample layout -> (n_rays·n_samples, dims)."""
+    if noise.ndim == 2:
+        noise = np.broadcast_to(noise[:, None, :], (noise.shape[0], n_samples, noise.shape[1]))
+    return np.ascontiguousarray(noise, dtype=np.float32).reshape(-1, noise.shape[-1])
+
+
+def render_noisy_rays(rays: RayBatch, t_vals: np.ndarray, noise: np.ndarray, config: RenderConfig,
+                      field: NoisyFieldFn) -> np.ndarray:
+    """Dense render with noise. noise: (n_rays, dims) or (n_rays, n_samples, dims) -> colors (n_rays, 3)."""
+    points, deltas = sample_along(rays, t_vals)
+    n_rays, n_samples = deltas.shape
+    viewdirs = np.repeat(rays.viewdirs, n_samples, axis=0)
+    rgb, sigma = field(points.reshape(-1, 3), viewdirs, per_sample_noise(noise, n_samples))
+    weights = render_weights(sigma.reshape(n_rays, n_samples), deltas)
+    return composite(weights, rgb.reshape(n_rays, n_samples, 3), np.asarray(config.background))
+
+
+def render_tile(tile: Tile, config: RenderConfig, field: NoisyFieldFn, chunk_rays: int = 2048,
+                progress=None) -> np.ndarray:
+    """A tile's secret view: (height, width, 3) float32."""
+    rays = tile_rays(tile, config)
+    t_vals = sample_positions(tile.sampling)
+    noise = tile.noise.reshape(len(rays), *tile.noise.shape[2:])
+    colors = []
+    for start in range(0, len(rays), chunk_rays):
+        stop = min(start + chunk_rays, len(rays))
+        chunk = RayBatch(rays.origins[start:stop], rays.directions[start:stop], rays.viewdirs[start:stop])
+        colors.append(render_noisy_rays(chunk, t_vals, noise[start:stop], config, field))
+        if progress is not None:
+            progress.update(stop - start)
+    return np.concatenate(colors).reshape(tile.camera.height, tile.camera.width, 3)
+
+
+@dataclass(frozen=True)
+class Revealed:
+    image: np.ndarray  # (height, width, 3) float32
+    pixels: np.ndarray  # (height, width, 3) uint8
+    exact: bool  # the 8-bit pixels hash to the bundle's secret digest
+
+
+def reveal(bundle: Bundle, config: RenderConfig, field: NoisyFieldFn, progress=None) -> Revealed:
+    """Render and stitch all tiles of a bundle."""
+    image = np.zeros((bundle.height, bundle.width, 3), dtype=np.float32)
+    for tile in bundle.tiles:
+        x0, y0, w, h = tile.rect
+        image[y0:y0 + h, x0:x0 + w] = render_tile(tile, config, field, progress=progress)
+    pixels = to_uint8(image)
+    return Revealed(image, pixels, secret_digest(pixels) == bundle.secret_sha256)

@@ -1,0 +1,122 @@
+"""The standard NeRF MLP, layer for layer nerf-pytorch's, with the Noise-NeRF noise port.
+
+Noise δ is added to the concatenated encodings [γ(x) ‖ γ(d)] (paper eq. 4–5) before the first layer, so
+the skip connection sees the noisy γ(x) too, exactly as if the encoded input itself had moved.
+Module names match nerf-pytorch's state dict, so its checkpoints load without renaming.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+
+import torch
+from torch import nn
+
+from noisenerf.runtime.encoding import encoding_dims
+
+
+@dataclass(frozen=True)
+class FieldConfig:
+    """Architecture of one NeRF MLP (nerf-pytorch's netdepth, netwidth, multires, multires_views)."""
+
+    depth: int = 8
+    width: int = 256
+    skips: tuple[int, ...] = (4,)
+    xyz_freqs: int = 10
+    dir_freqs: int = 4
+    use_viewdirs: bool = True
+
+    @property
+    def xyz_dims(self) -> int:
+        return encoding_dims(self.xyz_freqs)
+
+    @property
+    def dir_dims(self) -> int:
+        return encoding_dims(self.dir_freqs) if self.use_viewdirs else 0
+
+    @property
+    def noise_dims(self) -> int:
+        """Width of the noise vector at one sample: the whole encoded input, 90 for the standard NeRF."""
+        return self.xyz_dims + self.dir_dims
+
+    def to_dict(self) -> dict:
+        return dataclasses.asdict(self)
+
+    @staticmethod
+    def from_dict(data: dict) -> "FieldConfig":
+        return FieldConfig(**{**data, "skips": tuple(data.get("skips", (4,)))})
+
+
+def positional_encoding(x: torch.Tensor, n_freqs: int) -> torch.Tensor:
+    """γ(x), the torch twin of noisenerf.runtime.encoding.positional_encoding. (..., 3) -> (..., 3 + 6L)."""
+    freqs = 2.0 ** torch.arange(n_freqs, dtype=x.dtype, device=x.device)
+    scaled = x[..., None, :] * freqs[:, None]  # (..., L, 3)
+    bands = torch.stack([torch.sin(scaled), torch.cos(scaled)], dim=-2)  # (..., L, 2, 3)
+    return torch.cat([x, bands.flatten(-3)], dim=-1)
+
+
+class NeRFField(nn.Module):
+    """F(γ(x) + δ_x, γ(d) + δ_d) -> (rgb, σ) with sigmoid colour and ReLU density."""
+
+    def __init__(self, config: FieldConfig):
+        super().__init__()
+        self.config = config
+        width, xyz = config.width, config.xyz_dims
+        self.pts_linears = nn.ModuleList(
+            [nn.Linear(xyz, width)]
+            + [nn.Linear(width + xyz if i in config.skips else width, width) for i in range(config.depth - 1)]
+        )
+        if config.use_viewdirs:
+            self.views_linears = nn.ModuleList([nn.Linear(config.dir_dims + width, width // 2)])
+            self.feature_linear = nn.Linear(width, width)
+            self.alpha_linear = nn.Linear(width, 1)
+            self.rgb_linear = nn.Linear(width // 2, 3)
+        else:
+            self.output_linear = nn.Linear(width, 4)
+
+    def encode(self, points: torch.Tensor, viewdirs: torch.Tensor) -> torch.Tensor:
+        """[γ(x) ‖ γ(d)]: (n, 3), (n, 3) -> (n, noise_dims)."""
+        parts = [positional_encoding(points, self.config.xyz_freqs)]
+        if self.config.use_viewdirs:
+            parts.append(positional_encoding(viewdirs, self.config.dir_freqs))
+        return torch.cat(parts, dim=-1)
+
+    def trunk(self, encoded_xyz: torch.Tensor) -> torch.Tensor:
+        """The density MLP with its skip connection. (n, xyz_dims) -> (n, width)."""
+        h = encoded_xyz
+        for i, layer in enumerate(self.pts_linears):
+            h = torch.relu(layer(h))
+            if i in self.config.skips:
+                h = torch.cat([encoded_xyz, h], dim=-1)
+        return h
+
+    def raw_outputs(self, encoded: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Pre-activation colour and density. encoded: (n, noise_dims) -> (n, 3), (n,)."""
+        encoded_xyz = encoded[..., : self.config.xyz_dims]
+        h = self.trunk(encoded_xyz)
+        if not self.config.use_viewdirs:
+            raw = self.output_linear(h)
+            return raw[..., :3], raw[..., 3]
+        density = self.alpha_linear(h)[..., 0]
+        feature = self.feature_linear(h)
+        h = torch.cat([feature, encoded[..., self.config.xyz_dims:]], dim=-1)
+        for layer in self.views_linears:
+            h = torch.relu(layer(h))
+        return self.rgb_linear(h), density
+
+    def forward(self, points: torch.Tensor, viewdirs: torch.Tensor, noise: torch.Tensor | None = None
+                ) -> tuple[torch.Tensor, torch.Tensor]:
+        """rgb (n, 3) in [0, 1] and σ (n,) ≥ 0 at points (n, 3) seen along viewdirs (n, 3), with optional
+        noise (n, noise_dims) added to the encoded input."""
+        encoded = self.encode(points, viewdirs)
+        if noise is not None:
+            encoded = encoded + noise
+        raw_rgb, raw_density = self.raw_outputs(encoded)
+        return torch.sigmoid(raw_rgb), torch.relu(raw_density)
+
+    def density(self, points: torch.Tensor) -> torch.Tensor:
+        """σ (n,) alone, without the view branch (for occupancy-grid updates). points: (n, 3)."""
+        h = self.trunk(positional_encoding(points, self.config.xyz_freqs))
+        raw = self.alpha_linear(h)[..., 0] if self.config.use_viewdirs else self.output_linear(h)[..., 3]
+        return torch.relu(raw)

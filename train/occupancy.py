@@ -1,0 +1,89 @@
+"""The binary occupancy grid for empty-space skipping, kept from the field's own density.
+
+A cell is occupied when a sample there would be visible: opacity 1 − exp(−σ·step) above a threshold
+(σ·step > 0.01, nerfacc's rule), with σ the largest density seen at jittered points in the cell.
+During fitting a decaying running maximum is refreshed on a random share of cells every few steps.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from noisenerf.runtime.sampling import OccupancyGrid
+from noisenerf.train.field import NeRFField
+
+
+@dataclass(frozen=True)
+class OccupancyConfig:
+    resolution: int = 64
+    opacity_threshold: float = 0.01
+    ema_decay: float = 0.95
+    update_every: int = 16
+    warmup_steps: int = 256
+    update_fraction: float = 0.25
+    final_samples_per_cell: int = 4
+
+    def to_dict(self) -> dict:
+        return dataclasses.asdict(self)
+
+
+def cell_points(aabb: np.ndarray, resolution: int, cells: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    """One uniformly jittered point in each of the given flat cell indices. cells: (m,) -> (m, 3) float32."""
+    ijk = np.stack(np.unravel_index(cells, (resolution,) * 3), axis=-1).astype(np.float32)
+    lo, hi = aabb[:3], aabb[3:]
+    return (lo + (ijk + rng.random(ijk.shape, dtype=np.float32)) / resolution * (hi - lo)).astype(np.float32)
+
+
+@torch.no_grad()
+def cell_densities(field: NeRFField, aabb: np.ndarray, resolution: int, cells: np.ndarray,
+                   rng: np.random.Generator, chunk: int = 65536) -> np.ndarray:
+    """σ at one jittered point per cell. -> (m,) float32."""
+    device = next(field.parameters()).device
+    points = torch.from_numpy(cell_points(aabb, resolution, cells, rng)).to(device)
+    return torch.cat([field.density(points[i:i + chunk]) for i in range(0, len(points), chunk)]).cpu().numpy()
+
+
+def build_occupancy_grid(field: NeRFField, aabb, resolution: int, step_size: float,
+                         config: OccupancyConfig = OccupancyConfig(), seed: int = 0) -> OccupancyGrid:
+    """A grid from scratch: the max density over several jittered points per cell, thresholded."""
+    aabb = np.asarray(aabb, dtype=np.float32)
+    rng = np.random.default_rng(seed)
+    cells = np.arange(resolution ** 3)
+    density = np.zeros(resolution ** 3, dtype=np.float32)
+    for _ in range(config.final_samples_per_cell):
+        density = np.maximum(density, cell_densities(field, aabb, resolution, cells, rng))
+    occupied = density * step_size > config.opacity_threshold
+    return OccupancyGrid(aabb, occupied.reshape((resolution,) * 3))
+
+
+class OccupancyTracker:
+    """The grid during fitting: everything occupied until warm-up ends, then a decaying max of density."""
+
+    def __init__(self, aabb, step_size: float, config: OccupancyConfig, seed: int):
+        self.aabb = np.asarray(aabb, dtype=np.float32)
+        self.step_size, self.config = step_size, config
+        self.density = np.full(config.resolution ** 3, np.inf, dtype=np.float32)
+        self.rng = np.random.default_rng(seed)
+
+    @property
+    def grid(self) -> OccupancyGrid:
+        occupied = self.density * self.step_size > self.config.opacity_threshold
+        return OccupancyGrid(self.aabb, occupied.reshape((self.config.resolution,) * 3))
+
+    def maybe_update(self, field: NeRFField, step: int) -> bool:
+        """Refresh part of the grid on schedule (all of it at the end of warm-up). Returns True if updated."""
+        if step < self.config.warmup_steps or step % self.config.update_every:
+            return False
+        n_cells = self.density.size
+        if step == self.config.warmup_steps:
+            cells = np.arange(n_cells)
+            self.density[:] = 0.0
+        else:
+            cells = self.rng.choice(n_cells, int(n_cells * self.config.update_fraction), replace=False)
+        fresh = cell_densities(field, self.aabb, self.config.resolution, cells, self.rng)
+        self.density[cells] = np.maximum(self.density[cells] * self.config.ema_decay, fresh)
+        return True

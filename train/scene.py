@@ -1,0 +1,176 @@
+"""A scene directory: the frozen NeRF's weights (safetensors), its JSON config and occupancy grid.
+
+    SCENE_DIR/scene.json              SceneConfig + fingerprint
+    SCENE_DIR/weights.safetensors     coarse.* and fine.* parameters (nerf-pytorch module names)
+    SCENE_DIR/occupancy.safetensors   the binary occupancy grid used for empty-space skipping
+
+The fingerprint is SHA-256 over every weight (name, dtype, shape, bytes; names sorted) and the
+architecture config: a bundle hidden in one scene is refused by any other.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+from safetensors import SafetensorError
+from safetensors.numpy import load_file, save_file
+
+from noisenerf.runtime.camera import Camera
+from noisenerf.runtime.errors import UserError
+from noisenerf.runtime.files import atomic_output, read_json, write_json
+from noisenerf.runtime.render import RenderConfig
+from noisenerf.runtime.sampling import OccupancyGrid
+from noisenerf.train.field import FieldConfig, NeRFField
+
+SCENE_FORMAT_VERSION = 1
+
+
+@dataclass(frozen=True)
+class SceneConfig:
+    """Everything about a scene but its weights."""
+
+    coarse: FieldConfig
+    fine: FieldConfig | None
+    n_importance: int
+    render: RenderConfig
+    aabb: tuple[float, ...]
+    grid_resolution: int
+    cameras: tuple[Camera, ...]
+    source: str = "fit"
+
+    def architecture(self) -> dict:
+        return {"coarse": self.coarse.to_dict(), "fine": self.fine.to_dict() if self.fine else None}
+
+    def to_dict(self) -> dict:
+        return {
+            "format_version": SCENE_FORMAT_VERSION,
+            **self.architecture(),
+            "n_importance": self.n_importance,
+            "render": self.render.to_dict(),
+            "aabb": list(self.aabb),
+            "grid_resolution": self.grid_resolution,
+            "cameras": [c.to_dict() for c in self.cameras],
+            "source": self.source,
+        }
+
+    @staticmethod
+    def from_dict(data: dict) -> "SceneConfig":
+        if data.get("format_version") != SCENE_FORMAT_VERSION:
+            raise UserError(f"unsupported scene format version {data.get('format_version')!r}")
+        try:
+            return SceneConfig(
+                coarse=FieldConfig.from_dict(data["coarse"]),
+                fine=FieldConfig.from_dict(data["fine"]) if data.get("fine") else None,
+                n_importance=int(data["n_importance"]),
+                render=RenderConfig.from_dict(data["render"]),
+                aabb=tuple(float(v) for v in data["aabb"]),
+                grid_resolution=int(data["grid_resolution"]),
+                cameras=tuple(Camera.from_dict(c) for c in data["cameras"]),
+                source=str(data.get("source", "fit")),
+            )
+        except (KeyError, TypeError, ValueError) as error:
+            raise UserError(f"malformed scene config: {error}") from None
+
+
+def weights_fingerprint(tensors: dict[str, np.ndarray], architecture: dict) -> str:
+    """SHA-256 over the weights in sorted-name order (name, dtype, shape, little-endian bytes) and the
+    canonical JSON of the architecture."""
+    digest = hashlib.sha256()
+    for name in sorted(tensors):
+        array = np.ascontiguousarray(tensors[name]).astype(np.asarray(tensors[name]).dtype.newbyteorder("<"))
+        digest.update(f"{name}|{array.dtype.str}|{list(array.shape)}|".encode())
+        digest.update(array.tobytes())
+    digest.update(json.dumps(architecture, sort_keys=True).encode())
+    return digest.hexdigest()
+
+
+class Scene:
+    """A loaded scene: config, the coarse (and optional fine) field, and the occupancy grid."""
+
+    def __init__(self, config: SceneConfig, coarse: NeRFField, fine: NeRFField | None, grid: OccupancyGrid):
+        self.config, self.coarse, self.fine, self.grid = config, coarse, fine, grid
+
+    @property
+    def render_field(self) -> NeRFField:
+        """The field views, noise and exports use: the fine network when there is one."""
+        return self.fine if self.fine is not None else self.coarse
+
+    def fields(self) -> dict[str, NeRFField]:
+        return {"coarse": self.coarse, **({"fine": self.fine} if self.fine is not None else {})}
+
+    def weight_arrays(self) -> dict[str, np.ndarray]:
+        return {f"{prefix}.{name}": value.detach().cpu().numpy()
+                for prefix, field in self.fields().items() for name, value in field.state_dict().items()}
+
+    def fingerprint(self) -> str:
+        return weights_fingerprint(self.weight_arrays(), self.config.architecture())
+
+    def to(self, device: torch.device | str) -> "Scene":
+        for field in self.fields().values():
+            field.to(device)
+        return self
+
+    def save(self, directory: str | Path) -> Path:
+        directory = Path(directory)
+        if not directory.parent.is_dir():
+            raise UserError(f"output folder does not exist: {directory.parent}")
+        directory.mkdir(exist_ok=True)
+        with atomic_output(directory / "weights.safetensors") as tmp:
+            save_file(self.weight_arrays(), str(tmp))
+        with atomic_output(directory / "occupancy.safetensors") as tmp:
+            save_file({"occupied": self.grid.occupied.astype(np.uint8)}, str(tmp))
+        write_json(directory / "scene.json", {**self.config.to_dict(), "fingerprint": self.fingerprint()})
+        return directory
+
+
+def build_fields(config: SceneConfig) -> tuple[NeRFField, NeRFField | None]:
+    return NeRFField(config.coarse), NeRFField(config.fine) if config.fine is not None else None
+
+
+def _load_field_weights(field: NeRFField, tensors: dict[str, np.ndarray], prefix: str, path: Path) -> None:
+    expected = field.state_dict()
+    found = {k[len(prefix) + 1:]: v for k, v in tensors.items() if k.startswith(prefix + ".")}
+    if set(found) != set(expected):
+        missing, extra = sorted(set(expected) - set(found)), sorted(set(found) - set(expected))
+        raise UserError(f"{path}: {prefix} weights do not match the config (missing {missing[:3]}, "
+                        f"unexpected {extra[:3]})")
+    for name, value in found.items():
+        if tuple(value.shape) != tuple(expected[name].shape):
+            raise UserError(f"{path}: {prefix}.{name} has shape {tuple(value.shape)}, "
+                            f"the config needs {tuple(expected[name].shape)}")
+    field.load_state_dict({k: torch.from_numpy(np.asarray(v, dtype=np.float32)) for k, v in found.items()})
+
+
+def load_scene(directory: str | Path) -> Scene:
+    """Load a scene directory written by `noisenerf fit` or `import-nerf-pytorch`, fields in eval mode."""
+    directory = Path(directory)
+    if not directory.is_dir() or not (directory / "scene.json").is_file():
+        raise UserError(f"not a scene directory (no scene.json): {directory}")
+    config = SceneConfig.from_dict(read_json(directory / "scene.json", "scene config"))
+    tensors = _read_safetensors(directory / "weights.safetensors")
+    coarse, fine = build_fields(config)
+    _load_field_weights(coarse, tensors, "coarse", directory / "weights.safetensors")
+    if fine is not None:
+        _load_field_weights(fine, tensors, "fine", directory / "weights.safetensors")
+    occupied = _read_safetensors(directory / "occupancy.safetensors").get("occupied")
+    if occupied is None or occupied.shape != (config.grid_resolution,) * 3:
+        raise UserError(f"{directory / 'occupancy.safetensors'}: no {config.grid_resolution}^3 'occupied' grid")
+    scene = Scene(config, coarse, fine, OccupancyGrid(config.aabb, occupied.astype(bool)))
+    for field in scene.fields().values():
+        field.eval().requires_grad_(False)
+    return scene
+
+
+def _read_safetensors(path: Path) -> dict[str, np.ndarray]:
+    try:
+        return load_file(str(path))
+    except FileNotFoundError:
+        raise UserError(f"missing file: {path}") from None
+    except (SafetensorError, OSError, ValueError) as error:
+        raise UserError(f"not a readable safetensors file: {path} ({error})") from None
