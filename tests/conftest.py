@@ -42,7 +42,7 @@ def tiny_scene_config(ndc: bool = False, fine: bool = False, width: int = 32, de
     sampling = SamplingConfig(0.0, 1.0, 16) if ndc else SamplingConfig(2.0, 6.0, 24)
     render = RenderConfig(sampling=sampling, background=(1.0, 1.0, 1.0),
                           ndc=NDCSpace(0.4, 0.3) if ndc else None, pixel_center=0.5)
-    return SceneConfig(coarse=field, fine=field if fine else None, n_importance=16 if fine else 0,
+    return SceneConfig(coarse=field, fine=field if fine else None, n_coarse=16 if fine else 0, n_importance=16 if fine else 0,
                        render=render, aabb=(-1.5, -1.5, -1.5, 1.5, 1.5, 1.5), grid_resolution=16,
                        cameras=tuple(cameras))
 

@@ -33,10 +33,16 @@ SCENE_FORMAT_VERSION = 1
 
 @dataclass(frozen=True)
 class SceneConfig:
-    """Everything about a scene but its weights."""
+    """Everything about a scene but its weights.
+
+    With a fine field, views are fitted (and nerf-pytorch renders reproduced) hierarchically with
+    n_coarse + n_importance samples; `render.sampling` is the uniform sampling that ordinary renders
+    with empty-space skipping use (torch or onnxruntime), on the render field alone.
+    """
 
     coarse: FieldConfig
     fine: FieldConfig | None
+    n_coarse: int
     n_importance: int
     render: RenderConfig
     aabb: tuple[float, ...]
@@ -51,6 +57,7 @@ class SceneConfig:
         return {
             "format_version": SCENE_FORMAT_VERSION,
             **self.architecture(),
+            "n_coarse": self.n_coarse,
             "n_importance": self.n_importance,
             "render": self.render.to_dict(),
             "aabb": list(self.aabb),
@@ -67,6 +74,7 @@ class SceneConfig:
             return SceneConfig(
                 coarse=FieldConfig.from_dict(data["coarse"]),
                 fine=FieldConfig.from_dict(data["fine"]) if data.get("fine") else None,
+                n_coarse=int(data["n_coarse"]),
                 n_importance=int(data["n_importance"]),
                 render=RenderConfig.from_dict(data["render"]),
                 aabb=tuple(float(v) for v in data["aabb"]),

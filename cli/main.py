@@ -1,0 +1,192 @@
+"""`noisenerf`: the sender's command line (fit, import, hide, export, demo, bench).
+
+Every subcommand imports its machinery lazily, so `--help` is instant and a missing torch is one clear
+line. Bad input is one line on stderr and exit code 2; `--json` prints one JSON object on stdout.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+from noisenerf.runtime.errors import UserError
+
+PROG = "noisenerf"
+
+
+def resolve_device(name: str):
+    """'auto' picks CUDA when torch sees a GPU; an explicit 'cuda' without one is refused."""
+    import torch
+
+    if name == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    if name.startswith("cuda") and not torch.cuda.is_available():
+        raise UserError("--device cuda requested but torch sees no CUDA device")
+    return torch.device(name)
+
+
+def emit(report: dict, as_json: bool, lines: list[str]) -> None:
+    """The result: one JSON object on stdout with --json, else readable lines."""
+    if as_json:
+        print(json.dumps(report))
+    else:
+        print("\n".join(lines))
+
+
+def cmd_fit(args) -> None:
+    from noisenerf.train.datasets import load_dataset
+    from noisenerf.train.fit import PRESETS, Budget, fit
+
+    if (args.minutes is None) == (args.iters is None):
+        raise UserError("give exactly one of --minutes M or --iters N")
+    if (args.iters is not None and args.iters < 1) or (args.minutes is not None and args.minutes <= 0):
+        raise UserError("--minutes and --iters must be positive")
+    config = PRESETS[args.preset]
+    if args.seed is not None or args.no_skip:
+        import dataclasses
+
+        config = dataclasses.replace(config, seed=config.seed if args.seed is None else args.seed,
+                                     skipping=config.skipping and not args.no_skip)
+    dataset = load_dataset(args.data_dir, resolution=args.resolution)
+    report = fit(dataset, Path(args.output), config, Budget(args.iters, args.minutes), resolve_device(args.device),
+                 progress=not args.quiet)
+    test = report["test"]
+    emit(report, args.json, [f"scene: {report['scene']}", f"steps: {report['steps']} in {report['seconds']} s",
+                             f"test PSNR {test['psnr']:.2f} dB, SSIM {test['ssim']:.4f} over {test['views']} views"])
+
+
+def cmd_import(args) -> None:
+    from noisenerf.train.import_nerf_pytorch import import_nerf_pytorch
+
+    scene = import_nerf_pytorch(Path(args.checkpoint), Path(args.config), Path(args.output),
+                                data_dir=Path(args.data_dir) if args.data_dir else None)
+    emit({"scene": args.output, "fingerprint": scene.fingerprint()}, args.json,
+         [f"scene: {args.output}", f"fingerprint: {scene.fingerprint()}"])
+
+
+def cmd_hide(args) -> None:
+    from noisenerf.runtime.images import load_secret
+    from noisenerf.train.hide import HideConfig, hide
+    from noisenerf.train.scene import load_scene
+
+    output = Path(args.output)
+    config = HideConfig(method=args.method, layout=args.layout or ("ray" if args.method == "exact" else "sample"),
+                        dtype=args.dtype or ("float16" if args.method == "exact" else "float32"),
+                        n_samples=args.samples, tile_size=args.tile_size, view=args.view, seed=args.seed)
+    scene = load_scene(args.scene_dir)
+    secret, warnings = load_secret(args.secret)
+    for warning in warnings:
+        print(f"{PROG}: warning: {warning}", file=sys.stderr)
+    report = hide(scene, secret, output, config, resolve_device(args.device), force=args.force,
+                  show_progress=not args.quiet)
+    emit(report, args.json, [
+        f"bundle: {report['bundle']} ({report['bundle_bytes']} bytes, {report['bytes_per_pixel']:.1f} B/px)",
+        f"tiles: {len(report['tiles'])}, exact fraction {report['exact_fraction']:.6f}, "
+        f"exact: {str(report['exact']).lower()}", f"seconds: {report['seconds']}"])
+
+
+def cmd_export(args) -> None:
+    from noisenerf.export.onnx_export import export_scene
+
+    report = export_scene(Path(args.scene_dir), Path(args.output))
+    emit(report, args.json, [f"model: {args.output}", *(f"{k}: {v}" for k, v in report.items())])
+
+
+def cmd_demo(args) -> None:
+    from noisenerf.train.demo import run_demo
+
+    report = run_demo(Path(args.output), resolve_device(args.device), show_progress=not args.quiet)
+    emit(report, args.json, report["summary"])
+
+
+def cmd_make_dataset(args) -> None:
+    from noisenerf.train.procedural import write_procedural_dataset
+
+    path = write_procedural_dataset(Path(args.output), size=args.size, seed=args.seed)
+    emit({"dataset": str(path)}, args.json, [f"dataset: {path}"])
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog=PROG, description=__doc__.splitlines()[0])
+    sub = parser.add_subparsers(dest="command", required=True)
+
+    def add(name: str, handler, help_text: str) -> argparse.ArgumentParser:
+        p = sub.add_parser(name, help=help_text, description=help_text)
+        p.set_defaults(handler=handler)
+        p.add_argument("--json", action="store_true", help="print one JSON object on stdout")
+        return p
+
+    def add_device(p: argparse.ArgumentParser) -> None:
+        p.add_argument("--device", default="auto", help="auto (CUDA if present, else CPU), cpu, or cuda")
+
+    p = add("fit", cmd_fit, "fit a NeRF to a NeRF-Synthetic or LLFF dataset")
+    p.add_argument("data_dir")
+    p.add_argument("-o", "--output", required=True, help="scene directory to write (resumes if it holds a checkpoint)")
+    p.add_argument("--preset", choices=("small", "paper"), default="small")
+    p.add_argument("--resolution", type=int, help="image width in pixels (default: the dataset's)")
+    p.add_argument("--minutes", type=float, help="wall-time budget")
+    p.add_argument("--iters", type=int, help="step budget (deterministic for a seed on CPU)")
+    p.add_argument("--seed", type=int)
+    p.add_argument("--no-skip", action="store_true", help="no occupancy grid or early termination (comparison)")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    add_device(p)
+
+    p = add("import-nerf-pytorch", cmd_import, "convert a nerf-pytorch checkpoint into a scene directory")
+    p.add_argument("checkpoint")
+    p.add_argument("--config", required=True, help="the nerf-pytorch config .txt the checkpoint was trained with")
+    p.add_argument("--data-dir", help="dataset folder (default: the config's datadir)")
+    p.add_argument("-o", "--output", required=True)
+
+    p = add("hide", cmd_hide, "hide a secret image in a scene; writes the secret bundle")
+    p.add_argument("scene_dir")
+    p.add_argument("secret", help="PNG/JPEG/TIFF/EXR; RGBA is composited over white")
+    p.add_argument("-o", "--output", required=True, help="the bundle file to write")
+    p.add_argument("--view", type=int, default=0, help="scene camera of the first tile")
+    p.add_argument("--tile-size", type=int, default=512, help="secrets larger than this are cut into tiles")
+    p.add_argument("--method", choices=("exact", "paper"), default="exact")
+    p.add_argument("--layout", choices=("ray", "sample"), help="noise per ray (exact default) or per sample (paper)")
+    p.add_argument("--dtype", choices=("float16", "float32"), help="noise storage (exact: float16, paper: float32)")
+    p.add_argument("--samples", type=int, default=4, help="samples per ray of the secret view")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--force", action="store_true", help="overwrite an existing bundle")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    add_device(p)
+
+    p = add("export", cmd_export, "export a scene's frozen field as one ONNX file with a noise input")
+    p.add_argument("scene_dir")
+    p.add_argument("-o", "--output", required=True)
+
+    p = add("demo", cmd_demo, "hide, export and reveal on the embedded demo scene and a generated secret")
+    p.add_argument("-o", "--output", default="noisenerf-demo", help="folder for the demo's files")
+    p.add_argument("--quiet", action="store_true", help="no progress bars")
+    add_device(p)
+
+    p = add("make-dataset", cmd_make_dataset, "write the procedural NeRF-Synthetic-format dataset")
+    p.add_argument("-o", "--output", required=True)
+    p.add_argument("--size", type=int, default=64)
+    p.add_argument("--seed", type=int, default=0)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    try:
+        args.handler(args)
+    except UserError as error:
+        print(f"{PROG}: error: {error}", file=sys.stderr)
+        return 2
+    except ModuleNotFoundError as error:
+        if error.name not in ("torch", "onnx"):
+            raise
+        print(f"{PROG}: error: '{args.command}' needs {error.name}: pip install 'noisenerf[train]'", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print(f"{PROG}: interrupted (progress so far is checkpointed; run again to resume)", file=sys.stderr)
+        return 130
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,139 @@
+"""Hiding: exact recovery in the torch render, frozen weights, tiles, resume, and what a bundle holds."""
+
+import hashlib
+
+import numpy as np
+import pytest
+import torch
+
+from conftest import make_tiny_scene
+from noisenerf.runtime.bundle import load_bundle
+from noisenerf.runtime.errors import UserError
+from noisenerf.runtime.reveal import reveal, to_uint8
+from noisenerf.train.hide import HideConfig, hide
+from noisenerf.train.solvers import PaperSettings
+from noisenerf.train.tiling import tile_rects
+
+CPU = torch.device("cpu")
+
+
+def random_secret(height, width, seed=0):
+    return np.random.default_rng(seed).integers(0, 256, (height, width, 3), dtype=np.uint8)
+
+
+def torch_noisy_field(field):
+    def evaluate(points, viewdirs, noise):
+        with torch.no_grad():
+            rgb, sigma = field(torch.from_numpy(points), torch.from_numpy(viewdirs), torch.from_numpy(noise))
+        return rgb.numpy(), sigma.numpy()
+    return evaluate
+
+
+@pytest.fixture(scope="module")
+def scene():
+    return make_tiny_scene(seed=0, width=64, depth=4)
+
+
+def weights_digest(scene):
+    digest = hashlib.sha256()
+    for name, value in sorted(scene.weight_arrays().items()):
+        digest.update(name.encode() + value.tobytes())
+    return digest.hexdigest()
+
+
+@pytest.mark.parametrize("dtype", ["float16", "float32"])
+def test_exact_hide_recovers_every_value_and_leaves_weights_unchanged(scene, tmp_path, dtype):
+    secret = random_secret(20, 30)
+    before = weights_digest(scene)
+    report = hide(scene, secret, tmp_path / "s.bundle", HideConfig(dtype=dtype, tile_size=16), CPU,
+                  show_progress=False)
+    assert weights_digest(scene) == before
+    assert report["exact"] and report["exact_fraction"] == 1.0
+    assert [t["rect"] for t in report["tiles"]] == [list(r) for r in tile_rects(30, 20, 16)]
+    bundle = load_bundle(tmp_path / "s.bundle")
+    assert bundle.dtype == dtype and bundle.tiles[0].noise.shape == (16, 16, 90)
+    revealed = reveal(bundle, scene.config.render, torch_noisy_field(scene.render_field))
+    np.testing.assert_array_equal(revealed.pixels, secret)
+    assert revealed.exact
+
+
+def test_bundle_holds_no_secret_and_other_weights_reveal_nothing(scene, tmp_path):
+    secret = random_secret(12, 12, seed=1)
+    hide(scene, secret, tmp_path / "s.bundle", HideConfig(), CPU, show_progress=False)
+    raw = (tmp_path / "s.bundle").read_bytes()
+    assert secret.tobytes() not in raw
+    bundle = load_bundle(tmp_path / "s.bundle")
+    other = make_tiny_scene(seed=1, width=64, depth=4)
+    assert other.fingerprint() != bundle.model_fingerprint
+    wrong = reveal(bundle, other.config.render, torch_noisy_field(other.render_field))
+    assert not wrong.exact
+    assert np.mean(wrong.pixels == secret) < 0.2
+
+
+def test_same_seed_gives_byte_identical_bundles(scene, tmp_path):
+    secret = random_secret(10, 14, seed=2)
+    for name in ("a", "b"):
+        hide(scene, secret, tmp_path / f"{name}.bundle", HideConfig(tile_size=16), CPU, show_progress=False)
+    assert (tmp_path / "a.bundle").read_bytes() == (tmp_path / "b.bundle").read_bytes()
+
+
+def test_interrupted_hide_resumes_to_a_byte_identical_bundle(scene, tmp_path, monkeypatch):
+    secret = random_secret(24, 24, seed=3)
+    config = HideConfig(tile_size=16, chunk_pixels=64)
+    hide(scene, secret, tmp_path / "whole.bundle", config, CPU, show_progress=False)
+
+    from noisenerf.train import hide as hide_module
+    original, saved = hide_module.Progress.save, []
+
+    def save_then_die(self, *args):
+        original(self, *args)
+        saved.append(args[:2])
+        if len(saved) == 5:
+            raise KeyboardInterrupt
+
+    monkeypatch.setattr(hide_module.Progress, "save", save_then_die)
+    with pytest.raises(KeyboardInterrupt):
+        hide(scene, secret, tmp_path / "resumed.bundle", config, CPU, show_progress=False)
+    assert not (tmp_path / "resumed.bundle").exists()
+    assert len(list((tmp_path / "resumed.bundle.partial").glob("*.safetensors"))) == 5
+    monkeypatch.setattr(hide_module.Progress, "save", original)
+    solved, solve_exact = [], hide_module.solve_exact
+    monkeypatch.setattr(hide_module, "solve_exact", lambda *a, **k: solved.append(1) or solve_exact(*a, **k))
+    hide(scene, secret, tmp_path / "resumed.bundle", config, CPU, show_progress=False)
+    assert len(solved) == 9 - 5  # tiles of 256, 128, 128 and 64 px make 9 chunks of 64; 5 were saved
+    assert (tmp_path / "resumed.bundle").read_bytes() == (tmp_path / "whole.bundle").read_bytes()
+    assert not (tmp_path / "resumed.bundle.partial").exists()
+
+
+def test_paper_method_runs_with_sample_layout_and_records_table3_points(scene, tmp_path):
+    secret = random_secret(12, 12, seed=4)
+    config = HideConfig(method="paper", layout="sample", dtype="float32",
+                        paper=PaperSettings(iters=6, mu=2, record_at=(2, 6)))
+    report = hide(scene, secret, tmp_path / "p.bundle", config, CPU, show_progress=False)
+    records = report["tiles"][0]["records"]
+    assert [r["iteration"] for r in records] == [2, 6]
+    assert records[1]["loss"] < records[0]["loss"]
+    assert load_bundle(tmp_path / "p.bundle").tiles[0].noise.shape == (12, 12, 4, 90)
+
+
+@pytest.mark.parametrize("kwargs, message", [
+    ({"view": 99}, "out of range"),
+    ({"tile_size": 4}, "tile-size must be at least"),
+    ({"method": "magic"}, "unknown method"),
+])
+def test_bad_settings_are_refused_and_write_nothing(scene, tmp_path, kwargs, message):
+    with pytest.raises(UserError, match=message):
+        hide(scene, random_secret(8, 8), tmp_path / "x.bundle", HideConfig(**kwargs), CPU, show_progress=False)
+    assert not (tmp_path / "x.bundle").exists()
+
+
+def test_existing_output_needs_force(scene, tmp_path):
+    (tmp_path / "x.bundle").write_bytes(b"keep")
+    with pytest.raises(UserError, match="--force"):
+        hide(scene, random_secret(8, 8), tmp_path / "x.bundle", HideConfig(), CPU, show_progress=False)
+    assert (tmp_path / "x.bundle").read_bytes() == b"keep"
+
+
+def test_quantisation_rounds_half_up():
+    values = np.array([0.0, 0.5 / 255, 0.49 / 255, 254.5 / 255, 1.2, -0.1], dtype=np.float32)
+    assert to_uint8(values).tolist() == [0, 1, 0, 255, 255, 0]

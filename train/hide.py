@@ -1,0 +1,229 @@
+"""`noisenerf hide`: train the noise that makes a frozen scene render a secret (Noise-NeRF).
+
+Work is split into tiles (one viewpoint each) and, in exact mode, into fixed chunks of pixels solved
+independently; each finished chunk is saved beside the output (OUT.partial/), so an interrupted hide
+run again with the same arguments resumes where it stopped and writes a byte-identical bundle.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+import shutil
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+from safetensors.torch import load_file, save_file
+from tqdm import tqdm
+
+import noisenerf
+from noisenerf.runtime.bundle import DTYPES, Bundle, Tile, secret_digest
+from noisenerf.runtime.errors import UserError
+from noisenerf.runtime.files import atomic_output, check_output_path
+from noisenerf.runtime.metrics import exact_fraction, psnr, ssim
+from noisenerf.runtime.reveal import to_uint8
+from noisenerf.runtime.sampling import SamplingConfig
+from noisenerf.train.scene import Scene
+from noisenerf.train.secret_view import SecretView
+from noisenerf.train.solvers import ExactSettings, PaperSettings, solve_exact, solve_paper
+from noisenerf.train.tiling import tile_camera, tile_rects
+
+TORCH_DTYPES = {"float16": torch.float16, "float32": torch.float32}
+
+
+@dataclass(frozen=True)
+class HideConfig:
+    """Everything that decides a bundle's bytes (saved in the bundle, and keyed for resume)."""
+
+    method: str = "exact"  # exact | paper
+    layout: str = "ray"  # ray: one noise vector per pixel; sample: one per sample (the paper's)
+    dtype: str = "float16"
+    n_samples: int = 4  # samples per ray of the secret view
+    tile_size: int = 512
+    view: int = 0
+    seed: int = 0
+    chunk_pixels: int = 16384
+    exact: ExactSettings = ExactSettings()
+    paper: PaperSettings = PaperSettings()
+
+    def __post_init__(self):
+        if self.method not in ("exact", "paper"):
+            raise UserError(f"unknown method {self.method!r} (exact or paper)")
+        if self.layout not in ("ray", "sample"):
+            raise UserError(f"unknown noise layout {self.layout!r} (ray or sample)")
+        if self.dtype not in DTYPES:
+            raise UserError(f"unknown noise dtype {self.dtype!r} (float16 or float32)")
+        if self.n_samples < 1:
+            raise UserError("the secret view needs at least one sample per ray")
+
+    def to_dict(self) -> dict:
+        return dataclasses.asdict(self)
+
+
+@dataclass(frozen=True)
+class HidePlan:
+    """The tiles to solve: rectangles, cameras and the secret's pixels for each."""
+
+    tiles: tuple[Tile, ...]  # noise still empty
+    secret: np.ndarray  # (H, W, 3) uint8
+
+
+def plan(scene: Scene, secret: np.ndarray, config: HideConfig) -> HidePlan:
+    height, width = secret.shape[:2]
+    if height < 1 or width < 1:
+        raise UserError("the secret image is empty")
+    n_cameras = len(scene.config.cameras)
+    if not 0 <= config.view < n_cameras:
+        raise UserError(f"--view {config.view} is out of range: the scene has {n_cameras} cameras (0..{n_cameras - 1})")
+    sampling = SamplingConfig(scene.config.render.sampling.near, scene.config.render.sampling.far, config.n_samples)
+    tiles = tuple(Tile(rect=rect, camera=tile_camera(scene.config.cameras, config.view, k, rect), sampling=sampling,
+                       noise=np.zeros(0, np.float32), view=(config.view + k) % n_cameras)
+                  for k, rect in enumerate(tile_rects(width, height, config.tile_size)))
+    return HidePlan(tiles, secret)
+
+
+def run_key(scene: Scene, secret: np.ndarray, config: HideConfig) -> str:
+    """What a resumable partial result belongs to: scene, secret and every setting."""
+    payload = json.dumps({"scene": scene.fingerprint(), "secret": secret_digest(secret), "shape": secret.shape,
+                          "config": config.to_dict()}, sort_keys=True)
+    return hashlib.sha256(payload.encode()).hexdigest()
+
+
+class Progress:
+    """Finished chunks of noise in OUT.partial/, keyed by the run; anything else there is discarded."""
+
+    def __init__(self, output: Path, key: str):
+        self.directory = output.with_name(output.name + ".partial")
+        if (self.directory / "key").is_file() and (self.directory / "key").read_text() != key:
+            shutil.rmtree(self.directory)
+        self.directory.mkdir(exist_ok=True)
+        (self.directory / "key").write_text(key)
+
+    def path(self, tile: int, chunk: int) -> Path:
+        return self.directory / f"tile{tile:04d}_chunk{chunk:05d}.safetensors"
+
+    def load(self, tile: int, chunk: int) -> dict | None:
+        path = self.path(tile, chunk)
+        return load_file(str(path)) if path.is_file() else None
+
+    def save(self, tile: int, chunk: int, tensors: dict) -> None:
+        with atomic_output(self.path(tile, chunk)) as tmp:
+            save_file({k: v.contiguous().cpu() for k, v in tensors.items()}, str(tmp))
+
+    def clear(self) -> None:
+        shutil.rmtree(self.directory, ignore_errors=True)
+
+
+def noise_shape(view: SecretView, config: HideConfig) -> tuple[int, int, int]:
+    samples = 1 if config.layout == "ray" else view.n_samples
+    return view.n_rays, samples, view.encoded.shape[-1]
+
+
+def hide_tile_exact(view: SecretView, pixels: torch.Tensor, shape: tuple[int, int], config: HideConfig,
+                    progress: Progress, k: int, bar) -> tuple[torch.Tensor, dict]:
+    """Solve a tile chunk by chunk (resuming saved chunks). pixels: (n, 3) uint8 -> noise (n, k, dims)."""
+    noise = torch.zeros(noise_shape(view, config), device=pixels.device)
+    counts = {"iterations": 0, "jacobians": 0, "renders": 0, "revivals": 0, "restarts": 0}
+    for c, start in enumerate(range(0, view.n_rays, config.chunk_pixels)):
+        index = torch.arange(start, min(start + config.chunk_pixels, view.n_rays), device=pixels.device)
+        saved = progress.load(k, c)
+        if saved is None:
+            generator = torch.Generator().manual_seed(config.seed * 1_000_003 + k * 10_007 + c)
+            result = solve_exact(view, index, pixels[index], noise[index], TORCH_DTYPES[config.dtype],
+                                 config.exact, generator)
+            saved = {"noise": result.noise, "counts": torch.tensor(
+                [result.iterations, result.jacobians, result.renders, result.revivals, result.restarts])}
+            progress.save(k, c, saved)
+        noise[index] = saved["noise"].to(noise.device)
+        counts["iterations"] = max(counts["iterations"], int(saved["counts"][0]))
+        for name, value in zip(("jacobians", "renders", "revivals", "restarts"), saved["counts"][1:].tolist()):
+            counts[name] += value
+        bar.update(len(index))
+    return noise, counts
+
+
+def hide_tile_paper(view: SecretView, pixels: torch.Tensor, shape: tuple[int, int], config: HideConfig,
+                    progress: Progress, k: int, bar) -> tuple[torch.Tensor, dict]:
+    """The paper's optimisation on the whole tile (resumes per tile). -> noise, {records}."""
+    saved = progress.load(k, 0)
+    if saved is None:
+        records = []
+
+        def record(t, colors, loss):
+            image = colors.reshape(-1, 3).cpu().numpy()
+            records.append({"iteration": t, "loss": loss, **quality(image, pixels.cpu().numpy(), shape)})
+
+        torch.manual_seed(config.seed + k)
+        noise = solve_paper(view, pixels, config.paper, torch.zeros(noise_shape(view, config), device=pixels.device),
+                            record)
+        noise = noise.to(TORCH_DTYPES[config.dtype]).float()
+        saved = {"noise": noise, "records": torch.tensor([[r["iteration"], r["loss"], r["ssim"] or 0, r["psnr"]]
+                                                          for r in records], dtype=torch.float64)}
+        progress.save(k, 0, saved)
+    bar.update(view.n_rays)
+    records = [{"iteration": int(r[0]), "loss": float(r[1]), "ssim": float(r[2]), "psnr": float(r[3])}
+               for r in saved["records"].tolist()]
+    return saved["noise"], {"records": records}
+
+
+def quality(colors: np.ndarray, pixels: np.ndarray, shape: tuple[int, int]) -> dict:
+    """Metrics of a rendered tile against its 8-bit target. colors: (n, 3) float, pixels: (n, 3) uint8."""
+    image, target = colors.reshape(*shape, 3), pixels.reshape(*shape, 3)
+    got = to_uint8(image)
+    return {
+        "exact_fraction": exact_fraction(got, target),
+        "max_error": int(np.abs(got.astype(np.int16) - target).max()),
+        "psnr": psnr(got / 255.0, target / 255.0),
+        "ssim": ssim(got / 255.0, target / 255.0) if min(shape) >= 11 else None,
+    }
+
+
+def hide(scene: Scene, secret: np.ndarray, output: Path, config: HideConfig, device: torch.device,
+         force: bool = False, show_progress: bool = True) -> dict:
+    """Hide `secret` (H, W, 3) uint8 in the scene; write the bundle to `output`; return the report."""
+    output = check_output_path(output, force=force)
+    hide_plan = plan(scene, secret, config)
+    scene.to(device)
+    field = scene.render_field
+    progress = Progress(output, run_key(scene, secret, config))
+    solve = hide_tile_exact if config.method == "exact" else hide_tile_paper
+    tiles, reports = [], []
+    started = time.perf_counter()
+    bar = tqdm(total=secret.shape[0] * secret.shape[1], unit="px", desc=f"hide ({config.method})",
+               disable=not show_progress, dynamic_ncols=True)
+    for k, tile in enumerate(hide_plan.tiles):
+        tile_start = time.perf_counter()
+        x0, y0, w, h = tile.rect
+        view = SecretView(field, tile, scene.config.render, device)
+        pixels = torch.from_numpy(np.ascontiguousarray(secret[y0:y0 + h, x0:x0 + w]).reshape(-1, 3)).to(device)
+        noise, counts = solve(view, pixels, (h, w), config, progress, k, bar)
+        with torch.no_grad():
+            colors = torch.cat([view.render(torch.arange(s, min(s + config.chunk_pixels, view.n_rays), device=device),
+                                            noise[s:s + config.chunk_pixels])
+                                for s in range(0, view.n_rays, config.chunk_pixels)])
+        stored = noise.reshape(h, w, *noise.shape[1:]) if config.layout == "sample" else noise.reshape(h, w, -1)
+        tiles.append(dataclasses.replace(tile, noise=stored.to(TORCH_DTYPES[config.dtype]).cpu().numpy()))
+        reports.append({"rect": list(tile.rect), "view": tile.view,
+                        **quality(colors.cpu().numpy(), pixels.cpu().numpy(), (h, w)),
+                        **counts, "seconds": round(time.perf_counter() - tile_start, 2)})
+    bar.close()
+    bundle = Bundle(model_fingerprint=scene.fingerprint(), width=secret.shape[1], height=secret.shape[0],
+                    secret_sha256=secret_digest(secret), layout=config.layout,
+                    noise_dims=field.config.noise_dims, dtype=config.dtype, tiles=tuple(tiles),
+                    extra={"method": config.method, "noisenerf": noisenerf.__version__,
+                           "config": config.to_dict()})
+    bundle.save(output)
+    progress.clear()
+    n_pixels = secret.shape[0] * secret.shape[1]
+    exact_pixels = sum(r["exact_fraction"] * r["rect"][2] * r["rect"][3] for r in reports)
+    return {
+        "bundle": str(output), "method": config.method, "layout": config.layout, "dtype": config.dtype,
+        "width": secret.shape[1], "height": secret.shape[0], "tiles": reports,
+        "exact_fraction": exact_pixels / n_pixels, "exact": all(r["exact_fraction"] == 1.0 for r in reports),
+        "bundle_bytes": output.stat().st_size, "bytes_per_pixel": bundle.noise_bytes() / n_pixels,
+        "seconds": round(time.perf_counter() - started, 2),
+    }
