@@ -19,6 +19,7 @@ import math
 import time
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
@@ -31,12 +32,14 @@ from noisenerf.runtime.files import atomic_output, read_json, write_json
 from noisenerf.runtime.metrics import psnr, ssim
 from noisenerf.runtime.render import RenderConfig, prepare_rays, render_view
 from noisenerf.runtime.sampling import SamplingConfig, jitter_positions, sample_positions
-from noisenerf.train.datasets import Dataset
 from noisenerf.train.field import FieldConfig
 from noisenerf.train.occupancy import OccupancyConfig, OccupancyTracker, build_occupancy_grid
 from noisenerf.train.renderer import TorchRays, numpy_field, render_hierarchical, render_masked
 from noisenerf.train.rendering import render_weights, sample_deltas
 from noisenerf.train.scene import Scene, SceneConfig, build_fields
+
+if TYPE_CHECKING:
+    from noisenerf.train.datasets import Dataset
 
 
 @dataclass(frozen=True)
@@ -186,8 +189,9 @@ class Fitter:
             if config.skipping:
                 self.tracker.maybe_update(self.coarse, self.step)
             t_vals = self._jittered(config.n_samples)
+            warm = config.skipping and self.step >= config.occupancy.warmup_steps
             mask = (skip_mask(self.coarse, rays, t_vals, self.tracker.grid, config.early_stop)
-                    if config.skipping else torch.ones_like(t_vals, dtype=torch.bool))
+                    if warm else torch.ones_like(t_vals, dtype=torch.bool))
             loss = fine_loss = torch.mean((render_masked(self.coarse, rays, t_vals, mask, self.background)
                                            - target) ** 2)
             self.samples_evaluated += int(mask.sum())
@@ -195,7 +199,7 @@ class Fitter:
         loss.backward()
         self.optimizer.step()
         self.step += 1
-        return float(fine_loss)
+        return float(fine_loss.detach())
 
     def _jittered(self, n_samples: int) -> torch.Tensor:
         sampling = SamplingConfig(self.dataset.near, self.dataset.far, n_samples)

@@ -2,7 +2,9 @@
 
 A cell is occupied when a sample there would be visible: opacity 1 − exp(−σ·step) above a threshold
 (σ·step > 0.01, nerfacc's rule), with σ the largest density seen at jittered points in the cell.
-During fitting a decaying running maximum is refreshed on a random share of cells every few steps.
+During fitting a decaying running maximum is refreshed on a random share of cells every few steps, and
+the threshold is never above the mean (also nerfacc's rule), so a young field whose densities are all
+still small is never skipped entirely.
 """
 
 from __future__ import annotations
@@ -23,7 +25,7 @@ class OccupancyConfig:
     opacity_threshold: float = 0.01
     ema_decay: float = 0.95
     update_every: int = 16
-    warmup_steps: int = 256
+    warmup_steps: int = 32
     update_fraction: float = 0.25
     final_samples_per_cell: int = 4
 
@@ -71,7 +73,10 @@ class OccupancyTracker:
 
     @property
     def grid(self) -> OccupancyGrid:
-        occupied = self.density * self.step_size > self.config.opacity_threshold
+        opacity = self.density * self.step_size
+        threshold = min(self.config.opacity_threshold, float(np.mean(opacity))) if np.isfinite(opacity).all() \
+            else self.config.opacity_threshold
+        occupied = opacity > threshold
         return OccupancyGrid(self.aabb, occupied.reshape((self.config.resolution,) * 3))
 
     def maybe_update(self, field: NeRFField, step: int) -> bool:

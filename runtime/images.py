@@ -1,0 +1,195 @@
+"""Image files in and out (OpenImageIO), secret loading rules, and exact area-averaging resize.
+
+Pixels are (H, W, C) arrays. Alpha is always STRAIGHT (unassociated) in memory: files that store straight
+alpha (PNG, unassociated TIFF) are read with OpenImageIO's `oiio:UnassociatedAlpha` hint so it does not
+premultiply them; files that store associated alpha (EXR, associated TIFF) are divided by alpha on read.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+import OpenImageIO as oiio
+
+from noisenerf.runtime.errors import UserError
+from noisenerf.runtime.files import atomic_output
+from noisenerf.runtime.reveal import to_uint8
+
+# extension -> (OpenImageIO format name, pixel type written)
+WRITE_FORMATS = {
+    ".png": ("png", "uint8"), ".jpg": ("jpeg", "uint8"), ".jpeg": ("jpeg", "uint8"),
+    ".tif": ("tiff", "uint16"), ".tiff": ("tiff", "uint16"), ".exr": ("openexr", "float"),
+}
+JPEG_QUALITY = 95
+SECRET_CHANNELS = {1: "grey", 2: "grey+alpha", 3: "RGB", 4: "RGBA"}
+
+
+def _open(path: str | os.PathLike) -> oiio.ImageInput:
+    """An open ImageInput that leaves straight alpha straight, or one UserError naming the file."""
+    path = Path(path)
+    if not path.is_file():
+        raise UserError(f"image not found: {path}")
+    if path.stat().st_size == 0:
+        raise UserError(f"image file is empty: {path}")
+    config = oiio.ImageSpec()
+    config.attribute("oiio:UnassociatedAlpha", 1)
+    image = oiio.ImageInput.open(str(path), config)
+    if image is None:
+        raise UserError(f"cannot read image {path}: {oiio.geterror() or 'unknown format'}")
+    return image
+
+
+def image_shape(path: str | os.PathLike) -> tuple[int, int, int]:
+    """(height, width, channels) from the file header, without decoding pixels."""
+    image = _open(path)
+    spec = image.spec()
+    image.close()
+    if spec.width < 1 or spec.height < 1 or spec.nchannels < 1:
+        raise UserError(f"image has no pixels: {path}")
+    return spec.height, spec.width, spec.nchannels
+
+
+def read_native(path: str | os.PathLike) -> np.ndarray:
+    """Pixels as stored, (H, W, C): integers in their stored type, floats as float32; alpha straight.
+
+    Associated alpha (EXR, associated TIFF) is converted to straight, which needs floats: such files come
+    back as float32 in [0, 1] for integer storage.
+    """
+    image = _open(path)
+    spec = image.spec()
+    pixels = image.read_image(oiio.UNKNOWN)
+    error = image.geterror()
+    image.close()
+    if pixels is None or pixels.size == 0:
+        raise UserError(f"cannot read image {path}: {error or 'no pixels'}")
+    pixels = pixels.reshape(spec.height, spec.width, spec.nchannels)
+    if pixels.dtype.kind == "f":
+        pixels = pixels.astype(np.float32)
+    straight = spec.alpha_channel < 0 or spec.get_int_attribute("oiio:UnassociatedAlpha", 0) == 1
+    return pixels if straight else unpremultiply(normalized(pixels), spec.alpha_channel)
+
+
+def normalized(pixels: np.ndarray) -> np.ndarray:
+    """Integer pixels to float32 in [0, 1] (value / max); float pixels unchanged. (H, W, C) -> (H, W, C)."""
+    if np.issubdtype(pixels.dtype, np.integer):
+        return pixels.astype(np.float32) / np.float32(np.iinfo(pixels.dtype).max)
+    return pixels.astype(np.float32)
+
+
+def unpremultiply(pixels: np.ndarray, alpha_channel: int) -> np.ndarray:
+    """Associated to straight alpha; colour stays 0 where alpha is 0. (H, W, C) float32 -> same."""
+    alpha = pixels[..., alpha_channel:alpha_channel + 1]
+    scale = np.divide(1.0, alpha, out=np.zeros_like(alpha), where=alpha > 0)
+    colour = np.arange(pixels.shape[-1]) != alpha_channel
+    return np.where(colour, pixels * scale, pixels).astype(np.float32)
+
+
+def read_image(path: str | os.PathLike) -> np.ndarray:
+    """An image as (H, W, C) float32: [0, 1] for 8/16-bit files, raw values for float files; straight alpha."""
+    return normalized(read_native(path))
+
+
+def composite_over(pixels: np.ndarray, background) -> np.ndarray:
+    """Straight-alpha colour over a constant background. (H, W, C+1) float -> (H, W, C) float32."""
+    colour, alpha = pixels[..., :-1], pixels[..., -1:]
+    return (colour * alpha + np.asarray(background, np.float32) * (1.0 - alpha)).astype(np.float32, copy=False)
+
+
+def load_secret(path: str | os.PathLike) -> tuple[np.ndarray, list[str]]:
+    """The secret image as (H, W, 3) uint8, plus human-readable warnings.
+
+    Rules:
+    - PNG, JPEG, TIFF or EXR (anything OpenImageIO reads), 8-bit, 16-bit or float.
+    - grey -> RGB by repeating the channel; grey+alpha and RGBA are composited over white (straight alpha).
+    - 8-bit grey/RGB pass through bit-exactly; other values are quantised with `to_uint8` (round half up),
+      16-bit as value / 65535.
+    - float values outside [0, 1] are clipped, with a warning; NaN is refused.
+    - a missing, empty or unreadable file, or a channel count other than 1–4, is a UserError naming the file.
+    """
+    pixels = read_native(path)
+    channels = pixels.shape[-1]
+    if channels not in SECRET_CHANNELS:
+        raise UserError(f"secret image {path} has {channels} channels; expected {', '.join(SECRET_CHANNELS.values())}")
+    if pixels.dtype == np.uint8 and channels in (1, 3):
+        return np.ascontiguousarray(np.broadcast_to(pixels, pixels.shape[:2] + (3,))), []
+    values = normalized(pixels)
+    if np.isnan(values).any():
+        raise UserError(f"secret image {path} contains NaN values")
+    warnings = []
+    outside = np.count_nonzero((values < 0) | (values > 1))
+    if outside:
+        warnings.append(f"{path}: {outside} values outside [0, 1] clipped")
+        values = np.clip(values, 0.0, 1.0)
+    if channels in (2, 4):
+        values = composite_over(values, 1.0)
+    return to_uint8(np.broadcast_to(values, values.shape[:2] + (3,))), warnings
+
+
+def encoded(image: np.ndarray, pixel_type: str) -> np.ndarray:
+    """(H, W, C) uint8 or float in [0, 1] -> pixels of the written type: uint8, uint16 or float32."""
+    if image.dtype == np.uint8 and pixel_type == "uint8":
+        return image
+    values = normalized(image)
+    if pixel_type == "uint8":
+        return to_uint8(values)
+    if pixel_type == "uint16":
+        return np.floor(np.clip(values, 0.0, 1.0) * 65535.0 + 0.5).astype(np.uint16)
+    return values
+
+
+def write_image(path: str | os.PathLike, image: np.ndarray) -> None:
+    """Write (H, W, 3) RGB or (H, W, 4) straight RGBA, uint8 or float in [0, 1], atomically.
+
+    By extension: .png (also for a path without extension) and .jpg/.jpeg (quality 95, alpha dropped)
+    8-bit, floats via `to_uint8`; .tif/.tiff 16-bit (round half up of v·65535, 8-bit as v·257); .exr 32-bit
+    float (exact values, alpha premultiplied as EXR requires). A missing folder or unknown extension is a
+    UserError.
+    """
+    path = Path(path)
+    suffix = path.suffix.lower() or ".png"
+    if suffix not in WRITE_FORMATS:
+        raise UserError(f"unknown image extension {path.suffix!r} for {path}; use one of {', '.join(WRITE_FORMATS)}")
+    image = np.asarray(image)
+    if image.ndim != 3 or image.shape[-1] not in (3, 4) or not (image.dtype == np.uint8 or image.dtype.kind == "f"):
+        raise ValueError(f"write_image needs (H, W, 3|4) uint8 or float pixels, got {image.shape} {image.dtype}")
+    format_name, pixel_type = WRITE_FORMATS[suffix]
+    pixels = encoded(image, pixel_type)
+    spec = oiio.ImageSpec(image.shape[1], image.shape[0], image.shape[2], pixel_type)
+    if image.shape[-1] == 4 and format_name == "openexr":
+        pixels = np.concatenate([pixels[..., :3] * pixels[..., 3:], pixels[..., 3:]], axis=-1)
+    elif image.shape[-1] == 4:
+        spec.attribute("oiio:UnassociatedAlpha", 1)  # else OpenImageIO would divide by alpha on write
+    if format_name == "jpeg":
+        spec.attribute("Compression", f"jpeg:{JPEG_QUALITY}")
+    with atomic_output(path) as tmp:
+        output = oiio.ImageOutput.create(format_name)
+        # write_image after a failed open crashes the interpreter, so check open first
+        if not output.open(str(tmp), spec):
+            raise UserError(f"cannot write image {path}: {output.geterror()}")
+        written = output.write_image(np.ascontiguousarray(pixels))
+        error = output.geterror()
+        output.close()
+        if not written:
+            raise UserError(f"cannot write image {path}: {error}")
+
+
+def area_weights(n_in: int, n_out: int) -> np.ndarray:
+    """Row i averages input pixels over the footprint [i, i + 1)·n_in/n_out by overlap. -> (n_out, n_in)."""
+    scale = n_in / n_out
+    starts = np.arange(n_out)[:, None] * scale
+    pixel = np.arange(n_in)[None, :]
+    overlap = np.minimum(starts + scale, pixel + 1) - np.maximum(starts, pixel)
+    return (np.clip(overlap, 0.0, None) / scale).astype(np.float32)
+
+
+def resize_image(image: np.ndarray, width: int, height: int) -> np.ndarray:
+    """Area-averaging (box) resize: each output pixel is the mean of the input area it covers, weighted by
+    overlap (exact block means for integer factors, like cv2's INTER_AREA). Numpy, separable.
+    (H, W, C) float32 -> (height, width, C) float32.
+    """
+    if width < 1 or height < 1:
+        raise ValueError(f"resize to {width}x{height}")
+    rows = np.tensordot(area_weights(image.shape[0], height), image.astype(np.float32), axes=(1, 0))
+    return np.tensordot(rows, area_weights(image.shape[1], width), axes=(1, 1)).transpose(0, 2, 1).copy()

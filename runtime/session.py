@@ -1,0 +1,126 @@
+"""The frozen field behind onnxruntime: the numpy field callback every render and reveal runs on.
+
+The model is always read into memory and handed to onnxruntime as bytes. That makes a model whose
+weights live in external data files fail to load (there is no folder to resolve them against), which
+is what we want: a noisenerf model is one self-contained file.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+import onnxruntime as ort
+
+from noisenerf.runtime.errors import UserError
+
+INPUT_NAMES = ("points", "viewdirs", "noise")
+OUTPUT_NAMES = ("rgb", "sigma")
+DEVICES = {"cpu": "CPUExecutionProvider", "cuda": "CUDAExecutionProvider"}
+DEFAULT_CHUNK = 16384  # points per run: as fast as larger chunks on CPU, ~16 MB per 256-wide activation
+SILENT = 4  # onnxruntime's FATAL log level: every error also raises, and is reported once by our callers
+
+
+def available_cores() -> int:
+    """CPUs this process may run on (honours taskset / cgroup affinity where the OS exposes it)."""
+    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
+
+
+def providers_for(device: str) -> list[str]:
+    """onnxruntime execution providers for a device name, refusing one this installation lacks."""
+    if device not in DEVICES:
+        raise UserError(f"unknown device {device!r} (expected one of {', '.join(DEVICES)})")
+    provider = DEVICES[device]
+    available = ort.get_available_providers()
+    if provider not in available:
+        raise UserError(f"device {device!r} needs onnxruntime's {provider}, which this installation lacks "
+                        f"(available: {', '.join(available)}); install onnxruntime-gpu for cuda")
+    return [provider] if device == "cpu" else [provider, DEVICES["cpu"]]
+
+
+def session_options(threads: int | None) -> ort.SessionOptions:
+    """Intra-op threads (default: all cores); one inter-op thread, the graph being a single chain."""
+    threads = available_cores() if threads is None else threads
+    if threads < 1:
+        raise UserError(f"threads must be at least 1, got {threads}")
+    options = ort.SessionOptions()
+    options.intra_op_num_threads = threads
+    options.inter_op_num_threads = 1
+    options.log_severity_level = SILENT
+    return options
+
+
+def load_failure(source: str, error: Exception) -> UserError:
+    """One readable line for a model onnxruntime could not load."""
+    message = str(error)
+    if "model_path" in message or "external" in message.lower():
+        return UserError(f"{source} keeps its weights in external data files; "
+                         "a noisenerf model must be one self-contained .onnx file")
+    detail = message.replace("\n", " ").strip()
+    return UserError(f"{source} is not a loadable ONNX model (not ONNX, or truncated): {detail[:200]}")
+
+
+def read_model_bytes(model: str | os.PathLike | bytes) -> tuple[bytes, str]:
+    """The model's bytes and a name for messages."""
+    if isinstance(model, bytes):
+        return model, "model"
+    path = Path(model)
+    if not path.is_file():
+        raise UserError(f"model not found: {path}")
+    return path.read_bytes(), str(path)
+
+
+def check_ports(session: ort.InferenceSession, source: str) -> int:
+    """Refuse a graph without our inputs and outputs; returns the noise width."""
+    inputs = {node.name: node.shape for node in session.get_inputs()}
+    outputs = {node.name for node in session.get_outputs()}
+    if set(inputs) != set(INPUT_NAMES) or not set(OUTPUT_NAMES) <= outputs:
+        raise UserError(f"{source} is not a noisenerf field: inputs {sorted(inputs)}, outputs {sorted(outputs)} "
+                        f"(expected inputs {list(INPUT_NAMES)}, outputs {list(OUTPUT_NAMES)})")
+    noise_dims = inputs["noise"][-1]
+    if not isinstance(noise_dims, int):
+        raise UserError(f"{source}: the noise input has no fixed width ({inputs['noise']})")
+    return noise_dims
+
+
+class OnnxField:
+    """field(points (n, 3), viewdirs (n, 3), noise (n, noise_dims) | None) -> rgb (n, 3), sigma (n,).
+
+    Satisfies both runtime.sampling.FieldFn (no noise) and runtime.reveal.NoisyFieldFn; inputs are run
+    in chunks of at most `chunk` points so that memory stays bounded whatever the caller passes.
+    """
+
+    def __init__(self, model: str | os.PathLike | bytes, device: str = "cpu", threads: int | None = None,
+                 chunk: int = DEFAULT_CHUNK):
+        if chunk < 1:
+            raise UserError(f"chunk must be at least 1 point, got {chunk}")
+        data, self.source = read_model_bytes(model)
+        options, providers = session_options(threads), providers_for(device)
+        try:
+            self.session = ort.InferenceSession(data, options, providers=providers)
+        except Exception as error:  # onnxruntime's pybind errors share no base class but Exception
+            raise load_failure(self.source, error) from None
+        self.noise_dims = check_ports(self.session, self.source)
+        self.chunk = chunk
+
+    def __call__(self, points: np.ndarray, viewdirs: np.ndarray, noise: np.ndarray | None = None
+                 ) -> tuple[np.ndarray, np.ndarray]:
+        n = points.shape[0]
+        if noise is None:
+            noise = np.zeros((n, self.noise_dims), dtype=np.float32)
+        if points.shape != (n, 3) or viewdirs.shape != (n, 3) or noise.shape != (n, self.noise_dims):
+            raise ValueError(f"field inputs must be (n, 3), (n, 3), (n, {self.noise_dims}); got "
+                             f"{points.shape}, {viewdirs.shape}, {noise.shape}")
+        rgb = np.empty((n, 3), dtype=np.float32)
+        sigma = np.empty(n, dtype=np.float32)
+        for start in range(0, n, self.chunk):
+            window = slice(start, start + self.chunk)
+            feed = {name: np.ascontiguousarray(array[window], dtype=np.float32)
+                    for name, array in zip(INPUT_NAMES, (points, viewdirs, noise))}
+            rgb[window], sigma[window] = self.session.run(list(OUTPUT_NAMES), feed)
+        return rgb, sigma
+
+    def metadata(self) -> dict[str, str]:
+        """The model's metadata_props, read through onnxruntime (no onnx package needed)."""
+        return dict(self.session.get_modelmeta().custom_metadata_map)

@@ -1,0 +1,212 @@
+"""Image I/O: straight alpha, bit-exact 8-bit, 16-bit and float conversion, secret rules, atomic writes, resize."""
+
+from __future__ import annotations
+
+import types
+
+import numpy as np
+import OpenImageIO as oiio
+import pytest
+
+from noisenerf.runtime import images
+from noisenerf.runtime.errors import UserError
+from noisenerf.runtime.images import image_shape, load_secret, read_image, resize_image, write_image
+
+
+def write_raw(path, pixels: np.ndarray, pixel_type: str, unassociated: bool = False):
+    """Write pixels with OpenImageIO directly, independent of write_image."""
+    spec = oiio.ImageSpec(pixels.shape[1], pixels.shape[0], pixels.shape[2], pixel_type)
+    if unassociated:
+        spec.attribute("oiio:UnassociatedAlpha", 1)
+    out = oiio.ImageOutput.create(str(path))
+    assert out.open(str(path), spec), out.geterror()
+    assert out.write_image(pixels)
+    out.close()
+    return path
+
+
+def read_raw(path) -> np.ndarray:
+    """Pixels as stored (alpha not premultiplied), read with OpenImageIO directly."""
+    config = oiio.ImageSpec()
+    config.attribute("oiio:UnassociatedAlpha", 1)
+    image = oiio.ImageInput.open(str(path), config)
+    pixels = image.read_image(oiio.UNKNOWN)
+    image.close()
+    return pixels
+
+
+# ---- reading -------------------------------------------------------------------------------------
+
+@pytest.mark.parametrize("name, dtype", [("half.png", np.uint8), ("half.tif", np.uint16)])
+def test_straight_alpha_reads_back_straight(tmp_path, name, dtype):
+    top = np.iinfo(dtype).max
+    pixels = np.array([[[top, top, top, top // 2 + 1]]], dtype)
+    path = write_raw(tmp_path / name, pixels, dtype.__name__, unassociated=True)
+    image = read_image(path)
+    assert image.dtype == np.float32 and image.shape == (1, 1, 4)
+    np.testing.assert_array_equal(image[0, 0], [1.0, 1.0, 1.0, np.float32(top // 2 + 1) / np.float32(top)])
+    # OpenImageIO's default would have premultiplied: the pixel above does catch that
+    default = oiio.ImageInput.open(str(path))
+    assert default.read_image("float")[0, 0, 0] == pytest.approx(0.5, abs=0.01)
+    default.close()
+
+
+def test_exr_associated_alpha_is_made_straight(tmp_path):
+    pixels = np.array([[[0.25, 0.1, 0.0, 0.5], [0.0, 0.0, 0.0, 0.0]]], np.float32)  # premultiplied, as EXR is
+    image = read_image(write_raw(tmp_path / "a.exr", pixels, "float"))
+    np.testing.assert_allclose(image[0, 0], [0.5, 0.2, 0.0, 0.5], rtol=1e-6)
+    np.testing.assert_array_equal(image[0, 1], [0.0, 0.0, 0.0, 0.0])
+
+
+def test_16_bit_reads_as_unit_range_and_float_raw(tmp_path):
+    values = np.array([[[0], [32768], [65535]]], np.uint16)
+    image = read_image(write_raw(tmp_path / "a.tif", values, "uint16"))
+    np.testing.assert_allclose(image.ravel(), [0.0, 32768 / 65535, 1.0], rtol=1e-7)
+    raw = read_image(write_raw(tmp_path / "b.exr", np.array([[[-2.0, 7.5, 0.25]]], np.float32), "float"))
+    np.testing.assert_array_equal(raw.ravel(), [-2.0, 7.5, 0.25])
+    assert image_shape(tmp_path / "a.tif") == (1, 3, 1)
+
+
+# ---- secrets -------------------------------------------------------------------------------------
+
+def test_8_bit_secret_passes_through_bit_exactly(tmp_path):
+    pixels = np.random.default_rng(0).permutation(np.arange(256 * 3, dtype=np.int64) % 256).astype(np.uint8)
+    pixels = pixels.reshape(16, 16, 3)
+    secret, warnings = load_secret(write_raw(tmp_path / "s.png", pixels, "uint8"))
+    np.testing.assert_array_equal(secret, pixels)
+    assert secret.dtype == np.uint8 and warnings == []
+    grey, _ = load_secret(write_raw(tmp_path / "g.png", pixels[..., :1], "uint8"))
+    np.testing.assert_array_equal(grey, np.repeat(pixels[..., :1], 3, axis=-1))
+
+
+def test_16_bit_secret_rounds_half_up(tmp_path):
+    values = np.array([[[0, 128 * 257, 32767, 32768, 65535]]], np.uint16).reshape(1, 5, 1)
+    secret, _ = load_secret(write_raw(tmp_path / "s.tif", np.repeat(values, 3, axis=-1), "uint16"))
+    # 32767 / 65535 · 255 = 127.498, 32768 / 65535 · 255 = 127.502
+    np.testing.assert_array_equal(secret[0, :, 0], [0, 128, 127, 128, 255])
+
+
+def test_alpha_secrets_are_composited_over_white(tmp_path):
+    rgba = np.array([[[255, 0, 0, 128], [10, 20, 30, 0], [10, 20, 30, 255]]], np.uint8)
+    secret, _ = load_secret(write_raw(tmp_path / "rgba.png", rgba, "uint8", unassociated=True))
+    np.testing.assert_array_equal(secret[0], [[255, 127, 127], [255, 255, 255], [10, 20, 30]])
+    grey_alpha = np.array([[[0, 51]]], np.uint8)  # black at 20 % over white: 0.8 · 255
+    secret, _ = load_secret(write_raw(tmp_path / "ya.png", grey_alpha, "uint8", unassociated=True))
+    np.testing.assert_array_equal(secret[0, 0], [204, 204, 204])
+
+
+def test_float_secret_is_clipped_with_a_warning(tmp_path):
+    pixels = np.array([[[-0.5, 1.5, 0.5]]], np.float32)
+    secret, warnings = load_secret(write_raw(tmp_path / "s.exr", pixels, "float"))
+    np.testing.assert_array_equal(secret[0, 0], [0, 255, 128])
+    assert len(warnings) == 1 and "2 values outside [0, 1] clipped" in warnings[0]
+
+
+@pytest.mark.parametrize("name, content, message", [
+    ("missing.png", None, "image not found: .*missing.png"),
+    ("empty.png", b"", "image file is empty: .*empty.png"),
+    ("garbage.png", b"not an image at all", "cannot read image .*garbage.png"),
+])
+def test_unreadable_secrets_are_user_errors(tmp_path, name, content, message):
+    if content is not None:
+        (tmp_path / name).write_bytes(content)
+    with pytest.raises(UserError, match=message):
+        load_secret(tmp_path / name)
+
+
+def test_five_channel_secret_is_refused(tmp_path):
+    path = write_raw(tmp_path / "five.tif", np.zeros((2, 2, 5), np.uint8), "uint8")
+    with pytest.raises(UserError, match="five.tif has 5 channels"):
+        load_secret(path)
+
+
+# ---- writing -------------------------------------------------------------------------------------
+
+def test_write_png_uint8_exact_and_float_rounded_half_up(tmp_path):
+    pixels = np.arange(48, dtype=np.uint8).reshape(4, 4, 3) * 5
+    write_image(tmp_path / "a.png", pixels)
+    np.testing.assert_array_equal(read_raw(tmp_path / "a.png"), pixels)
+    write_image(tmp_path / "b.png", np.array([[[0.5, 1.0 / 510.0, 1.2]]], np.float32))
+    np.testing.assert_array_equal(read_raw(tmp_path / "b.png")[0, 0], [128, 1, 255])
+    write_image(tmp_path / "no_extension", pixels)
+    assert (tmp_path / "no_extension").read_bytes()[1:4] == b"PNG"
+
+
+def test_write_tiff_16_bit_and_exr_float(tmp_path):
+    write_image(tmp_path / "a.tif", np.array([[[0, 1, 255]]], np.uint8))
+    np.testing.assert_array_equal(read_raw(tmp_path / "a.tif")[0, 0], [0, 257, 65535])
+    write_image(tmp_path / "b.tiff", np.array([[[0.5, 0.25, 1.0]]], np.float32))
+    np.testing.assert_array_equal(read_raw(tmp_path / "b.tiff")[0, 0], [32768, 16384, 65535])
+    values = np.array([[[0.123456, 0.5, 0.987654]]], np.float32)
+    write_image(tmp_path / "c.exr", values)
+    stored = read_raw(tmp_path / "c.exr")
+    assert stored.dtype == np.float32
+    np.testing.assert_array_equal(stored, values)
+
+
+def test_rgba_round_trips_with_straight_alpha(tmp_path):
+    rgba = np.array([[[200, 100, 50, 64], [1, 2, 3, 255]]], np.uint8)
+    write_image(tmp_path / "a.png", rgba)
+    np.testing.assert_array_equal(read_raw(tmp_path / "a.png"), rgba)
+
+
+def test_write_refuses_unknown_extension_and_missing_folder(tmp_path):
+    image = np.zeros((2, 2, 3), np.uint8)
+    with pytest.raises(UserError, match="unknown image extension '.bmpx'"):
+        write_image(tmp_path / "a.bmpx", image)
+    with pytest.raises(UserError, match="output folder does not exist"):
+        write_image(tmp_path / "nowhere" / "a.png", image)
+
+
+class FailingOutput:
+    """An ImageOutput that starts the file, then fails mid-write as a full disk would."""
+
+    def open(self, path, spec):
+        with open(path, "wb") as file:
+            file.write(b"partial")
+        return True
+
+    def write_image(self, pixels):
+        return False
+
+    def geterror(self):
+        return "No space left on device"
+
+    def close(self):
+        pass
+
+
+def test_failed_write_leaves_no_partial_file(tmp_path, monkeypatch):
+    target = tmp_path / "keep.png"
+    target.write_bytes(b"previous")
+    fake = types.SimpleNamespace(ImageSpec=oiio.ImageSpec,
+                                 ImageOutput=types.SimpleNamespace(create=lambda name: FailingOutput()))
+    monkeypatch.setattr(images, "oiio", fake)
+    with pytest.raises(UserError, match="cannot write image .*keep.png: No space left on device"):
+        write_image(target, np.zeros((2, 2, 3), np.uint8))
+    assert target.read_bytes() == b"previous"
+    assert [p.name for p in tmp_path.iterdir()] == ["keep.png"]
+
+
+# ---- resize --------------------------------------------------------------------------------------
+
+def test_resize_integer_factor_is_block_mean():
+    image = np.random.default_rng(1).random((8, 12, 2), dtype=np.float32)
+    small = resize_image(image, 3, 2)
+    np.testing.assert_allclose(small, image.reshape(2, 4, 3, 4, 2).mean(axis=(1, 3)), rtol=1e-6)
+
+
+def test_resize_fractional_factor_weights_by_overlap():
+    row = np.arange(6, dtype=np.float32).reshape(1, 6, 1)
+    # footprints of 1.5 px: [0, 1.5) -> (0 + 0.5·1) / 1.5, [1.5, 3) -> (0.5·1 + 2) / 1.5, ...
+    np.testing.assert_allclose(resize_image(row, 4, 1).ravel(), [1 / 3, 5 / 3, 10 / 3, 14 / 3], rtol=1e-6)
+    constant = np.full((7, 5, 3), 0.3, np.float32)
+    np.testing.assert_allclose(resize_image(constant, 3, 4), 0.3, rtol=1e-6)
+
+
+@pytest.mark.parametrize("name", ["ost/OST_013.png", "celeba_hq/female_039913.jpg"])
+def test_real_secrets_load_as_stored(shared_data, name):
+    path = shared_data / "secrets" / name
+    secret, warnings = load_secret(path)
+    assert secret.dtype == np.uint8 and secret.shape[-1] == 3 and warnings == []
+    np.testing.assert_array_equal(secret, read_raw(path)[..., :3])

@@ -1,0 +1,302 @@
+"""Scene datasets: NeRF-Synthetic (`transforms_*.json`) and LLFF (`poses_bounds.npy` + `images_N/`).
+
+Both load to one `Dataset`: images composited on a background, one `Camera` per image (OpenGL c2w, at the
+loaded resolution), splits, the ray interval and, for forward-facing LLFF scenes, nerf-pytorch's NDC space.
+LLFF poses follow nerf-pytorch's `load_llff_data(factor, recenter=True, bd_factor=.75, spherify=False)`
+operation for operation (float32), so imported nerf-pytorch checkpoints see the cameras they were trained on.
+"""
+
+from __future__ import annotations
+
+import math
+import re
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from noisenerf.runtime.camera import Camera, NDCSpace
+from noisenerf.runtime.errors import UserError
+from noisenerf.runtime.files import read_json
+from noisenerf.runtime.images import composite_over, image_shape, read_image, resize_image
+
+BLENDER_SPLITS = ("train", "val", "test")
+BLENDER_NEAR, BLENDER_FAR = 2.0, 6.0
+BLENDER_AABB = (-1.5, -1.5, -1.5, 1.5, 1.5, 1.5)
+LLFF_AABB = (-1.5, -1.5, -1.0, 1.5, 1.5, 1.0)  # in NDC space: x, y in [-1, 1], z in [-1, 1]
+LLFF_BD_FACTOR = 0.75
+LLFF_HOLD = 8  # nerf-pytorch's llffhold: every 8th view is held out
+LLFF_DEFAULT_FACTOR = 8
+LLFF_IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png")
+IMAGE_SUFFIXES = LLFF_IMAGE_SUFFIXES + (".tif", ".tiff", ".exr")
+
+
+@dataclass(frozen=True)
+class Dataset:
+    kind: str  # "blender" | "llff"
+    images: np.ndarray | None  # (n, H, W, 3) float32 composited on `background`; None if loaded without images
+    cameras: tuple[Camera, ...]  # one per image, at the loaded resolution
+    splits: dict[str, tuple[int, ...]]  # "train", "val", "test" -> indices into images / cameras
+    near: float  # ray interval in t (NDC scenes: 0, 1)
+    far: float
+    ndc: NDCSpace | None  # forward-facing scenes only
+    background: tuple[float, float, float]
+    aabb: tuple[float, ...]  # (xmin, ymin, zmin, xmax, ymax, zmax) in the field's space
+
+
+def load_dataset(data_dir, resolution: int | None = None, with_images: bool = True,
+                 background=(1.0, 1.0, 1.0), factor: int | None = None) -> Dataset:
+    """Load a NeRF-Synthetic or LLFF scene folder.
+
+    resolution: output width in pixels (height keeps the aspect ratio, rounded half up); None = as stored
+    (NeRF-Synthetic) or images_8 (LLFF). factor: LLFF only, load images_{factor} (nerf-pytorch's --factor).
+    with_images=False reads only image headers (sizes) and leaves `images` None.
+    """
+    data_dir = Path(data_dir)
+    if not data_dir.is_dir():
+        raise UserError(f"dataset folder not found: {data_dir}")
+    if resolution is not None and resolution < 1:
+        raise UserError(f"resolution must be a positive width in pixels, got {resolution}")
+    background = tuple(float(v) for v in background)
+    if len(background) != 3:
+        raise UserError(f"background must be three values (RGB), got {background}")
+    if (data_dir / "transforms_train.json").is_file():
+        return load_blender(data_dir, resolution, with_images, background)
+    if (data_dir / "poses_bounds.npy").is_file():
+        return load_llff(data_dir, resolution, with_images, background, factor)
+    raise UserError(f"{data_dir} is not a dataset: expected transforms_train.json (NeRF-Synthetic) "
+                    "or poses_bounds.npy with images_N/ (LLFF)")
+
+
+# ---- shared ------------------------------------------------------------------------------------
+
+def scaled_size(width: int, height: int, resolution: int | None) -> tuple[int, int]:
+    """(width, height) at `resolution` px wide, aspect kept, height rounded half up; None keeps the size."""
+    if resolution is None:
+        return width, height
+    if resolution > width:
+        raise UserError(f"resolution {resolution} is larger than the images ({width} px wide)")
+    return resolution, max(1, math.floor(height * resolution / width + 0.5))
+
+
+def common_shape(paths: list[Path], allowed_channels: tuple[int, ...]) -> tuple[int, int]:
+    """(height, width) shared by all images, from their headers; UserError on a mismatch or bad channels."""
+    shapes = [image_shape(path) for path in paths]
+    for path, (height, width, channels) in zip(paths, shapes):
+        if channels not in allowed_channels:
+            raise UserError(f"image {path} has {channels} channels; expected "
+                            f"{' or '.join(str(c) for c in allowed_channels)}")
+        if (height, width) != shapes[0][:2]:
+            raise UserError(f"image {path} is {width}x{height}, but {paths[0]} is {shapes[0][1]}x{shapes[0][0]}")
+    return shapes[0][:2]
+
+
+def load_rgb(path: Path, size: tuple[int, int], background: tuple[float, float, float],
+             composite: bool) -> np.ndarray:
+    """One image as RGB at size (width, height): alpha composited (or dropped), area-downscaled.
+    -> (height, width, 3) float32."""
+    pixels = read_image(path)
+    if pixels.shape[-1] == 4:
+        pixels = composite_over(pixels, background) if composite else pixels[..., :3]
+    if pixels.shape[1::-1] != size:
+        pixels = resize_image(pixels, *size)
+    return pixels
+
+
+def load_images(paths: list[Path], size: tuple[int, int], background: tuple[float, float, float],
+                composite: bool) -> np.ndarray:
+    """(n, height, width, 3) float32."""
+    images = np.empty((len(paths), size[1], size[0], 3), dtype=np.float32)
+    for k, path in enumerate(paths):
+        images[k] = load_rgb(path, size, background, composite)
+    return images
+
+
+# ---- NeRF-Synthetic ------------------------------------------------------------------------------
+
+@dataclass(frozen=True)
+class BlenderFrame:
+    path: Path
+    c2w: np.ndarray  # (4, 4) OpenGL camera-to-world
+    fov_x: float
+
+
+def image_path(data_dir: Path, file_path: str) -> Path:
+    """A frame's file: `file_path` relative to the dataset, `.png` added unless it names an image file."""
+    path = data_dir / file_path
+    return path if path.suffix.lower() in IMAGE_SUFFIXES else path.with_name(path.name + ".png")
+
+
+def parse_frame(data_dir: Path, frame, fov_x: float, where: str) -> BlenderFrame:
+    """One entry of `frames`; UserError naming `where` when malformed."""
+    if not isinstance(frame, dict) or not isinstance(frame.get("file_path"), str):
+        raise UserError(f"{where}: needs a string 'file_path'")
+    try:
+        c2w = np.asarray(frame["transform_matrix"], dtype=np.float64)
+    except (KeyError, TypeError, ValueError):
+        raise UserError(f"{where}: needs a numeric 4x4 'transform_matrix'") from None
+    if c2w.shape != (4, 4) or not np.isfinite(c2w).all():
+        raise UserError(f"{where}: 'transform_matrix' must be a finite 4x4 matrix")
+    return BlenderFrame(image_path(data_dir, frame["file_path"]), c2w, fov_x)
+
+
+def read_blender_split(data_dir: Path, split: str) -> list[BlenderFrame]:
+    """Frames of transforms_{split}.json; a missing val/test file is an empty split."""
+    path = data_dir / f"transforms_{split}.json"
+    if split != "train" and not path.is_file():
+        return []
+    meta = read_json(path, f"transforms_{split}.json")
+    fov_x = meta.get("camera_angle_x")
+    if not isinstance(fov_x, (int, float)) or not 0 < fov_x < math.pi:
+        raise UserError(f"{path}: 'camera_angle_x' must be an angle in radians in (0, pi)")
+    frames = meta.get("frames")
+    if not isinstance(frames, list) or (split == "train" and not frames):
+        raise UserError(f"{path}: 'frames' must be a list of frames (at least one for train)")
+    return [parse_frame(data_dir, frame, float(fov_x), f"{path} frame {k}") for k, frame in enumerate(frames)]
+
+
+def load_blender(data_dir: Path, resolution: int | None, with_images: bool,
+                 background: tuple[float, float, float]) -> Dataset:
+    """NeRF-Synthetic: c2w used as is, RGBA composited over `background` with straight alpha, then
+    area-downscaled; splits train, val, test concatenated in that order."""
+    per_split = {split: read_blender_split(data_dir, split) for split in BLENDER_SPLITS}
+    frames = [frame for split in BLENDER_SPLITS for frame in per_split[split]]
+    paths = [frame.path for frame in frames]
+    height, width = common_shape(paths, (3, 4))
+    size = scaled_size(width, height, resolution)
+    cameras = tuple(Camera.from_fov(frame.c2w, *size, frame.fov_x) for frame in frames)
+    counts = np.cumsum([0] + [len(per_split[split]) for split in BLENDER_SPLITS])
+    splits = {split: tuple(range(counts[k], counts[k + 1])) for k, split in enumerate(BLENDER_SPLITS)}
+    images = load_images(paths, size, background, composite=True) if with_images else None
+    return Dataset("blender", images, cameras, splits, BLENDER_NEAR, BLENDER_FAR, None, background, BLENDER_AABB)
+
+
+# ---- LLFF ----------------------------------------------------------------------------------------
+
+def read_poses_bounds(path: Path) -> tuple[np.ndarray, np.ndarray]:
+    """poses_bounds.npy (n, 17) -> LLFF poses (n, 3, 5) [down, right, back, t | h, w, f] and bounds (n, 2)."""
+    try:
+        array = np.load(path, allow_pickle=False)
+    except (OSError, ValueError) as error:
+        raise UserError(f"cannot read {path}: {error}") from None
+    if array.ndim != 2 or array.shape[1] != 17 or len(array) == 0 or not np.issubdtype(array.dtype, np.number):
+        raise UserError(f"{path} must hold an (n, 17) number array, got {array.shape} {array.dtype}")
+    if not np.isfinite(array).all():
+        raise UserError(f"{path} holds non-finite values")
+    if (array[:, 14] <= 0).any() or (array[:, 15:] <= 0).any():
+        raise UserError(f"{path}: focal lengths and depth bounds must be positive")
+    return array[:, :15].reshape(-1, 3, 5), array[:, 15:]
+
+
+def to_opengl(poses: np.ndarray) -> np.ndarray:
+    """LLFF's [down, right, back] axes to [right, up, back]. (n, 3, 5) -> (n, 3, 5), float32 as nerf-pytorch."""
+    return np.concatenate([poses[:, :, 1:2], -poses[:, :, 0:1], poses[:, :, 2:]], axis=2).astype(np.float32)
+
+
+def normalize(v: np.ndarray) -> np.ndarray:
+    return v / np.linalg.norm(v)
+
+
+def view_matrix(z: np.ndarray, up: np.ndarray, position: np.ndarray) -> np.ndarray:
+    """nerf-pytorch's viewmatrix: orthonormal axes from a back vector and an up hint. -> (3, 4)."""
+    z = normalize(z)
+    x = normalize(np.cross(up, z))
+    return np.stack([x, normalize(np.cross(z, x)), z, position], axis=1)
+
+
+def with_bottom_row(matrices: np.ndarray) -> np.ndarray:
+    """(..., 3, 4) -> (..., 4, 4) float64: nerf-pytorch's float64 [0, 0, 0, 1] row promotes float32 poses."""
+    bottom = np.broadcast_to(np.array([0.0, 0.0, 0.0, 1.0]), matrices.shape[:-2] + (1, 4))
+    return np.concatenate([matrices, bottom], axis=-2)
+
+
+def average_pose(c2w: np.ndarray) -> np.ndarray:
+    """nerf-pytorch's poses_avg without hwf: mean centre, summed back and up axes. (n, 3, 4) -> (3, 4)."""
+    return view_matrix(c2w[:, :, 2].sum(0), c2w[:, :, 1].sum(0), c2w[:, :, 3].mean(0))
+
+
+def recenter(c2w: np.ndarray) -> np.ndarray:
+    """nerf-pytorch's recenter_poses: every pose in the average pose's frame, computed in float64 as there.
+    (n, 3, 4) float32 -> (n, 4, 4) float32."""
+    return (np.linalg.inv(with_bottom_row(average_pose(c2w))) @ with_bottom_row(c2w)).astype(np.float32)
+
+
+def llff_c2w(poses: np.ndarray, bounds: np.ndarray) -> np.ndarray:
+    """LLFF poses (n, 3, 5) and bounds (n, 2) -> recentred OpenGL c2w (n, 4, 4) float32, scaled so the
+    nearest bound is 1/bd_factor."""
+    c2w = to_opengl(poses)[:, :, :4]
+    scale = 1.0 / (bounds.astype(np.float32).min() * LLFF_BD_FACTOR)
+    c2w[:, :, 3] *= scale
+    return recenter(c2w)
+
+
+def pinhole(c2w: np.ndarray, width: int, height: int, focal: float) -> Camera:
+    """Square pixels, principal point at the image centre (nerf-pytorch's K). c2w: (4, 4)."""
+    rows = tuple(tuple(float(v) for v in row) for row in c2w)
+    return Camera(rows, width, height, focal, focal, 0.5 * width, 0.5 * height)
+
+
+def llff_folders(data_dir: Path) -> dict[int, Path]:
+    """Downscale factor -> image folder: images/ is 1, images_N/ is N."""
+    folders = {}
+    for path in data_dir.iterdir():
+        match = re.fullmatch(r"images(?:_(\d+))?", path.name)
+        if match and path.is_dir():
+            folders[int(match.group(1) or 1)] = path
+    return folders
+
+
+def llff_image_files(folder: Path) -> list[Path]:
+    """The folder's .jpg/.jpeg/.png images (any case) in nerf-pytorch's order: sorted names."""
+    return sorted(path for path in folder.iterdir() if path.suffix.lower() in LLFF_IMAGE_SUFFIXES)
+
+
+def choose_factor(folders: dict[int, Path], resolution: int | None, factor: int | None) -> int:
+    """`factor` if given; else images_8 without a resolution; else the smallest images at least
+    `resolution` wide (least decoding, no upscaling)."""
+    available = ", ".join(path.name for _, path in sorted(folders.items())) or "none"
+    if factor is not None:
+        if factor not in folders:
+            raise UserError(f"LLFF folder images_{factor} not found (available: {available})")
+        return factor
+    if not folders:
+        raise UserError("LLFF dataset has no images_N/ folder next to poses_bounds.npy")
+    if resolution is None:
+        return LLFF_DEFAULT_FACTOR if LLFF_DEFAULT_FACTOR in folders else max(folders)
+    wide_enough = [f for f, folder in folders.items() if first_width(folder) >= resolution]
+    if not wide_enough:
+        raise UserError(f"no LLFF image folder is at least {resolution} px wide (available: {available})")
+    return max(wide_enough)
+
+
+def first_width(folder: Path) -> int:
+    files = llff_image_files(folder)
+    if not files:
+        raise UserError(f"no images in {folder}")
+    return image_shape(files[0])[1]
+
+
+def holdout_splits(n: int) -> dict[str, tuple[int, ...]]:
+    """nerf-pytorch's llffhold: test = every 8th view from 0, val = test, train = the rest."""
+    test = tuple(range(0, n, LLFF_HOLD))
+    return {"train": tuple(i for i in range(n) if i % LLFF_HOLD), "val": test, "test": test}
+
+
+def load_llff(data_dir: Path, resolution: int | None, with_images: bool,
+              background: tuple[float, float, float], factor: int | None) -> Dataset:
+    """LLFF as nerf-pytorch loads it, in NDC: focal = hwf focal / factor at the images_{factor} size
+    (then scaled with any further area downscale to `resolution`); alpha, if any, is dropped."""
+    poses, bounds = read_poses_bounds(data_dir / "poses_bounds.npy")
+    folders = llff_folders(data_dir)
+    factor = choose_factor(folders, resolution, factor)
+    paths = llff_image_files(folders[factor])
+    if len(paths) != len(poses):
+        raise UserError(f"{folders[factor]} holds {len(paths)} images but poses_bounds.npy has {len(poses)} poses")
+    height, width = common_shape(paths, (3, 4))
+    focal = float(np.float32(poses[0, 2, 4] * (1.0 / factor)))  # the first view's hwf serves all, as there
+    size = scaled_size(width, height, resolution)
+    cameras = tuple(pinhole(c2w, width, height, focal).resized(*size) for c2w in llff_c2w(poses, bounds))
+    first = cameras[0]
+    ndc = NDCSpace(first.width / (2.0 * first.fx), first.height / (2.0 * first.fx), 1.0)
+    images = load_images(paths, size, background, composite=False) if with_images else None
+    return Dataset("llff", images, cameras, holdout_splits(len(poses)), 0.0, 1.0, ndc, background, LLFF_AABB)
