@@ -29,8 +29,11 @@ def atomic_output(path: str | os.PathLike):
     path = check_output_path(path)
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=path.suffix or ".tmp", dir=path.parent)
     os.close(fd)
+    umask = os.umask(0)
+    os.umask(umask)
     try:
         yield Path(tmp)
+        os.chmod(tmp, 0o666 & ~umask)  # mkstemp's 0600 would make every output owner-only
         os.replace(tmp, path)
     finally:
         if os.path.exists(tmp):

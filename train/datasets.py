@@ -42,6 +42,7 @@ class Dataset:
     ndc: NDCSpace | None  # forward-facing scenes only
     background: tuple[float, float, float]
     aabb: tuple[float, ...]  # (xmin, ymin, zmin, xmax, ymax, zmax) in the field's space
+    alphas: np.ndarray | None = None  # (n, H, W) float32 coverage of RGBA datasets (space carving); else None
 
 
 def load_dataset(data_dir, resolution: int | None = None, with_images: bool = True,
@@ -92,24 +93,26 @@ def common_shape(paths: list[Path], allowed_channels: tuple[int, ...]) -> tuple[
 
 
 def load_rgb(path: Path, size: tuple[int, int], background: tuple[float, float, float],
-             composite: bool) -> np.ndarray:
-    """One image as RGB at size (width, height): alpha composited (or dropped), area-downscaled.
-    -> (height, width, 3) float32."""
+             composite: bool) -> tuple[np.ndarray, np.ndarray]:
+    """One image as RGB at size (width, height): alpha composited (or dropped), area-downscaled, and its
+    alpha coverage (ones without alpha). -> (height, width, 3), (height, width) float32."""
     pixels = read_image(path)
+    alpha = pixels[..., 3:] if pixels.shape[-1] == 4 else np.ones_like(pixels[..., :1])
     if pixels.shape[-1] == 4:
         pixels = composite_over(pixels, background) if composite else pixels[..., :3]
     if pixels.shape[1::-1] != size:
-        pixels = resize_image(pixels, *size)
-    return pixels
+        pixels, alpha = resize_image(pixels, *size), resize_image(alpha, *size)
+    return pixels, alpha[..., 0]
 
 
 def load_images(paths: list[Path], size: tuple[int, int], background: tuple[float, float, float],
-                composite: bool) -> np.ndarray:
-    """(n, height, width, 3) float32."""
+                composite: bool) -> tuple[np.ndarray, np.ndarray]:
+    """Images (n, height, width, 3) and alpha coverages (n, height, width), float32."""
     images = np.empty((len(paths), size[1], size[0], 3), dtype=np.float32)
+    alphas = np.empty((len(paths), size[1], size[0]), dtype=np.float32)
     for k, path in enumerate(paths):
-        images[k] = load_rgb(path, size, background, composite)
-    return images
+        images[k], alphas[k] = load_rgb(path, size, background, composite)
+    return images, alphas
 
 
 # ---- NeRF-Synthetic ------------------------------------------------------------------------------
@@ -167,8 +170,9 @@ def load_blender(data_dir: Path, resolution: int | None, with_images: bool,
     cameras = tuple(Camera.from_fov(frame.c2w, *size, frame.fov_x) for frame in frames)
     counts = np.cumsum([0] + [len(per_split[split]) for split in BLENDER_SPLITS])
     splits = {split: tuple(range(counts[k], counts[k + 1])) for k, split in enumerate(BLENDER_SPLITS)}
-    images = load_images(paths, size, background, composite=True) if with_images else None
-    return Dataset("blender", images, cameras, splits, BLENDER_NEAR, BLENDER_FAR, None, background, BLENDER_AABB)
+    images, alphas = load_images(paths, size, background, composite=True) if with_images else (None, None)
+    return Dataset("blender", images, cameras, splits, BLENDER_NEAR, BLENDER_FAR, None, background, BLENDER_AABB,
+                   alphas)
 
 
 # ---- LLFF ----------------------------------------------------------------------------------------
@@ -298,5 +302,5 @@ def load_llff(data_dir: Path, resolution: int | None, with_images: bool,
     cameras = tuple(pinhole(c2w, width, height, focal).resized(*size) for c2w in llff_c2w(poses, bounds))
     first = cameras[0]
     ndc = NDCSpace(first.width / (2.0 * first.fx), first.height / (2.0 * first.fx), 1.0)
-    images = load_images(paths, size, background, composite=False) if with_images else None
+    images = load_images(paths, size, background, composite=False)[0] if with_images else None
     return Dataset("llff", images, cameras, holdout_splits(len(poses)), 0.0, 1.0, ndc, background, LLFF_AABB)

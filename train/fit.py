@@ -31,9 +31,9 @@ from noisenerf.runtime.errors import UserError
 from noisenerf.runtime.files import atomic_output, read_json, write_json
 from noisenerf.runtime.metrics import psnr, ssim
 from noisenerf.runtime.render import RenderConfig, prepare_rays, render_view
-from noisenerf.runtime.sampling import SamplingConfig, jitter_positions, sample_positions
+from noisenerf.runtime.sampling import OccupancyGrid, SamplingConfig, jitter_positions, sample_positions
 from noisenerf.train.field import FieldConfig
-from noisenerf.train.occupancy import OccupancyConfig, OccupancyTracker, build_occupancy_grid
+from noisenerf.train.occupancy import OccupancyConfig, OccupancyTracker, build_occupancy_grid, carve, cell_points
 from noisenerf.train.renderer import TorchRays, numpy_field, render_hierarchical, render_masked
 from noisenerf.train.rendering import render_weights, sample_deltas
 from noisenerf.train.scene import Scene, SceneConfig, build_fields
@@ -60,6 +60,14 @@ class FitConfig:
     early_stop: float = 1e-4
     precrop_steps: int = 300  # nerf-pytorch's centre crop at the start, so lego is not fitted as white
     precrop_fraction: float = 0.5
+    # Until the occupancy grid knows where the scene is, every sample is evaluated; these cheap first
+    # steps (fewer rays, fewer samples) teach the field where empty space is, so skipping starts early.
+    warmup_rays: int = 256
+    warmup_samples: int = 32
+    # RGBA datasets: what the silhouettes show empty is carved from the grid from the first step, and
+    # the field is taught it is empty (opacity at random carved points), so dense renders agree too.
+    empty_points: int = 1024
+    empty_weight: float = 0.1
     seed: int = 0
 
     def to_dict(self) -> dict:
@@ -68,7 +76,8 @@ class FitConfig:
 
 PRESETS = {
     "small": FitConfig(preset="small", field=FieldConfig(depth=6, width=128), fine=None, n_samples=128,
-                       n_coarse=0, n_importance=0, batch_rays=1024, lr=2e-3, lr_final=1e-4),
+                       n_coarse=0, n_importance=0, batch_rays=1024, lr=2e-3, lr_final=1e-4,
+                       occupancy=OccupancyConfig(warmup_steps=300)),
     "paper": FitConfig(preset="paper", field=FieldConfig(), fine=FieldConfig(), n_samples=192, n_coarse=64,
                        n_importance=128, batch_rays=1024, lr=5e-4, lr_final=5e-5, skipping=False),
 }
@@ -152,7 +161,11 @@ class Fitter:
         self.step, self.seconds = 0, 0.0
         self.generator = torch.Generator().manual_seed(config.seed)
         self.rng = np.random.default_rng(config.seed)
-        self.tracker = OccupancyTracker(dataset.aabb, self.step_size, config.occupancy, config.seed)
+        train = list(dataset.splits["train"])
+        self.hull = (carve([dataset.cameras[i] for i in train], dataset.alphas[train], dataset.aabb,
+                           config.occupancy.resolution) if dataset.alphas is not None and config.skipping else None)
+        self.empty_cells = np.flatnonzero(~self.hull) if self.hull is not None else np.zeros(0, np.int64)
+        self.tracker = OccupancyTracker(dataset.aabb, self.step_size, config.occupancy, config.seed, self.hull)
         self.rays = training_rays(dataset, self.scene_config.render, config, device)
         self.background = torch.tensor(dataset.background, dtype=torch.float32, device=device)
         self.samples_evaluated = 0
@@ -167,11 +180,13 @@ class Fitter:
 
     def train_step(self, lr: float) -> float:
         config = self.config
+        warming = config.skipping and self.fine is None and self.step < config.occupancy.warmup_steps
+        n_rays = config.warmup_rays if warming else config.batch_rays
         pool = self.rays.central if self.step < config.precrop_steps else None
         if pool is None:
-            index = torch.randint(len(self.rays.colors), (config.batch_rays,), generator=self.generator)
+            index = torch.randint(len(self.rays.colors), (n_rays,), generator=self.generator)
         else:
-            index = pool[torch.randint(len(pool), (config.batch_rays,), generator=self.generator)]
+            index = pool[torch.randint(len(pool), (n_rays,), generator=self.generator)]
         index = index.to(self.device)
         rays = TorchRays(self.rays.rays.origins[index], self.rays.rays.directions[index],
                          self.rays.rays.viewdirs[index])
@@ -179,7 +194,7 @@ class Fitter:
         for group in self.optimizer.param_groups:
             group["lr"] = lr
         if self.fine is not None:
-            t_vals = self._jittered(config.n_coarse)
+            t_vals = self._jittered(config.n_coarse, n_rays)
             coarse, fine = render_hierarchical(self.coarse, self.fine, rays, t_vals, config.n_importance,
                                                self.background)
             loss = torch.mean((coarse - target) ** 2) + torch.mean((fine - target) ** 2)
@@ -188,12 +203,13 @@ class Fitter:
         else:
             if config.skipping:
                 self.tracker.maybe_update(self.coarse, self.step)
-            t_vals = self._jittered(config.n_samples)
-            warm = config.skipping and self.step >= config.occupancy.warmup_steps
-            mask = (skip_mask(self.coarse, rays, t_vals, self.tracker.grid, config.early_stop)
-                    if warm else torch.ones_like(t_vals, dtype=torch.bool))
+            t_vals = self._jittered(config.warmup_samples if warming else config.n_samples, n_rays)
+            mask = (skip_mask(self.coarse, rays, t_vals, self.tracker.grid, 0.0 if warming else config.early_stop)
+                    if config.skipping else torch.ones_like(t_vals, dtype=torch.bool))
             loss = fine_loss = torch.mean((render_masked(self.coarse, rays, t_vals, mask, self.background)
                                            - target) ** 2)
+            if self.empty_cells.size and config.empty_points:
+                loss = loss + config.empty_weight * self._empty_opacity()
             self.samples_evaluated += int(mask.sum())
         self.optimizer.zero_grad(set_to_none=True)
         loss.backward()
@@ -201,18 +217,28 @@ class Fitter:
         self.step += 1
         return float(fine_loss.detach())
 
-    def _jittered(self, n_samples: int) -> torch.Tensor:
+    def _empty_opacity(self) -> torch.Tensor:
+        """Mean opacity over one step at random points of carved-away cells (should be 0)."""
+        cells = self.empty_cells[self.rng.integers(0, self.empty_cells.size, self.config.empty_points)]
+        points = cell_points(np.asarray(self.dataset.aabb, np.float32), self.config.occupancy.resolution, cells,
+                             self.rng)
+        sigma = self.coarse.density(torch.from_numpy(points).to(self.device))
+        return torch.mean(-torch.expm1(-sigma * self.step_size))
+
+    def _jittered(self, n_samples: int, n_rays: int) -> torch.Tensor:
         sampling = SamplingConfig(self.dataset.near, self.dataset.far, n_samples)
-        t = jitter_positions(sample_positions(sampling), self.config.batch_rays, self.rng)
+        t = jitter_positions(sample_positions(sampling), n_rays, self.rng)
         return torch.from_numpy(t).to(self.device)
 
     def scene(self, final: bool) -> Scene:
         """The scene as it stands; `final` rebuilds the occupancy grid densely from the field."""
-        grid = (build_occupancy_grid(self.render_field, self.dataset.aabb, self.config.occupancy.resolution,
-                                     self.step_size, self.config.occupancy, seed=self.config.seed)
-                if final or not self.config.skipping else self.tracker.grid)
-        scene = Scene(self.scene_config, self.coarse, self.fine, grid)
-        return scene
+        if not final and self.config.skipping and self.fine is None:
+            return Scene(self.scene_config, self.coarse, self.fine, self.tracker.grid)
+        grid = build_occupancy_grid(self.render_field, self.dataset.aabb, self.config.occupancy.resolution,
+                                    self.step_size, self.config.occupancy, seed=self.config.seed)
+        if self.hull is not None:
+            grid = OccupancyGrid(grid.aabb, grid.occupied & self.hull)
+        return Scene(self.scene_config, self.coarse, self.fine, grid)
 
     # checkpoints: tensors in safetensors, the rest in JSON (never pickle)
     def save_checkpoint(self, directory: Path) -> None:

@@ -65,19 +65,20 @@ def build_occupancy_grid(field: NeRFField, aabb, resolution: int, step_size: flo
 class OccupancyTracker:
     """The grid during fitting: everything occupied until warm-up ends, then a decaying max of density."""
 
-    def __init__(self, aabb, step_size: float, config: OccupancyConfig, seed: int):
+    def __init__(self, aabb, step_size: float, config: OccupancyConfig, seed: int, hull: np.ndarray | None = None):
         self.aabb = np.asarray(aabb, dtype=np.float32)
         self.step_size, self.config = step_size, config
         self.density = np.full(config.resolution ** 3, np.inf, dtype=np.float32)
         self.rng = np.random.default_rng(seed)
+        self.hull = np.ones((config.resolution,) * 3, dtype=bool) if hull is None else hull
 
     @property
     def grid(self) -> OccupancyGrid:
         opacity = self.density * self.step_size
         threshold = min(self.config.opacity_threshold, float(np.mean(opacity))) if np.isfinite(opacity).all() \
             else self.config.opacity_threshold
-        occupied = opacity > threshold
-        return OccupancyGrid(self.aabb, occupied.reshape((self.config.resolution,) * 3))
+        occupied = (opacity > threshold).reshape(self.hull.shape) & self.hull
+        return OccupancyGrid(self.aabb, occupied)
 
     def maybe_update(self, field: NeRFField, step: int) -> bool:
         """Refresh part of the grid on schedule (all of it at the end of warm-up). Returns True if updated."""
@@ -92,3 +93,42 @@ class OccupancyTracker:
         fresh = cell_densities(field, self.aabb, self.config.resolution, cells, self.rng)
         self.density[cells] = np.maximum(self.density[cells] * self.config.ema_decay, fresh)
         return True
+
+
+def max_filter(mask: np.ndarray, radius: int) -> np.ndarray:
+    """Binary dilation by a (2r+1)² square. mask: (H, W) bool -> (H, W) bool."""
+    padded = np.pad(mask, radius)
+    windows = np.lib.stride_tricks.sliding_window_view(padded, (2 * radius + 1, 2 * radius + 1))
+    return windows.any(axis=(-1, -2))
+
+
+def carve(cameras, alphas: np.ndarray, aabb, resolution: int) -> np.ndarray:
+    """Space carving: the visual hull of the training silhouettes on the grid.
+
+    A cell is carved away when some view sees its centre on a pixel with zero alpha coverage, after
+    dilating each silhouette by the cell's projected half-diagonal so that cells straddling an edge stay.
+    cameras: one per alpha image, alphas: (n, H, W) -> (resolution,)*3 bool, True = may be occupied.
+    """
+    aabb = np.asarray(aabb, dtype=np.float64)
+    cells = np.arange(resolution ** 3)
+    ijk = np.stack(np.unravel_index(cells, (resolution,) * 3), axis=-1) + 0.5
+    size = (aabb[3:] - aabb[:3]) / resolution
+    centres = aabb[:3] + ijk * size
+    half_diagonal = 0.5 * float(np.linalg.norm(size))
+    keep = np.ones(cells.size, dtype=bool)
+    for camera, alpha in zip(cameras, alphas):
+        c2w = camera.matrix().astype(np.float64)
+        local = (centres - c2w[:3, 3]) @ c2w[:3, :3]  # camera frame: looks down −z
+        depth = -local[:, 2]
+        ahead = depth > half_diagonal
+        px = camera.cx + camera.fx * local[:, 0] / np.where(ahead, depth, 1.0)
+        py = camera.cy - camera.fy * local[:, 1] / np.where(ahead, depth, 1.0)
+        inside = ahead & (px >= 0) & (px < camera.width) & (py >= 0) & (py < camera.height)
+        if not inside.any():
+            continue
+        radius = int(np.ceil(half_diagonal * camera.fx / depth[inside].min())) + 1
+        covered = max_filter(alpha > 0, radius)
+        seen_empty = np.zeros_like(keep)
+        seen_empty[inside] = ~covered[py[inside].astype(np.int64), px[inside].astype(np.int64)]
+        keep &= ~seen_empty
+    return keep.reshape((resolution,) * 3)

@@ -1,0 +1,66 @@
+"""The recipient's install: reveal the demo's bundle with the base package (CI runs these where torch is
+not installed; elsewhere they need NOISENERF_DEMO_DIR pointing at a `noisenerf demo` output)."""
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+DEMO_DIR = os.environ.get("NOISENERF_DEMO_DIR")
+
+
+@pytest.fixture(scope="module")
+def demo_dir() -> Path:
+    if not DEMO_DIR or not (Path(DEMO_DIR) / "secret.bundle").is_file():
+        pytest.skip("set NOISENERF_DEMO_DIR to a `noisenerf demo` output folder to run the base-install checks")
+    return Path(DEMO_DIR)
+
+
+def reveal_cli(*args: str) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "noisenerf.cli.reveal", *args], capture_output=True, text=True)
+
+
+def test_reveal_is_exact_and_never_loads_torch(demo_dir, tmp_path):
+    code = (
+        "import json, sys\n"
+        "from noisenerf.cli.reveal import main\n"
+        f"status = main([{str(demo_dir / 'model.onnx')!r}, {str(demo_dir / 'secret.bundle')!r}, "
+        f"'-o', {str(tmp_path / 'out.png')!r}, '--json'])\n"
+        "assert status == 0 and 'torch' not in sys.modules and 'onnx' not in sys.modules, sorted(sys.modules)\n"
+    )
+    result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    assert result.returncode == 0, result.stderr
+    assert json.loads(result.stdout)["exact"] is True
+    assert (tmp_path / "out.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_revealed_png_equals_the_secret(demo_dir, tmp_path):
+    from noisenerf.runtime.images import read_image
+
+    result = reveal_cli(str(demo_dir / "model.onnx"), str(demo_dir / "secret.bundle"), "-o", str(tmp_path / "r.png"))
+    assert result.returncode == 0, result.stderr
+    assert (read_image(tmp_path / "r.png") == read_image(demo_dir / "secret.png")).all()
+
+
+def test_fingerprint_mismatch_is_one_line_and_exit_2(demo_dir, tmp_path):
+    from noisenerf.runtime.bundle import load_bundle
+    import dataclasses
+
+    bundle = dataclasses.replace(load_bundle(demo_dir / "secret.bundle"), model_fingerprint="0" * 64)
+    bundle.save(tmp_path / "other.bundle")
+    result = reveal_cli(str(demo_dir / "model.onnx"), str(tmp_path / "other.bundle"), "-o", str(tmp_path / "r.png"))
+    assert result.returncode == 2
+    assert len(result.stderr.strip().splitlines()) == 1 and "fingerprint" in result.stderr.lower() or \
+        "made for model" in result.stderr
+    assert not (tmp_path / "r.png").exists()
+
+
+def test_ordinary_render_of_a_view(demo_dir, tmp_path):
+    result = reveal_cli(str(demo_dir / "model.onnx"), "--view", "0", "-o", str(tmp_path / "v.png"), "--json")
+    assert result.returncode == 0, result.stderr
+    report = json.loads(result.stdout)
+    assert (tmp_path / "v.png").is_file()
+    assert json.dumps(report)
