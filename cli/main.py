@@ -101,6 +101,24 @@ def cmd_demo(args) -> None:
     emit(report, args.json, report["summary"])
 
 
+def cmd_bench(args) -> None:
+    from noisenerf.train import bench
+    from noisenerf.train.hide import HideConfig
+
+    if args.experiment == "skipping":
+        report = bench.skipping(Path(args.scene), Path(args.data), args.resolution)
+    elif args.experiment == "hide":
+        config = HideConfig(method=args.method, layout="ray" if args.method == "exact" else "sample",
+                            dtype="float16" if args.method == "exact" else "float32", view=args.view,
+                            tile_size=args.tile_size, n_samples=args.samples)
+        report = bench.hide_secrets(Path(args.scene), [Path(p) for p in args.secrets], config,
+                                    resolve_device(args.device))
+    else:
+        report = bench.reveal_throughput(Path(args.scene), Path(args.bundle), args.threads)
+    report["machine"] = bench.machine()
+    print(json.dumps(report, indent=None if args.json else 2))
+
+
 def cmd_make_dataset(args) -> None:
     from noisenerf.train.procedural import write_procedural_dataset
 
@@ -161,6 +179,20 @@ def build_parser() -> argparse.ArgumentParser:
     p = add("demo", cmd_demo, "hide, export and reveal on the embedded demo scene and a generated secret")
     p.add_argument("-o", "--output", default="noisenerf-demo", help="folder for the demo's files")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
+    add_device(p)
+
+    p = add("bench", cmd_bench, "measure: skipping, hiding with reveal, reveal throughput (prints JSON)")
+    p.add_argument("experiment", choices=("skipping", "hide", "reveal"))
+    p.add_argument("--scene", required=True)
+    p.add_argument("--data", help="skipping: the dataset whose test views are rendered")
+    p.add_argument("--resolution", type=int)
+    p.add_argument("--secrets", nargs="*", default=[], help="hide: secret images")
+    p.add_argument("--method", choices=("exact", "paper"), default="exact")
+    p.add_argument("--view", type=int, default=0)
+    p.add_argument("--tile-size", type=int, default=512)
+    p.add_argument("--samples", type=int, default=4)
+    p.add_argument("--bundle", help="reveal: the bundle to reveal")
+    p.add_argument("--threads", type=int, default=2)
     add_device(p)
 
     p = add("make-dataset", cmd_make_dataset, "write the procedural NeRF-Synthetic-format dataset")

@@ -32,6 +32,7 @@ from noisenerf.runtime.files import atomic_output, check_output_path
 from noisenerf.runtime.model import ModelMetadata
 from noisenerf.runtime.session import INPUT_NAMES, OUTPUT_NAMES, OnnxField
 from noisenerf.train.field import NeRFField
+from noisenerf.train.renderer import numpy_field
 from noisenerf.train.scene import Scene, load_scene
 
 OPSET = 17
@@ -39,24 +40,6 @@ PROBE_TOLERANCE = 1e-5  # see probe_parity
 FLOAT32_SLACK = 2.0  # onnxruntime may be this many times less exact than torch float32, plus the tolerance
 PROBE_POINTS = 1024
 PROBE_NOISE_SCALES = {"zero": 0.0, "normal": 1.0, "huge": 1e3}
-
-
-def torch_field_fn(field: NeRFField):
-    """The torch field as a numpy callback with optional noise (runtime.reveal.NoisyFieldFn), computing
-    in the field's own dtype (float32, or float64 for the probe's reference copy).
-
-    points, viewdirs: (n, 3), noise: (n, noise_dims) or None -> rgb (n, 3), sigma (n,).
-    """
-    parameter = next(field.parameters())
-
-    def evaluate(points: np.ndarray, viewdirs: np.ndarray, noise: np.ndarray | None = None):
-        arrays = (points, viewdirs) if noise is None else (points, viewdirs, noise)
-        with torch.no_grad():
-            rgb, sigma = field(*(torch.from_numpy(np.ascontiguousarray(a)).to(parameter.device, parameter.dtype)
-                                 for a in arrays))
-        return rgb.cpu().numpy(), sigma.cpu().numpy()
-
-    return evaluate
 
 
 def field_to_onnx(field: NeRFField, opset: int = OPSET) -> onnx.ModelProto:
@@ -136,8 +119,8 @@ def probe_parity(field: NeRFField, onnx_field: OnnxField, aabb, seed: int) -> tu
     PROBE_TOLERANCE + FLOAT32_SLACK × torch's own; for noise 0 and N(0, 1), where torch's error is ~1e-7,
     that is an error below ~1e-5. A real export fault (weights, encoding, noise port) errs by ~1e-1.
     """
-    float32_fn = torch_field_fn(field)
-    float64_fn = torch_field_fn(copy.deepcopy(field).double())
+    float32_fn = numpy_field(field)
+    float64_fn = numpy_field(copy.deepcopy(field).double())
     cases = []
     for name, points, viewdirs, noise in probe_inputs(aabb, field.config.noise_dims, seed):
         exact, torch32, onnx32 = (fn(points, viewdirs, noise) for fn in (float64_fn, float32_fn, onnx_field))

@@ -6,7 +6,7 @@ import pytest
 
 from conftest import make_tiny_scene
 from noisenerf.export import onnx_export
-from noisenerf.export.onnx_export import export_scene, probe_parity, torch_field_fn
+from noisenerf.export.onnx_export import export_scene, probe_parity
 from noisenerf.runtime.bundle import Tile
 from noisenerf.runtime.errors import UserError
 from noisenerf.runtime.model import grid_from_dict, grid_to_dict, load_model
@@ -81,7 +81,7 @@ def test_noisy_renders_match_torch(exported, layout):
     shape = (camera.height, camera.width) + ((config.sampling.n_samples,) if layout == "sample" else ())
     noise = np.random.default_rng(2).normal(size=shape + (scene.render_field.config.noise_dims,))
     tile = Tile((0, 0, camera.width, camera.height), camera, config.sampling, noise.astype(np.float32))
-    reference = render_tile(tile, config, torch_field_fn(scene.render_field))
+    reference = render_tile(tile, config, numpy_field(scene.render_field))
     image = render_tile(tile, config, OnnxField(path, threads=1))
     assert np.abs(image - reference).max() <= 1e-5
     np.testing.assert_array_equal(to_uint8(image), to_uint8(reference))

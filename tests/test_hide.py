@@ -11,6 +11,7 @@ from noisenerf.runtime.bundle import load_bundle
 from noisenerf.runtime.errors import UserError
 from noisenerf.runtime.reveal import reveal, to_uint8
 from noisenerf.train.hide import HideConfig, hide
+from noisenerf.train.renderer import numpy_field
 from noisenerf.train.solvers import PaperSettings
 from noisenerf.train.tiling import tile_rects
 
@@ -19,14 +20,6 @@ CPU = torch.device("cpu")
 
 def random_secret(height, width, seed=0):
     return np.random.default_rng(seed).integers(0, 256, (height, width, 3), dtype=np.uint8)
-
-
-def torch_noisy_field(field):
-    def evaluate(points, viewdirs, noise):
-        with torch.no_grad():
-            rgb, sigma = field(torch.from_numpy(points), torch.from_numpy(viewdirs), torch.from_numpy(noise))
-        return rgb.numpy(), sigma.numpy()
-    return evaluate
 
 
 @pytest.fixture(scope="module")
@@ -52,7 +45,7 @@ def test_exact_hide_recovers_every_value_and_leaves_weights_unchanged(scene, tmp
     assert [t["rect"] for t in report["tiles"]] == [list(r) for r in tile_rects(30, 20, 16)]
     bundle = load_bundle(tmp_path / "s.bundle")
     assert bundle.dtype == dtype and bundle.tiles[0].noise.shape == (16, 16, 90)
-    revealed = reveal(bundle, scene.config.render, torch_noisy_field(scene.render_field))
+    revealed = reveal(bundle, scene.config.render, numpy_field(scene.render_field))
     np.testing.assert_array_equal(revealed.pixels, secret)
     assert revealed.exact
 
@@ -65,7 +58,7 @@ def test_bundle_holds_no_secret_and_other_weights_reveal_nothing(scene, tmp_path
     bundle = load_bundle(tmp_path / "s.bundle")
     other = make_tiny_scene(seed=1, width=64, depth=4)
     assert other.fingerprint() != bundle.model_fingerprint
-    wrong = reveal(bundle, other.config.render, torch_noisy_field(other.render_field))
+    wrong = reveal(bundle, other.config.render, numpy_field(other.render_field))
     assert not wrong.exact
     assert np.mean(wrong.pixels == secret) < 0.2
 

@@ -14,7 +14,8 @@ import pytest
 from safetensors.numpy import save_file
 
 from conftest import make_tiny_scene
-from noisenerf.export.onnx_export import export_scene, torch_field_fn
+from noisenerf.export.onnx_export import export_scene
+from noisenerf.train.renderer import numpy_field
 from noisenerf.runtime.bundle import METADATA_KEY, Bundle, Tile, load_bundle, secret_digest
 from noisenerf.runtime.images import read_image, read_native
 from noisenerf.runtime.model import load_model
@@ -33,7 +34,7 @@ def two_tile_bundle(scene, layout: str = "ray", seed: int = 0) -> Bundle:
         tiles.append(Tile((i * camera.width, 0, camera.width, camera.height), camera, config.sampling, noise, i))
     width, height = sum(t.rect[2] for t in tiles), tiles[0].rect[3]
     bundle = Bundle(scene.fingerprint(), width, height, "0" * 64, layout, dims, "float32", tuple(tiles), {})
-    pixels = reveal(bundle, config, torch_field_fn(scene.render_field)).pixels
+    pixels = reveal(bundle, config, numpy_field(scene.render_field)).pixels
     return dataclasses.replace(bundle, secret_sha256=secret_digest(pixels))
 
 

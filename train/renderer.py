@@ -12,7 +12,7 @@ import numpy as np
 import torch
 
 from noisenerf.runtime.render import RayBatch
-from noisenerf.runtime.sampling import FieldFn
+from noisenerf.runtime.reveal import NoisyFieldFn
 from noisenerf.train.field import NeRFField
 from noisenerf.train.rendering import composite, render_weights, sample_deltas, sample_pdf
 
@@ -85,14 +85,19 @@ def render_hierarchical(coarse: NeRFField, fine: NeRFField, rays: TorchRays, t_v
     return coarse_colors, fine_colors
 
 
-def numpy_field(field: NeRFField) -> FieldFn:
-    """The torch field behind the runtime's numpy field callback (no gradients)."""
-    device = next(field.parameters()).device
+def numpy_field(field: NeRFField) -> NoisyFieldFn:
+    """The torch field behind the runtime's numpy callbacks (FieldFn, and NoisyFieldFn with noise), without
+    gradients, computing in the field's own dtype (float32, or float64 for a reference copy).
 
-    def evaluate(points: np.ndarray, viewdirs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    points, viewdirs: (n, 3), noise: (n, noise_dims) or None -> rgb (n, 3), sigma (n,).
+    """
+    parameter = next(field.parameters())
+
+    def evaluate(points: np.ndarray, viewdirs: np.ndarray, noise: np.ndarray | None = None):
+        arrays = (points, viewdirs) if noise is None else (points, viewdirs, noise)
         with torch.no_grad():
-            rgb, sigma = field(torch.from_numpy(np.ascontiguousarray(points)).to(device),
-                               torch.from_numpy(np.ascontiguousarray(viewdirs)).to(device))
+            rgb, sigma = field(*(torch.from_numpy(np.ascontiguousarray(a)).to(parameter.device, parameter.dtype)
+                                 for a in arrays))
         return rgb.cpu().numpy(), sigma.cpu().numpy()
 
     return evaluate

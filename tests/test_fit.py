@@ -1,0 +1,99 @@
+"""Fitting on the procedural scene: it learns, skips, checkpoints, resumes to the same weights, and
+refuses bad input through the CLI with one line and exit code 2."""
+
+import dataclasses
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+import torch
+
+from noisenerf.runtime.errors import UserError
+from noisenerf.train.datasets import load_dataset
+from noisenerf.train.fit import PRESETS, Budget, Fitter, fit
+from noisenerf.train.occupancy import OccupancyConfig
+from noisenerf.train.procedural import write_procedural_dataset
+from noisenerf.train.scene import load_scene
+
+CPU = torch.device("cpu")
+TINY = dataclasses.replace(PRESETS["small"], batch_rays=256, n_samples=32, warmup_rays=128, warmup_samples=16,
+                           empty_points=256, precrop_steps=10,
+                           occupancy=OccupancyConfig(resolution=16, warmup_steps=20, update_every=8))
+
+
+@pytest.fixture(scope="module")
+def dataset(tmp_path_factory):
+    folder = write_procedural_dataset(tmp_path_factory.mktemp("data") / "scene", size=24, n_train=12, n_val=1,
+                                      n_test=2)
+    return load_dataset(folder)
+
+
+def quiet_fit(dataset, out, iters, config=TINY):
+    return fit(dataset, out, config, Budget(iters=iters), CPU, curve_seconds=0, progress=False)
+
+
+def test_fit_learns_and_skips(dataset, tmp_path):
+    report = quiet_fit(dataset, tmp_path / "scene", 120)
+    assert report["steps"] == 120
+    assert report["test"]["psnr"] > 12.0  # a grey guess scores about 9 dB on this scene
+    assert report["test"]["samples_evaluated"] < report["test"]["samples_dense"] / 2
+    scene = load_scene(tmp_path / "scene")
+    assert scene.fingerprint() == report["fingerprint"]
+    assert 0.0 < scene.grid.occupancy_fraction() < 0.9
+
+
+def test_resume_after_interruption_gives_identical_weights(dataset, tmp_path, monkeypatch):
+    whole = quiet_fit(dataset, tmp_path / "whole", 40)
+    step = Fitter.train_step
+
+    def interrupted(self, lr):
+        if self.step == 25:
+            raise KeyboardInterrupt
+        return step(self, lr)
+
+    monkeypatch.setattr(Fitter, "train_step", interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        fit(dataset, tmp_path / "resumed", TINY, Budget(iters=40), CPU, checkpoint_seconds=0, curve_seconds=0,
+            progress=False)
+    assert not (tmp_path / "resumed" / "scene.json").exists()
+    monkeypatch.setattr(Fitter, "train_step", step)
+    resumed = quiet_fit(dataset, tmp_path / "resumed", 40)
+    assert resumed["resumed"] and resumed["steps"] == 40
+    assert resumed["fingerprint"] == whole["fingerprint"]
+
+
+def test_checkpoint_of_another_fit_is_refused(dataset, tmp_path):
+    quiet_fit(dataset, tmp_path / "scene", 5)
+    with pytest.raises(UserError, match="checkpoint of a different fit"):
+        quiet_fit(dataset, tmp_path / "scene", 5, dataclasses.replace(TINY, seed=7))
+
+
+def run_cli(*args):
+    return subprocess.run([sys.executable, "-m", "noisenerf.cli.main", *args], capture_output=True, text=True)
+
+
+@pytest.mark.parametrize("args, message", [
+    (["fit", "{missing}", "-o", "{out}", "--iters", "1"], "dataset folder not found"),
+    (["fit", "{data}", "-o", "{out}"], "exactly one of --minutes"),
+    (["hide", "{out}", "{data}/x.png", "-o", "{out}/s.bundle"], "not a scene directory"),
+])
+def test_cli_bad_input_is_one_line_and_exit_2(dataset, tmp_path, args, message):
+    data = tmp_path / "data"
+    data.mkdir()
+    (data / "transforms_train.json").write_text("{}")
+    fill = {"missing": tmp_path / "missing", "out": tmp_path / "out", "data": data, "nowhere": tmp_path / "no"}
+    result = run_cli(*[a.format(**fill) for a in args])
+    assert result.returncode == 2, result.stderr
+    assert len(result.stderr.strip().splitlines()) == 1 and message in result.stderr
+    assert "Traceback" not in result.stderr and result.stdout == ""
+
+
+def test_fit_json_is_one_object_on_stdout(dataset, tmp_path):
+    folder = write_procedural_dataset(tmp_path / "d", size=16, n_train=4, n_val=0, n_test=1)
+    result = run_cli("fit", str(folder), "-o", str(tmp_path / "s"), "--iters", "3", "--json", "--quiet",
+                     "--device", "cpu")
+    assert result.returncode == 0, result.stderr
+    report = json.loads(result.stdout)
+    assert report["steps"] == 3 and np.isfinite(report["test"]["psnr"])
