@@ -7,11 +7,11 @@ line. Bad input is one line on stderr and exit code 2; `--json` prints one JSON 
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 from pathlib import Path
 
 from noisenerf.runtime.errors import UserError
+from noisenerf.runtime.files import json_text
 
 PROG = "noisenerf"
 
@@ -30,7 +30,7 @@ def resolve_device(name: str):
 def emit(report: dict, as_json: bool, lines: list[str]) -> None:
     """The result: one JSON object on stdout with --json, else readable lines."""
     if as_json:
-        print(json.dumps(report))
+        print(json_text(report))
     else:
         print("\n".join(lines))
 
@@ -116,7 +116,7 @@ def cmd_bench(args) -> None:
     else:
         report = bench.reveal_throughput(Path(args.scene), Path(args.bundle), args.threads)
     report["machine"] = bench.machine()
-    print(json.dumps(report, indent=None if args.json else 2))
+    print(json_text(report, indent=None if args.json else 2))
 
 
 def cmd_make_dataset(args) -> None:
@@ -166,7 +166,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--method", choices=("exact", "paper"), default="exact")
     p.add_argument("--layout", choices=("ray", "sample"), help="noise per ray (exact default) or per sample (paper)")
     p.add_argument("--dtype", choices=("float16", "float32"), help="noise storage (exact: float16, paper: float32)")
-    p.add_argument("--samples", type=int, default=4, help="samples per ray of the secret view")
+    p.add_argument("--samples", type=int, help="samples per ray of the secret view (exact: 1, paper: 64)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--force", action="store_true", help="overwrite an existing bundle")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
@@ -190,7 +190,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--method", choices=("exact", "paper"), default="exact")
     p.add_argument("--view", type=int, default=0)
     p.add_argument("--tile-size", type=int, default=512)
-    p.add_argument("--samples", type=int, default=4)
+    p.add_argument("--samples", type=int)
     p.add_argument("--bundle", help="reveal: the bundle to reveal")
     p.add_argument("--threads", type=int, default=2)
     add_device(p)

@@ -20,6 +20,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from noisenerf.runtime.errors import UserError
+from noisenerf.runtime.files import json_text
 
 if TYPE_CHECKING:
     from noisenerf.runtime.model import Model
@@ -135,7 +136,7 @@ def main(argv: list[str] | None = None) -> int:
     except UserError as error:
         print(f"{PROG}: error: {' '.join(str(error).split())}", file=sys.stderr)
         return 2
-    print(json.dumps(report) if args.json else "\n".join(summary_lines(report)))
+    print(json_text(report) if args.json else "\n".join(summary_lines(report)))
     return 0
 
 

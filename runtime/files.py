@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import contextlib
 import json
+import math
 import os
 import tempfile
 from pathlib import Path
@@ -40,10 +41,26 @@ def atomic_output(path: str | os.PathLike):
             os.unlink(tmp)
 
 
+def finite_json(data):
+    """The data with every non-finite float as None: strict JSON has no Infinity (a perfect PSNR)."""
+    if isinstance(data, float):
+        return data if math.isfinite(data) else None
+    if isinstance(data, dict):
+        return {key: finite_json(value) for key, value in data.items()}
+    if isinstance(data, (list, tuple)):
+        return [finite_json(value) for value in data]
+    return data
+
+
+def json_text(data, indent: int | None = None) -> str:
+    """Strict JSON text (non-finite floats become null)."""
+    return json.dumps(finite_json(data), indent=indent, allow_nan=False)
+
+
 def write_json(path: str | os.PathLike, data) -> None:
     """Atomically write indented JSON."""
     with atomic_output(path) as tmp:
-        tmp.write_text(json.dumps(data, indent=2) + "\n")
+        tmp.write_text(json_text(data, indent=2) + "\n")
 
 
 def read_json(path: str | os.PathLike, what: str) -> dict:

@@ -100,7 +100,7 @@ def test_interrupted_hide_resumes_to_a_byte_identical_bundle(scene, tmp_path, mo
 
 def test_paper_method_runs_with_sample_layout_and_records_table3_points(scene, tmp_path):
     secret = random_secret(12, 12, seed=4)
-    config = HideConfig(method="paper", layout="sample", dtype="float32",
+    config = HideConfig(method="paper", layout="sample", dtype="float32", n_samples=4,
                         paper=PaperSettings(iters=6, mu=2, record_at=(2, 6)))
     report = hide(scene, secret, tmp_path / "p.bundle", config, CPU, show_progress=False)
     records = report["tiles"][0]["records"]

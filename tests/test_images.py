@@ -210,3 +210,10 @@ def test_real_secrets_load_as_stored(shared_data, name):
     secret, warnings = load_secret(path)
     assert secret.dtype == np.uint8 and secret.shape[-1] == 3 and warnings == []
     np.testing.assert_array_equal(secret, read_raw(path)[..., :3])
+
+
+def test_reports_are_strict_json_with_null_for_non_finite_values():
+    from noisenerf.runtime.files import json_text
+
+    text = json_text({"psnr": float("inf"), "tiles": [{"ssim": float("nan"), "max_error": 0}], "exact": True})
+    assert text == '{"psnr": null, "tiles": [{"ssim": null, "max_error": 0}], "exact": true}'

@@ -57,8 +57,6 @@ def test_ordinary_render_parity_on_fitted_lego(lego):
     assert ours_stats.n_samples_evaluated == theirs_stats.n_samples_evaluated
 
 
-@pytest.mark.xfail(reason="known open problem: the exact solver stalls on many rays of fitted scenes "
-                          "(see the open hide issue); random-weight scenes reach 100 %", strict=False)
 @pytest.mark.parametrize("layout, dtype", [("ray", "float16"), ("sample", "float32")])
 def test_real_photo_hides_exactly_and_reveals_in_onnxruntime(lego, shared_data, layout, dtype):
     scene, model, folder = lego

@@ -35,14 +35,21 @@ from noisenerf.train.tiling import tile_camera, tile_rects
 TORCH_DTYPES = {"float16": torch.float16, "float32": torch.float32}
 
 
+PAPER_SAMPLES = 64  # nerf-pytorch's N_samples, the coarse sampling the paper's code renders with
+
+
 @dataclass(frozen=True)
 class HideConfig:
-    """Everything that decides a bundle's bytes (saved in the bundle, and keyed for resume)."""
+    """Everything that decides a bundle's bytes (saved in the bundle, and keyed for resume).
+
+    The exact method's secret view has one sample per ray (see solvers.py: it makes every pixel a
+    piecewise-linear problem); the paper's method samples PAPER_SAMPLES points per ray by default.
+    """
 
     method: str = "exact"  # exact | paper
     layout: str = "ray"  # ray: one noise vector per pixel; sample: one per sample (the paper's)
     dtype: str = "float16"
-    n_samples: int = 4  # samples per ray of the secret view
+    n_samples: int | None = None  # samples per ray of the secret view; None: the method's default
     tile_size: int = 512
     view: int = 0
     seed: int = 0
@@ -57,8 +64,12 @@ class HideConfig:
             raise UserError(f"unknown noise layout {self.layout!r} (ray or sample)")
         if self.dtype not in DTYPES:
             raise UserError(f"unknown noise dtype {self.dtype!r} (float16 or float32)")
+        if self.n_samples is None:
+            object.__setattr__(self, "n_samples", 1 if self.method == "exact" else PAPER_SAMPLES)
         if self.n_samples < 1:
             raise UserError("the secret view needs at least one sample per ray")
+        if self.method == "exact" and self.n_samples != 1:
+            raise UserError("--method exact renders its secret view with one sample per ray (--samples 1)")
 
     def to_dict(self) -> dict:
         return dataclasses.asdict(self)
@@ -125,9 +136,9 @@ def noise_shape(view: SecretView, config: HideConfig) -> tuple[int, int, int]:
 
 def hide_tile_exact(view: SecretView, pixels: torch.Tensor, shape: tuple[int, int], config: HideConfig,
                     progress: Progress, k: int, bar) -> tuple[torch.Tensor, dict]:
-    """Solve a tile chunk by chunk (resuming saved chunks). pixels: (n, 3) uint8 -> noise (n, k, dims)."""
+    """Solve a tile chunk by chunk (resuming saved chunks). pixels: (n, 3) uint8 -> noise (n, 1, dims)."""
     noise = torch.zeros(noise_shape(view, config), device=pixels.device)
-    counts = {"iterations": 0, "jacobians": 0, "renders": 0, "revivals": 0, "restarts": 0}
+    totals = {"iterations": 0, "jacobians": 0, "renders": 0, "restarts": 0}
     for c, start in enumerate(range(0, view.n_rays, config.chunk_pixels)):
         index = torch.arange(start, min(start + config.chunk_pixels, view.n_rays), device=pixels.device)
         saved = progress.load(k, c)
@@ -135,15 +146,14 @@ def hide_tile_exact(view: SecretView, pixels: torch.Tensor, shape: tuple[int, in
             generator = torch.Generator().manual_seed(config.seed * 1_000_003 + k * 10_007 + c)
             result = solve_exact(view, index, pixels[index], noise[index], TORCH_DTYPES[config.dtype],
                                  config.exact, generator)
-            saved = {"noise": result.noise, "counts": torch.tensor(
-                [result.iterations, result.jacobians, result.renders, result.revivals, result.restarts])}
+            saved = {"noise": result.noise, "counts": torch.tensor([getattr(result.counts, name) for name in totals])}
             progress.save(k, c, saved)
         noise[index] = saved["noise"].to(noise.device)
-        counts["iterations"] = max(counts["iterations"], int(saved["counts"][0]))
-        for name, value in zip(("jacobians", "renders", "revivals", "restarts"), saved["counts"][1:].tolist()):
-            counts[name] += value
+        counts = dict(zip(totals, saved["counts"].tolist()))
+        totals = {name: max(value, counts[name]) if name == "iterations" else value + counts[name]
+                  for name, value in totals.items()}
         bar.update(len(index))
-    return noise, counts
+    return noise, totals
 
 
 def hide_tile_paper(view: SecretView, pixels: torch.Tensor, shape: tuple[int, int], config: HideConfig,

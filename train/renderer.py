@@ -96,8 +96,7 @@ def numpy_field(field: NeRFField) -> NoisyFieldFn:
     def evaluate(points: np.ndarray, viewdirs: np.ndarray, noise: np.ndarray | None = None):
         arrays = (points, viewdirs) if noise is None else (points, viewdirs, noise)
         with torch.no_grad():
-            rgb, sigma = field(*(torch.from_numpy(np.ascontiguousarray(a)).to(parameter.device, parameter.dtype)
-                                 for a in arrays))
+            rgb, sigma = field(*(torch.tensor(a, dtype=parameter.dtype, device=parameter.device) for a in arrays))
         return rgb.cpu().numpy(), sigma.cpu().numpy()
 
     return evaluate

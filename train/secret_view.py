@@ -29,7 +29,7 @@ class SecretView:
         self.field = field
         with torch.no_grad():
             self.encoded = field.encode(torch.from_numpy(points.reshape(-1, 3)).to(device),
-                                        torch.from_numpy(np.ascontiguousarray(viewdirs).reshape(-1, 3)).to(device)
+                                        torch.from_numpy(viewdirs.reshape(-1, 3).copy()).to(device)
                                         ).reshape(n_rays, n_samples, -1)
         self.deltas = torch.from_numpy(deltas).to(device)
         self.background = torch.tensor(render.background, dtype=torch.float32, device=device)

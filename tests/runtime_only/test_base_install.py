@@ -33,7 +33,7 @@ def test_reveal_never_loads_torch_and_reports_exactness(demo_dir, tmp_path):
     )
     result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
     assert result.returncode == 0, result.stderr
-    assert isinstance(json.loads(result.stdout)["exact"], bool)
+    assert json.loads(result.stdout)["exact"] is True
     assert (tmp_path / "out.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
 
@@ -43,6 +43,7 @@ def test_base_install_reveal_equals_the_demo_reveal(demo_dir, tmp_path):
     result = reveal_cli(str(demo_dir / "model.onnx"), str(demo_dir / "secret.bundle"), "-o", str(tmp_path / "r.png"))
     assert result.returncode == 0, result.stderr
     assert (read_image(tmp_path / "r.png") == read_image(demo_dir / "revealed.png")).all()
+    assert (read_image(tmp_path / "r.png") == read_image(demo_dir / "secret.png")).all()
 
 
 def test_fingerprint_mismatch_is_one_line_and_exit_2(demo_dir, tmp_path):
