@@ -144,8 +144,7 @@ def hide_tile_exact(view: SecretView, pixels: torch.Tensor, shape: tuple[int, in
         saved = progress.load(k, c)
         if saved is None:
             generator = torch.Generator().manual_seed(config.seed * 1_000_003 + k * 10_007 + c)
-            result = solve_exact(view, index, pixels[index], noise[index], TORCH_DTYPES[config.dtype],
-                                 config.exact, generator)
+            result = solve_exact(view, index, pixels[index], TORCH_DTYPES[config.dtype], config.exact, generator)
             saved = {"noise": result.noise, "counts": torch.tensor([getattr(result.counts, name) for name in totals])}
             progress.save(k, c, saved)
         noise[index] = saved["noise"].to(noise.device)
@@ -209,7 +208,7 @@ def hide(scene: Scene, secret: np.ndarray, output: Path, config: HideConfig, dev
         tile_start = time.perf_counter()
         x0, y0, w, h = tile.rect
         view = SecretView(field, tile, scene.config.render, device)
-        pixels = torch.from_numpy(np.ascontiguousarray(secret[y0:y0 + h, x0:x0 + w]).reshape(-1, 3)).to(device)
+        pixels = torch.tensor(secret[y0:y0 + h, x0:x0 + w].reshape(-1, 3), device=device)
         noise, counts = solve(view, pixels, (h, w), config, progress, k, bar)
         with torch.no_grad():
             colors = torch.cat([view.render(torch.arange(s, min(s + config.chunk_pixels, view.n_rays), device=device),
