@@ -144,7 +144,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("-o", "--output", required=True, help="scene directory to write (resumes if it holds a checkpoint)")
     p.add_argument("--preset", choices=("small", "paper"), default="small")
     p.add_argument("--resolution", type=int, help="image width in pixels (default: the dataset's)")
-    p.add_argument("--minutes", type=float, help="wall-time budget")
+    p.add_argument("--minutes", type=float, help="training wall-time budget (progress-curve renders excluded)")
     p.add_argument("--iters", type=int, help="step budget (deterministic for a seed on CPU)")
     p.add_argument("--seed", type=int)
     p.add_argument("--no-skip", action="store_true", help="no occupancy grid or early termination (comparison)")

@@ -75,10 +75,12 @@ class OccupancyGrid:
         return float(self.occupied.mean())
 
     def lookup(self, points: np.ndarray) -> np.ndarray:
-        """Whether each point lies in an occupied cell; points outside the box are empty. (..., 3) -> (...)."""
+        """Whether each point lies in an occupied cell; points outside the box are empty. The box is closed:
+        a point on its upper face (NDC's far plane z = 1, where forward-facing scenes keep their
+        background sample) belongs to the last cell. (..., 3) -> (...)."""
         lo, hi = self.aabb[:3], self.aabb[3:]
-        cell = np.floor((points - lo) / (hi - lo) * self.resolution)
-        inside = np.all((cell >= 0) & (cell < self.resolution), axis=-1)
+        inside = np.all((points >= lo) & (points <= hi), axis=-1)
+        cell = np.minimum(np.floor((points - lo) / (hi - lo) * self.resolution), self.resolution - 1)
         idx = np.where(inside[..., None], cell, 0).astype(np.int64)
         return inside & self.occupied[idx[..., 0], idx[..., 1], idx[..., 2]]
 

@@ -62,3 +62,13 @@ def test_encoding_matches_between_numpy_and_torch_and_has_nerf_pytorch_layout():
     np.testing.assert_allclose(ref[:, 6:9], np.cos(x), rtol=1e-6)
     np.testing.assert_allclose(ref[:, 9:12], np.sin(2 * x), rtol=1e-6)
     np.testing.assert_allclose(torch_encoding(torch.from_numpy(x), 4).numpy(), ref, atol=1e-6)
+
+
+def test_occupancy_box_is_closed_so_the_ndc_far_plane_sample_is_kept():
+    from noisenerf.runtime.sampling import OccupancyGrid
+
+    occupied = np.zeros((4, 4, 4), dtype=bool)
+    occupied[3, 3, 3] = occupied[0, 0, 0] = True
+    grid = OccupancyGrid((-1, -1, -1, 1, 1, 1), occupied)
+    points = np.array([[1, 1, 1], [0.9, 0.9, 1.0], [-1, -1, -1], [0.9, 0.9, 1.0001], [0, 0, 0]], np.float32)
+    assert grid.lookup(points).tolist() == [True, True, True, False, False]

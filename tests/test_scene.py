@@ -63,3 +63,27 @@ def test_malformed_json_is_refused(tmp_path):
     (tmp_path / "s" / "scene.json").write_text("{nope")
     with pytest.raises(UserError, match="not valid JSON"):
         load_scene(tmp_path / "s")
+
+
+@pytest.mark.parametrize("config", [
+    {"depth": 6, "width": 128},
+    {"depth": 3, "width": 32, "skips": (1,)},
+    {"depth": 4, "width": 32, "use_viewdirs": False},
+])
+def test_hand_written_jacobian_equals_autograd(config):
+    from noisenerf.train.field import FieldConfig, NeRFField
+
+    torch.manual_seed(0)
+    field = NeRFField(FieldConfig(**config)).double().requires_grad_(False)
+    encoded = 2.0 * torch.randn(64, field.config.noise_dims, dtype=torch.float64)
+    raw, jacobian = field.outputs_and_jacobian(encoded)
+
+    def outputs(x):
+        rgb, density = field.raw_outputs(x)
+        return torch.cat([rgb, density[..., None]], dim=-1)
+
+    expected = torch.func.vmap(torch.func.jacrev(outputs))(encoded)
+    assert jacobian.shape == (64, 4, field.config.noise_dims)
+    torch.testing.assert_close(raw, outputs(encoded), rtol=0, atol=1e-12)
+    torch.testing.assert_close(jacobian, expected, rtol=0, atol=1e-12)
+    assert (jacobian != 0).any(dim=-1).all()  # every row is reached by the noise

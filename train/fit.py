@@ -85,7 +85,8 @@ PRESETS = {
 
 @dataclass(frozen=True)
 class Budget:
-    """When a fit stops: after `iters` steps, or after `minutes` of wall time (resumes included)."""
+    """When a fit stops: after `iters` steps, or after `minutes` of training wall time (resumes included;
+    the progress curve's evaluation renders excluded)."""
 
     iters: int | None = None
     minutes: float | None = None
@@ -320,7 +321,7 @@ def fit(dataset: Dataset, out_dir: Path, config: FitConfig, budget: Budget, devi
     total = budget.iters if budget.iters else int(budget.minutes * 60)
     bar = tqdm(total=total, initial=fitter.step if budget.iters else int(fitter.seconds), disable=not progress,
                unit="it" if budget.iters else "s", desc="fit", dynamic_ncols=True)
-    last_checkpoint = last_curve = time.perf_counter()
+    last_checkpoint = last_curve = wall_start = time.perf_counter()
     start = time.perf_counter() - fitter.seconds
     while budget.progress(fitter.step, fitter.seconds) < 1.0:
         lr = config.lr * (config.lr_final / config.lr) ** budget.progress(fitter.step, fitter.seconds)
@@ -334,6 +335,7 @@ def fit(dataset: Dataset, out_dir: Path, config: FitConfig, budget: Budget, devi
             curve.append({"seconds": round(fitter.seconds, 1), "step": fitter.step, "psnr": quality["psnr"]})
             write_json(curve_path, {"curve": curve, "views": curve_subset})
             last_curve = time.perf_counter()
+            start += last_curve - now  # the curve is a report: its renders do not spend the training budget
         if now - last_checkpoint >= checkpoint_seconds:
             fitter.save_checkpoint(out_dir)
             last_checkpoint = time.perf_counter()
@@ -347,7 +349,8 @@ def fit(dataset: Dataset, out_dir: Path, config: FitConfig, budget: Budget, devi
     started = time.perf_counter()
     report = {
         "scene": str(out_dir), "preset": config.preset, "steps": fitter.step, "seconds": round(fit_seconds, 1),
-        "resumed": resumed, "samples_evaluated": fitter.samples_evaluated, "fingerprint": scene.fingerprint(),
+        "wall_seconds": round(started - wall_start, 1), "resumed": resumed,
+        "samples_evaluated": fitter.samples_evaluated, "fingerprint": scene.fingerprint(),
         "occupancy": scene.grid.occupancy_fraction(), "curve": curve,
         "test": evaluate(scene, dataset, test_views),
     }

@@ -40,6 +40,14 @@ def cell_points(aabb: np.ndarray, resolution: int, cells: np.ndarray, rng: np.ra
     return (lo + (ijk + rng.random(ijk.shape, dtype=np.float32)) / resolution * (hi - lo)).astype(np.float32)
 
 
+def occupied_cells(opacity: np.ndarray, threshold: float) -> np.ndarray:
+    """Cells whose sample opacity exceeds the threshold, or the mean opacity where that is lower, so a
+    scene of faint densities (a young field, LLFF's haze) is not skipped away. (m,) -> (m,) bool."""
+    if np.isfinite(opacity).all():
+        threshold = min(threshold, float(np.mean(opacity)))
+    return opacity > threshold
+
+
 @torch.no_grad()
 def cell_densities(field: NeRFField, aabb: np.ndarray, resolution: int, cells: np.ndarray,
                    rng: np.random.Generator, chunk: int = 65536) -> np.ndarray:
@@ -58,8 +66,7 @@ def build_occupancy_grid(field: NeRFField, aabb, resolution: int, step_size: flo
     density = np.zeros(resolution ** 3, dtype=np.float32)
     for _ in range(config.final_samples_per_cell):
         density = np.maximum(density, cell_densities(field, aabb, resolution, cells, rng))
-    occupied = density * step_size > config.opacity_threshold
-    return OccupancyGrid(aabb, occupied.reshape((resolution,) * 3))
+    return OccupancyGrid(aabb, occupied_cells(density * step_size, config.opacity_threshold).reshape((resolution,) * 3))
 
 
 class OccupancyTracker:
@@ -74,11 +81,8 @@ class OccupancyTracker:
 
     @property
     def grid(self) -> OccupancyGrid:
-        opacity = self.density * self.step_size
-        threshold = min(self.config.opacity_threshold, float(np.mean(opacity))) if np.isfinite(opacity).all() \
-            else self.config.opacity_threshold
-        occupied = (opacity > threshold).reshape(self.hull.shape) & self.hull
-        return OccupancyGrid(self.aabb, occupied)
+        occupied = occupied_cells(self.density * self.step_size, self.config.opacity_threshold)
+        return OccupancyGrid(self.aabb, occupied.reshape(self.hull.shape) & self.hull)
 
     def maybe_update(self, field: NeRFField, step: int) -> bool:
         """Refresh part of the grid on schedule (all of it at the end of warm-up). Returns True if updated."""
