@@ -102,21 +102,17 @@ def cmd_demo(args) -> None:
 
 
 def cmd_bench(args) -> None:
-    from noisenerf.train import bench
-    from noisenerf.train.hide import HideConfig
+    from noisenerf.train.bench import EXPERIMENTS, BenchConfig, run_bench
 
-    if args.experiment == "skipping":
-        report = bench.skipping(Path(args.scene), Path(args.data), args.resolution)
-    elif args.experiment == "hide":
-        config = HideConfig(method=args.method, layout="ray" if args.method == "exact" else "sample",
-                            dtype="float16" if args.method == "exact" else "float32", view=args.view,
-                            tile_size=args.tile_size, n_samples=args.samples)
-        report = bench.hide_secrets(Path(args.scene), [Path(p) for p in args.secrets], config,
-                                    resolve_device(args.device))
-    else:
-        report = bench.reveal_throughput(Path(args.scene), Path(args.bundle), args.threads)
-    report["machine"] = bench.machine()
-    print(json_text(report, indent=None if args.json else 2))
+    experiments = tuple(args.only.split(",")) if args.only else EXPERIMENTS
+    config = BenchConfig(scene=args.scene, secret=args.secret, data=args.data, photos=tuple(args.photos),
+                         view=args.view, small_width=args.small_width, twok_rows=args.twok_rows,
+                         experiments=experiments)
+    command = "noisenerf " + " ".join(sys.argv[1:]) if sys.argv[0].endswith("noisenerf") else "noisenerf bench ..."
+    sections = run_bench(config, Path(args.output), args.stress, command,
+                         progress=lambda line: print(line, file=sys.stderr, flush=True))
+    emit({"report": str(Path(args.output) / "BENCHMARKS.md"), "sections": {s.name: s.rows for s in sections}},
+         args.json, [f"report: {Path(args.output) / 'BENCHMARKS.md'}"])
 
 
 def cmd_make_dataset(args) -> None:
@@ -181,19 +177,17 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--quiet", action="store_true", help="no progress bars")
     add_device(p)
 
-    p = add("bench", cmd_bench, "measure: skipping, hiding with reveal, reveal throughput (prints JSON)")
-    p.add_argument("experiment", choices=("skipping", "hide", "reveal"))
-    p.add_argument("--scene", required=True)
-    p.add_argument("--data", help="skipping: the dataset whose test views are rendered")
-    p.add_argument("--resolution", type=int)
-    p.add_argument("--secrets", nargs="*", default=[], help="hide: secret images")
-    p.add_argument("--method", choices=("exact", "paper"), default="exact")
-    p.add_argument("--view", type=int, default=0)
-    p.add_argument("--tile-size", type=int, default=512)
-    p.add_argument("--samples", type=int)
-    p.add_argument("--bundle", help="reveal: the bundle to reveal")
-    p.add_argument("--threads", type=int, default=2)
-    add_device(p)
+    p = add("bench", cmd_bench, "measure everything BENCHMARKS.md reports; writes it with CSVs and plots")
+    p.add_argument("--scene", required=True, help="scene directory (the README's Benchmarks section fits it)")
+    p.add_argument("--secret", required=True, help="the secret image most experiments hide")
+    p.add_argument("--data", help="dataset whose test views the skipping experiment renders")
+    p.add_argument("--photos", nargs="*", default=[], help="secrets hidden at native size (photos experiment)")
+    p.add_argument("--view", type=int, default=0, help="scene camera the secrets are hidden at")
+    p.add_argument("--small-width", type=int, default=48, help="secret width for the paper-mode curves")
+    p.add_argument("--twok-rows", type=int, default=1, help="tile rows of the 2048² secret actually hidden (1-4)")
+    p.add_argument("--only", help="comma-separated experiments (default: all)")
+    p.add_argument("--stress", action="store_true", help="also run the full numerical stress suite")
+    p.add_argument("-o", "--output", default="bench", help="folder for BENCHMARKS.md, CSVs and plots")
 
     p = add("make-dataset", cmd_make_dataset, "write the procedural NeRF-Synthetic-format dataset")
     p.add_argument("-o", "--output", required=True)

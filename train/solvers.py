@@ -6,8 +6,9 @@ the sigmoid of the field's raw colour. Each pixel is then four equations in its 
 raw colour = logit(target colour), raw density ≥ density_floor — and all four are piecewise linear in
 the noise (a ReLU MLP), so a Gauss–Newton step lands exactly unless it crosses a ReLU boundary. The step
 is the minimum-norm Levenberg–Marquardt one, δ += Jᵀ(JJᵀ + λI)⁻¹r, with a short backtracking line search;
-J is exact (four backward passes give it for every pixel at once, since pixels are independent), and a
-pixel retires as soon as it is finished, so later iterations only pay for the few left.
+J is exact (the field's hand-written four-row reverse pass), and a pixel retires as soon as it is
+finished, so later iterations only pay for the few left. Every 16th pixel is solved first; the others
+start from the noise of the solved pixel nearest in target colour.
 
 Two phases: the first solves in float32 until every channel sits within `tolerance_bins` of its bin's
 centre; the second rounds to the storage dtype and polishes, judging only storable noise, until every
@@ -15,7 +16,8 @@ channel rounds to its 8-bit value with `margin_bins` to spare (far more than the
 disagreement, ~1e-6 in colour). A pixel that has not finished after `restart_after` iterations, or whose
 Jacobian is zero (every ReLU it needs is off), restarts from the noise of a finished pixel of nearby
 target colour (pixels of one view map noise to colour almost alike), or a seeded random kick if none
-has finished yet.
+has finished yet; each further restart of the same pixel draws from more donors and adds a wider
+seeded jitter.
 
 `solve_paper`: the paper's optimisation (Adam, lr 1e-2 decaying by 0.3 over the run, Pixel
 Perturbation for the first μ iterations, Adaptive Pixel Selection), see its docstring.
@@ -35,15 +37,16 @@ END_PULL_BINS = 0.2  # targets for 0 and 255 sit this far inside, where a sigmoi
 
 @dataclass(frozen=True)
 class ExactSettings:
-    max_iters: int = 60  # per phase
+    max_iters: int = 100  # per phase; late iterations only touch the few pixels left
     tolerance_bins: float = 0.1  # float32 phase: distance from the bin centre that counts as converged
     margin_bins: float = 0.1  # storage phase: what stays between a finished value and its bin edge
     density_floor: float = 1.0  # raw density the secret sample is lifted to (opacity exactly 1)
     damping: float = 1e-4  # initial λ, relative to tr(JJᵀ)/4
     step_scales: tuple[float, ...] = (1.0, 0.5, 0.25)
     restart_after: int = 8
-    donors: int = 4  # restart from one of this many finished pixels nearest in target colour
+    donors: int = 4  # the k-th restart starts from one of the 4k finished pixels nearest in target colour
     kick: float = 1.0  # random restart scale when no pixel has finished yet
+    jitter: float = 0.1  # added to a pixel's restart point per restart it has had
     seed_stride: int = 16  # every seed_stride-th pixel is solved first and warm-starts the others
     retire: bool = True  # finished pixels leave the batch (off only to measure what retiring saves)
 
@@ -98,12 +101,13 @@ def colour_distance_bins(outputs: torch.Tensor, reference: torch.Tensor) -> torc
 
 
 def donor_noise(stuck: torch.Tensor, finished: torch.Tensor, goal: torch.Tensor, noise: torch.Tensor,
-                generator: torch.Generator, donors: int) -> torch.Tensor:
-    """Restart points for stuck pixels: the noise of one of the `donors` finished pixels nearest in target
-    logits, chosen at random. stuck, finished: index tensors into goal (m, 3) / noise (m, 1, dims)."""
-    k = min(donors, finished.numel())
+                generator: torch.Generator, pool: torch.Tensor) -> torch.Tensor:
+    """Restart points for stuck pixels: the noise of a finished pixel picked at random among the pool[i]
+    nearest in target logits. stuck (s,), finished: index tensors into goal (m, 3) / noise (m, 1, dims);
+    pool: (s,) int64 ≥ 1."""
+    k = min(int(pool.max()), finished.numel())
     nearest = torch.cdist(goal[stuck], goal[finished]).topk(k, largest=False).indices
-    pick = torch.randint(0, k, (stuck.numel(),), generator=generator).to(nearest.device)
+    pick = (torch.rand(stuck.numel(), generator=generator).to(pool.device) * pool.clamp_max(k)).long()
     return noise[finished[nearest[torch.arange(stuck.numel(), device=nearest.device), pick]]]
 
 
@@ -143,18 +147,24 @@ def line_search(view: SecretView, index: torch.Tensor, noise: torch.Tensor, outp
     return noise, outputs, improved
 
 
+Observer = Callable[[torch.Tensor, torch.Tensor, SolveCounts], None]  # (index (m,), noise (m, 1, dims), counts)
+
+
 def refine(view: SecretView, index: torch.Tensor, goal: torch.Tensor, noise: torch.Tensor,
            finished: Callable[[torch.Tensor, torch.Tensor], torch.Tensor], store: Callable[[torch.Tensor], torch.Tensor],
-           settings: ExactSettings, generator: torch.Generator, counts: SolveCounts) -> tuple[torch.Tensor, torch.Tensor]:
+           settings: ExactSettings, generator: torch.Generator, counts: SolveCounts,
+           observe: Observer | None = None) -> tuple[torch.Tensor, torch.Tensor]:
     """Levenberg–Marquardt on every pixel until `finished(outputs (a, 4), which (a,)) -> (a,) bool` holds.
     Finished pixels retire (unless settings.retire is off, for comparison); Jacobians are computed only
-    for pixels that still need a step. noise: (m, 1, dims) -> noise, done (m,) bool."""
+    for pixels that still need a step; `observe` sees the noise after every iteration (benchmarks).
+    noise: (m, 1, dims) -> noise, done (m,) bool."""
     m = index.shape[0]
     device = noise.device
     noise = noise.clone()
     done = torch.zeros(m, dtype=torch.bool, device=device)
     damping = torch.full((m,), settings.damping, device=device)
     age = torch.zeros(m, dtype=torch.int64, device=device)
+    restarts = torch.zeros(m, dtype=torch.int64, device=device)
     outputs = evaluate(view, index, noise, counts)
     active = torch.arange(m, device=device)
     for iteration in range(1, settings.max_iters + 1):
@@ -168,11 +178,14 @@ def refine(view: SecretView, index: torch.Tensor, goal: torch.Tensor, noise: tor
         stuck = active[(age[active] > settings.restart_after) & ~done[active]]
         if stuck.numel():
             finished_pixels = done.nonzero()[:, 0]
-            if finished_pixels.numel():
-                fresh = donor_noise(stuck, finished_pixels, goal, noise, generator, settings.donors)
+            restarts[stuck] += 1
+            # the k-th restart of a pixel jitters its start by k·jitter, so repeated restarts explore further
+            spread = settings.jitter * (restarts[stuck] - 1).float()[:, None, None]
+            if finished_pixels.numel():  # and each restart widens the pool of donors
+                start = donor_noise(stuck, finished_pixels, goal, noise, generator, settings.donors * restarts[stuck])
             else:
-                fresh = noise[stuck] + settings.kick * torch.randn(noise[stuck].shape, generator=generator).to(device)
-            noise[stuck] = store(fresh)
+                start, spread = noise[stuck], spread + settings.kick
+            noise[stuck] = store(start + spread * torch.randn(start.shape, generator=generator).to(device))
             outputs[stuck] = evaluate(view, index[stuck], noise[stuck], counts)
             age[stuck], damping[stuck] = 0, settings.damping
             counts.restarts += stuck.numel()
@@ -184,6 +197,8 @@ def refine(view: SecretView, index: torch.Tensor, goal: torch.Tensor, noise: tor
                                                                step, goal[active], settings, store, counts)
         damping[active] = torch.where(improved, torch.clamp(damping[active] / 3, min=1e-7),
                                       torch.clamp(damping[active] * 10, max=1e6))
+        if observe is not None:
+            observe(index, noise, counts)
     return noise, done
 
 
@@ -195,7 +210,7 @@ class ChunkResult:
 
 def solve_pixels(view: SecretView, index: torch.Tensor, pixels: torch.Tensor, noise: torch.Tensor,
                  storage: torch.dtype, settings: ExactSettings, generator: torch.Generator,
-                 counts: SolveCounts) -> torch.Tensor:
+                 counts: SolveCounts, observe: Observer | None = None) -> torch.Tensor:
     """Both phases for pixels `index` (m,) with 8-bit values (m, 3), from noise (m, 1, dims) -> noise."""
     target = bin_targets(pixels)
     goal = logit(target)
@@ -209,14 +224,14 @@ def solve_pixels(view: SecretView, index: torch.Tensor, pixels: torch.Tensor, no
         return ((colour_distance_bins(outputs, values[which]) <= 0.5 - settings.margin_bins)
                 & (outputs[:, 3] >= floor))
 
-    noise, _ = refine(view, index, goal, noise, converged, lambda n: n, settings, generator, counts)
+    noise, _ = refine(view, index, goal, noise, converged, lambda n: n, settings, generator, counts, observe)
     noise, _ = refine(view, index, goal, quantize(noise, storage), rounds_right, lambda n: quantize(n, storage),
-                      settings, generator, counts)
+                      settings, generator, counts, observe)
     return noise
 
 
 def solve_exact(view: SecretView, index: torch.Tensor, pixels: torch.Tensor, storage: torch.dtype,
-                settings: ExactSettings, generator: torch.Generator) -> ChunkResult:
+                settings: ExactSettings, generator: torch.Generator, observe: Observer | None = None) -> ChunkResult:
     """Bring pixels `index` (m,) of a single-sample view to their 8-bit values `pixels` (m, 3) uint8.
 
     Every seed_stride-th pixel is solved first from zero noise; every other pixel then starts from the
@@ -229,12 +244,13 @@ def solve_exact(view: SecretView, index: torch.Tensor, pixels: torch.Tensor, sto
     noise = torch.zeros(m, 1, view.encoded.shape[-1], device=pixels.device)
     is_seed = torch.arange(m, device=pixels.device) % settings.seed_stride == 0
     seeds, rest = is_seed.nonzero()[:, 0], (~is_seed).nonzero()[:, 0]
-    noise[seeds] = solve_pixels(view, index[seeds], pixels[seeds], noise[seeds], storage, settings, generator, counts)
+    noise[seeds] = solve_pixels(view, index[seeds], pixels[seeds], noise[seeds], storage, settings, generator, counts,
+                                observe)
     if rest.numel():
         goal = logit(bin_targets(pixels))
         nearest = seeds[torch.cdist(goal[rest], goal[seeds]).argmin(dim=1)]
         noise[rest] = solve_pixels(view, index[rest], pixels[rest], noise[nearest], storage, settings, generator,
-                                   counts)
+                                   counts, observe)
     return ChunkResult(noise, counts)
 
 

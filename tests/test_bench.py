@@ -1,0 +1,65 @@
+"""`noisenerf bench` end to end on a tiny scene: every experiment runs and the report, CSVs and plots
+are written with the figures the experiments measured."""
+
+import csv
+
+import numpy as np
+import pytest
+
+from conftest import make_tiny_scene
+from noisenerf.runtime.errors import UserError
+from noisenerf.runtime.images import write_image
+from noisenerf.train.bench import EXPERIMENTS, BenchConfig, field_flops, run_bench
+
+
+@pytest.fixture(scope="module")
+def report(tmp_path_factory):
+    folder = tmp_path_factory.mktemp("bench")
+    make_tiny_scene(seed=2).save(folder / "scene")
+    secret = np.random.default_rng(0).integers(0, 256, (12, 16, 3), dtype=np.uint8)
+    write_image(folder / "secret.png", secret)
+    config = BenchConfig(scene=str(folder / "scene"), secret=str(folder / "secret.png"),
+                         photos=(str(folder / "secret.png"),), small_width=12, paper_samples=3, ablation_samples=2,
+                         twok_size=32, twok_tile=16, twok_rows=1, threads=(1,))
+    sections = run_bench(config, folder / "out", run_stress=False, command="noisenerf bench (test)",
+                         progress=lambda line: None)
+    return folder / "out", {section.name: section for section in sections}
+
+
+def test_every_experiment_writes_csv_and_report(report):
+    out, sections = report
+    assert list(sections) == list(EXPERIMENTS)
+    text = (out / "BENCHMARKS.md").read_text()
+    for section in sections.values():
+        with open(out / f"{section.name}.csv") as handle:
+            assert len(list(csv.DictReader(handle))) == len(section.rows) > 0
+        assert f"## {section.title}" in text
+    assert (out / "error_vs_time.png").read_bytes()[:4] == b"\x89PNG"
+    assert (out / "ablation.png").read_bytes()[:4] == b"\x89PNG"
+
+
+def test_exact_curve_ends_exact_and_photos_reveal_exactly(report):
+    _, sections = report
+    exact_rows = [r for r in sections["error_vs_time"].rows if r["method"] == "exact"]
+    assert exact_rows[-1]["exact_fraction"] == 1.0 and exact_rows[-1]["max_error"] == 0
+    assert [r["iteration"] for r in sections["ablation"].rows if r["method"] == "full"] == [50, 200, 300]
+    assert all(row["onnx_exact"] for row in sections["photos"].rows)
+    assert sections["cost"].rows[0]["exact"] and sections["twok"].rows[0]["exact"]
+    assert sections["twok"].rows[0]["tiles"] == 2 and sections["twok"].rows[0]["hide_seconds_2k"] > 0
+
+
+def test_retiring_finished_pixels_does_less_work(report):
+    _, sections = report
+    work = {row["variant"]: row["work"] for row in sections["skipping"].rows}
+    assert work["no retiring"] > work["retiring"]
+
+
+def test_field_flops_counts_linear_layers():
+    scene = make_tiny_scene(seed=0, width=32, depth=3)
+    # 63->32, (32+63)->32 (skip after layer 1), 32->32, feature 32->32, alpha 32->1, views (32+27)->16, rgb 16->3
+    assert field_flops(scene.render_field) == 2 * (63 * 32 + 95 * 32 + 32 * 32 + 32 * 32 + 32 + 59 * 16 + 16 * 3)
+
+
+def test_unknown_experiment_is_refused(tmp_path):
+    with pytest.raises(UserError, match="unknown experiments"):
+        run_bench(BenchConfig(scene="x", secret="y", experiments=("magic",)), tmp_path / "o", False, "")
