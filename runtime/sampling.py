@@ -85,6 +85,15 @@ class OccupancyGrid:
         return inside & self.occupied[idx[..., 0], idx[..., 1], idx[..., 2]]
 
 
+def grid_candidates(grid: OccupancyGrid, points: np.ndarray) -> np.ndarray:
+    """Samples the grid does not rule out. A ray's last sample is always kept: its interval is 1e10, so
+    any density there, however faint, decides the ray's colour (LLFF keeps its background there).
+    points: (n_rays, n_samples, 3) -> (n_rays, n_samples) bool."""
+    candidates = grid.lookup(points)
+    candidates[:, -1] = True
+    return candidates
+
+
 FieldFn = Callable[[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]]
 
 
@@ -110,7 +119,7 @@ def march_rays(points: np.ndarray, viewdirs: np.ndarray, deltas: np.ndarray, fie
     field(points (m, 3), viewdirs (m, 3)) -> rgb (m, 3), sigma (m,).
     """
     n_rays, n_samples = deltas.shape
-    candidates = grid.lookup(points) if grid is not None else np.ones((n_rays, n_samples), dtype=bool)
+    candidates = grid_candidates(grid, points) if grid is not None else np.ones((n_rays, n_samples), dtype=bool)
     sigmas = np.zeros((n_rays, n_samples), dtype=np.float32)
     rgbs = np.zeros((n_rays, n_samples, 3), dtype=np.float32)
     evaluated = np.zeros((n_rays, n_samples), dtype=bool)

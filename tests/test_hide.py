@@ -113,6 +113,7 @@ def test_paper_method_runs_with_sample_layout_and_records_table3_points(scene, t
     ({"view": 99}, "out of range"),
     ({"tile_size": 4}, "tile-size must be at least"),
     ({"method": "magic"}, "unknown method"),
+    ({"n_samples": 4}, "one sample per ray"),
 ])
 def test_bad_settings_are_refused_and_write_nothing(scene, tmp_path, kwargs, message):
     with pytest.raises(UserError, match=message):

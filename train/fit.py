@@ -31,7 +31,9 @@ from noisenerf.runtime.errors import UserError
 from noisenerf.runtime.files import atomic_output, read_json, write_json
 from noisenerf.runtime.metrics import psnr, ssim
 from noisenerf.runtime.render import RenderConfig, prepare_rays, render_rays, render_view
-from noisenerf.runtime.sampling import OccupancyGrid, SamplingConfig, jitter_positions, sample_positions
+from noisenerf.runtime.sampling import (
+    OccupancyGrid, SamplingConfig, grid_candidates, jitter_positions, sample_positions,
+)
 from noisenerf.train.field import FieldConfig
 from noisenerf.train.occupancy import OccupancyConfig, OccupancyTracker, build_occupancy_grid, carve, cell_points
 from noisenerf.train.renderer import TorchRays, numpy_field, render_hierarchical, render_masked
@@ -136,7 +138,7 @@ def skip_mask(field, rays: TorchRays, t_vals: torch.Tensor, grid, early_stop: fl
     """Samples worth a gradient: in occupied cells, and (by a density-only pass without gradients)
     before the ray's transmittance drops below early_stop. t_vals: (n_rays, n_samples) -> bool mask."""
     points = rays.origins[:, None, :] + t_vals[..., None] * rays.directions[:, None, :]
-    mask = torch.from_numpy(grid.lookup(points.cpu().numpy())).to(t_vals.device)
+    mask = torch.from_numpy(grid_candidates(grid, points.cpu().numpy())).to(t_vals.device)
     if early_stop <= 0 or not mask.any():
         return mask
     with torch.no_grad():
