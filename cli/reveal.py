@@ -36,7 +36,8 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("-o", "--output", required=True, help="image to write (.png, .tif or .exr)")
     parser.add_argument("--json", action="store_true", help="print one JSON object on stdout")
     parser.add_argument("--no-skip", action="store_true",
-                        help="with --view: no empty-space skipping or early termination (comparison)")
+                        help="with --view: no empty-space skipping or early termination inside the scene's box "
+                             "(comparison)")
     parser.add_argument("--threads", type=int, help="onnxruntime threads (default: all cores)")
     parser.add_argument("--device", choices=("cpu", "cuda"), default="cpu")
     parser.add_argument("--force", action="store_true", help="overwrite an existing output")
@@ -73,8 +74,9 @@ def render_dataset_view(model: Model, view: int, skip: bool) -> tuple[np.ndarray
 
     camera = model.camera(view)
     with progress_bar(camera.width * camera.height) as bar:
-        image, stats = render_view(camera, model.render_config, model.field, model.grid if skip else None,
-                                   early_stop=None if skip else 0.0, progress=bar)
+        grid = model.grid if skip else model.grid.box_only()
+        image, stats = render_view(camera, model.render_config, model.field, grid, early_stop=None if skip else 0.0,
+                                   progress=bar)
     return image, {"view": view, "width": camera.width, "height": camera.height, "skip": skip,
                    "rays": stats.n_rays, "samples": stats.n_samples_evaluated,
                    "samples_dense": stats.n_samples_dense}

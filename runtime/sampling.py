@@ -74,23 +74,32 @@ class OccupancyGrid:
     def occupancy_fraction(self) -> float:
         return float(self.occupied.mean())
 
+    def contains(self, points: np.ndarray) -> np.ndarray:
+        """Whether each point lies in the closed box. (..., 3) -> (...)."""
+        return np.all((points >= self.aabb[:3]) & (points <= self.aabb[3:]), axis=-1)
+
+    def box_only(self) -> "OccupancyGrid":
+        """The same box with every cell occupied: no skipping inside the scene, nothing outside it."""
+        return OccupancyGrid(self.aabb, np.ones_like(self.occupied))
+
     def lookup(self, points: np.ndarray) -> np.ndarray:
         """Whether each point lies in an occupied cell; points outside the box are empty. The box is closed:
         a point on its upper face (NDC's far plane z = 1, where forward-facing scenes keep their
         background sample) belongs to the last cell. (..., 3) -> (...)."""
         lo, hi = self.aabb[:3], self.aabb[3:]
-        inside = np.all((points >= lo) & (points <= hi), axis=-1)
+        inside = self.contains(points)
         cell = np.minimum(np.floor((points - lo) / (hi - lo) * self.resolution), self.resolution - 1)
         idx = np.where(inside[..., None], cell, 0).astype(np.int64)
         return inside & self.occupied[idx[..., 0], idx[..., 1], idx[..., 2]]
 
 
 def grid_candidates(grid: OccupancyGrid, points: np.ndarray) -> np.ndarray:
-    """Samples the grid does not rule out. A ray's last sample is always kept: its interval is 1e10, so
-    any density there, however faint, decides the ray's colour (LLFF keeps its background there).
+    """Samples the grid does not rule out. A ray's last sample is kept wherever it lies in the box,
+    whatever its cell says: its interval is 1e10, so a density far below the grid's threshold still
+    decides the ray's colour (LLFF keeps its background there, on NDC's far plane).
     points: (n_rays, n_samples, 3) -> (n_rays, n_samples) bool."""
     candidates = grid.lookup(points)
-    candidates[:, -1] = True
+    candidates[:, -1] = grid.contains(points[:, -1])
     return candidates
 
 

@@ -19,7 +19,10 @@ from noisenerf.train.renderer import numpy_field
 from noisenerf.runtime.bundle import METADATA_KEY, Bundle, Tile, load_bundle, secret_digest
 from noisenerf.runtime.images import read_image, read_native
 from noisenerf.runtime.model import load_model
+from noisenerf.runtime.camera import camera_rays
+from noisenerf.runtime.render import prepare_rays, sample_along
 from noisenerf.runtime.reveal import reveal
+from noisenerf.runtime.sampling import sample_positions
 from noisenerf.train.scene import load_scene
 
 
@@ -106,8 +109,13 @@ def test_view_render_skips_and_no_skip_does_not(inputs, tmp_path):
         result = run_reveal(model, "--view", 3, "-o", tmp_path / f"view{len(flags)}.png", "--json", *flags)
         assert result.returncode == 0, result.stderr
         reports[bool(flags)] = json.loads(result.stdout)
-    assert reports[True]["samples"] == reports[True]["samples_dense"] == 16 * 12 * 24
-    assert reports[False]["samples"] <= reports[False]["samples_dense"]
+    # without skipping, every sample inside the scene's box is evaluated (outside it the scene is empty)
+    loaded = load_model(model)
+    rays = prepare_rays(loaded.render_config, *camera_rays(loaded.camera(3), loaded.render_config.pixel_center))
+    points, _ = sample_along(rays, sample_positions(loaded.render_config.sampling))
+    assert reports[True]["samples_dense"] == 16 * 12 * 24
+    assert reports[True]["samples"] == int(loaded.grid.contains(points).sum()) > 0
+    assert reports[False]["samples"] <= reports[True]["samples"]
     assert (reports[False]["width"], reports[False]["height"]) == (16, 12)
 
 

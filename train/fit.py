@@ -300,7 +300,7 @@ def evaluate(scene: Scene, dataset: Dataset, views: list[int], skipping: bool = 
     scores, dense, evaluated = [], 0, 0
     for index in views:
         image, stats = render_view(dataset.cameras[index], scene.config.render, field,
-                                   scene.grid if skipping else None, early_stop=None if skipping else 0.0)
+                                   scene.grid if skipping else scene.grid.box_only(), early_stop=None if skipping else 0.0)
         target = dataset.images[index]
         scores.append((psnr(image, target), ssim(image, target)))
         dense += stats.n_samples_dense

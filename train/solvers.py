@@ -15,9 +15,9 @@ centre; the second rounds to the storage dtype and polishes, judging only storab
 channel rounds to its 8-bit value with `margin_bins` to spare (far more than the torch ↔ onnxruntime
 disagreement, ~1e-6 in colour). A pixel that has not finished after `restart_after` iterations, or whose
 Jacobian is zero (every ReLU it needs is off), restarts from the noise of a finished pixel of nearby
-target colour (pixels of one view map noise to colour almost alike), or a seeded random kick if none
-has finished yet; each further restart of the same pixel draws from more donors and adds a wider
-seeded jitter.
+target colour (pixels of one view map noise to colour almost alike); every other restart is a seeded
+random start instead, and each further restart of the same pixel draws from more donors and adds a
+wider seeded jitter.
 
 `solve_paper`: the paper's optimisation (Adam, lr 1e-2 decaying by 0.3 over the run, Pixel
 Perturbation for the first μ iterations, Adaptive Pixel Selection), see its docstring.
@@ -45,7 +45,7 @@ class ExactSettings:
     step_scales: tuple[float, ...] = (1.0, 0.5, 0.25)
     restart_after: int = 8
     donors: int = 4  # the k-th restart starts from one of the 4k finished pixels nearest in target colour
-    kick: float = 1.0  # random restart scale when no pixel has finished yet
+    kick: float = 1.0  # scale of a random restart around zero noise
     jitter: float = 0.1  # added to a pixel's restart point per restart it has had
     seed_stride: int = 16  # every seed_stride-th pixel is solved first and warm-starts the others
     retire: bool = True  # finished pixels leave the batch (off only to measure what retiring saves)
@@ -179,12 +179,16 @@ def refine(view: SecretView, index: torch.Tensor, goal: torch.Tensor, noise: tor
         if stuck.numel():
             finished_pixels = done.nonzero()[:, 0]
             restarts[stuck] += 1
-            # the k-th restart of a pixel jitters its start by k·jitter, so repeated restarts explore further
+            # the k-th restart of a pixel jitters its start by k·jitter and draws from more donors, so
+            # repeated restarts explore further; every other one starts afresh at random, in case the
+            # donors' noise all lies in a basin this pixel's colour cannot be reached from
             spread = settings.jitter * (restarts[stuck] - 1).float()[:, None, None]
-            if finished_pixels.numel():  # and each restart widens the pool of donors
-                start = donor_noise(stuck, finished_pixels, goal, noise, generator, settings.donors * restarts[stuck])
-            else:
-                start, spread = noise[stuck], spread + settings.kick
+            start = torch.zeros_like(noise[stuck])
+            from_donor = (restarts[stuck] % 2 == 1) & bool(finished_pixels.numel())
+            if from_donor.any():
+                start[from_donor] = donor_noise(stuck[from_donor], finished_pixels, goal, noise, generator,
+                                                settings.donors * restarts[stuck[from_donor]])
+            spread = torch.where(from_donor[:, None, None], spread, spread + settings.kick)
             noise[stuck] = store(start + spread * torch.randn(start.shape, generator=generator).to(device))
             outputs[stuck] = evaluate(view, index[stuck], noise[stuck], counts)
             age[stuck], damping[stuck] = 0, settings.damping
@@ -208,26 +212,26 @@ class ChunkResult:
     counts: SolveCounts
 
 
-def solve_pixels(view: SecretView, index: torch.Tensor, pixels: torch.Tensor, noise: torch.Tensor,
-                 storage: torch.dtype, settings: ExactSettings, generator: torch.Generator,
-                 counts: SolveCounts, observe: Observer | None = None) -> torch.Tensor:
-    """Both phases for pixels `index` (m,) with 8-bit values (m, 3), from noise (m, 1, dims) -> noise."""
-    target = bin_targets(pixels)
-    goal = logit(target)
-    values = pixels.float() / 255.0
-    floor = settings.density_floor / 2
+class Criteria:
+    """What a chunk's pixels aim at: logit goals, and when a pixel counts as converged (float32 phase,
+    near its bin's centre) or as rounding right (storage phase, inside its bin with the margin)."""
 
-    def converged(outputs, which):
-        return (colour_distance_bins(outputs, target[which]) <= settings.tolerance_bins) & (outputs[:, 3] >= floor)
+    def __init__(self, pixels: torch.Tensor, settings: ExactSettings):
+        self.target = bin_targets(pixels)
+        self.goal = logit(self.target)
+        self.values = pixels.float() / 255.0
+        self.settings = settings
 
-    def rounds_right(outputs, which):
-        return ((colour_distance_bins(outputs, values[which]) <= 0.5 - settings.margin_bins)
-                & (outputs[:, 3] >= floor))
+    def lifted(self, outputs: torch.Tensor) -> torch.Tensor:
+        return outputs[:, 3] >= self.settings.density_floor / 2
 
-    noise, _ = refine(view, index, goal, noise, converged, lambda n: n, settings, generator, counts, observe)
-    noise, _ = refine(view, index, goal, quantize(noise, storage), rounds_right, lambda n: quantize(n, storage),
-                      settings, generator, counts, observe)
-    return noise
+    def converged(self, outputs: torch.Tensor, which: torch.Tensor) -> torch.Tensor:
+        near = colour_distance_bins(outputs, self.target[which]) <= self.settings.tolerance_bins
+        return near & self.lifted(outputs)
+
+    def rounds_right(self, outputs: torch.Tensor, which: torch.Tensor) -> torch.Tensor:
+        inside = colour_distance_bins(outputs, self.values[which]) <= 0.5 - self.settings.margin_bins
+        return inside & self.lifted(outputs)
 
 
 def solve_exact(view: SecretView, index: torch.Tensor, pixels: torch.Tensor, storage: torch.dtype,
@@ -236,21 +240,33 @@ def solve_exact(view: SecretView, index: torch.Tensor, pixels: torch.Tensor, sto
 
     Every seed_stride-th pixel is solved first from zero noise; every other pixel then starts from the
     noise of the solved seed nearest in target colour, which is most of the way there (it measured
-    ~40 % fewer Jacobians than starting all pixels from zero)."""
+    ~40 % fewer Jacobians than starting all pixels from zero). Each group runs both phases; a last
+    storage-phase pass over the whole chunk gives any pixel still left every finished pixel as a donor."""
     if view.n_samples != 1:
         raise ValueError("the exact solver needs a secret view with one sample per ray")
     m = index.shape[0]
     counts = SolveCounts()
+    criteria = Criteria(pixels, settings)
+
+    def store(n):
+        return quantize(n, storage)
+
+    def both_phases(group: torch.Tensor, start: torch.Tensor) -> torch.Tensor:
+        group_criteria = Criteria(pixels[group], settings)
+        converged, _ = refine(view, index[group], group_criteria.goal, start, group_criteria.converged,
+                              lambda n: n, settings, generator, counts, observe)
+        return refine(view, index[group], group_criteria.goal, store(converged), group_criteria.rounds_right,
+                      store, settings, generator, counts, observe)[0]
+
     noise = torch.zeros(m, 1, view.encoded.shape[-1], device=pixels.device)
     is_seed = torch.arange(m, device=pixels.device) % settings.seed_stride == 0
     seeds, rest = is_seed.nonzero()[:, 0], (~is_seed).nonzero()[:, 0]
-    noise[seeds] = solve_pixels(view, index[seeds], pixels[seeds], noise[seeds], storage, settings, generator, counts,
-                                observe)
+    noise[seeds] = both_phases(seeds, noise[seeds])
     if rest.numel():
-        goal = logit(bin_targets(pixels))
-        nearest = seeds[torch.cdist(goal[rest], goal[seeds]).argmin(dim=1)]
-        noise[rest] = solve_pixels(view, index[rest], pixels[rest], noise[nearest], storage, settings, generator,
-                                   counts, observe)
+        nearest = seeds[torch.cdist(criteria.goal[rest], criteria.goal[seeds]).argmin(dim=1)]
+        noise[rest] = both_phases(rest, noise[nearest])
+        noise, _ = refine(view, index, criteria.goal, noise, criteria.rounds_right, store, settings, generator,
+                          counts, observe)
     return ChunkResult(noise, counts)
 
 
