@@ -4,7 +4,7 @@
 
 writes OUT_DIR/BENCHMARKS.md, one CSV per experiment and PNG plots. Each comparison is measured side by
 side in one run (a ratio) on the machine it runs on; absolute times are labelled with that machine.
-The paper's method costs ~0.3 s per pixel at 64 samples on 2 cores, so the curves that include it use
+The paper's method costs ~0.15 s per pixel at 64 samples on 2 cores, so the curves that include it use
 the secret downscaled to `small_width`; the exact method is also measured at full size.
 """
 
