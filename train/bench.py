@@ -10,6 +10,7 @@ the secret downscaled to `small_width`; the exact method is also measured at ful
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import dataclasses
 import datetime
@@ -31,13 +32,14 @@ from noisenerf.runtime.bundle import load_bundle
 from noisenerf.runtime.errors import UserError
 from noisenerf.runtime.files import atomic_output
 from noisenerf.runtime.images import load_secret, resize_image
-from noisenerf.runtime.metrics import exact_fraction, psnr, ssim
+from noisenerf.runtime.metrics import psnr
 from noisenerf.runtime.model import load_model
+from noisenerf.runtime.session import available_cores
 from noisenerf.runtime.render import render_view
 from noisenerf.runtime.reveal import reveal, to_uint8
 from noisenerf.train.datasets import load_dataset
 from noisenerf.train.field import NeRFField
-from noisenerf.train.hide import HideConfig, hide, plan
+from noisenerf.train.hide import HideConfig, hide, plan, quality
 from noisenerf.train.renderer import numpy_field
 from noisenerf.train.scene import Scene, load_scene
 from noisenerf.train.secret_view import SecretView
@@ -85,7 +87,7 @@ def machine() -> dict:
         names = [line.split(":", 1)[1].strip() for line in Path("/proc/cpuinfo").read_text().splitlines()
                  if line.startswith("model name")]
         cpu = names[0] if names else cpu
-    return {"cpu": cpu, "cores": len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count(),
+    return {"cpu": cpu, "cores": available_cores(),
             "python": platform.python_version(), "torch": torch.__version__, "onnxruntime": onnxruntime.__version__,
             "noisenerf": noisenerf.__version__}
 
@@ -99,17 +101,13 @@ class Stopwatch:
     def elapsed(self) -> float:
         return time.perf_counter() - self.started - self.paused
 
+    @contextlib.contextmanager
     def pause(self):
-        watch = self
-
-        class Paused:
-            def __enter__(self):
-                self.at = time.perf_counter()
-
-            def __exit__(self, *exc):
-                watch.paused += time.perf_counter() - self.at
-
-        return Paused()
+        at = time.perf_counter()
+        try:
+            yield
+        finally:
+            self.paused += time.perf_counter() - at
 
 
 def field_flops(field: NeRFField) -> int:
@@ -131,9 +129,8 @@ def secret_view(scene: Scene, secret: np.ndarray, view: int, n_samples: int) -> 
 
 
 def tile_quality(colors: torch.Tensor, secret: np.ndarray) -> dict:
-    got = to_uint8(colors.reshape(secret.shape).cpu().numpy())
-    return {"psnr": psnr(got / 255.0, secret / 255.0), "ssim": ssim(got / 255.0, secret / 255.0),
-            "exact_fraction": exact_fraction(got, secret), "max_error": int(np.abs(got.astype(int) - secret).max())}
+    """hide.quality of a rendered tile (n, 3) against the secret (h, w, 3) uint8."""
+    return quality(colors.cpu().numpy(), secret.reshape(-1, 3), secret.shape[:2])
 
 
 def exact_curve(scene: Scene, secret: np.ndarray, view: int, settings: ExactSettings = ExactSettings()

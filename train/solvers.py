@@ -114,7 +114,7 @@ def donor_noise(stuck: torch.Tensor, finished: torch.Tensor, goal: torch.Tensor,
 @dataclass
 class SolveCounts:
     iterations: int = 0
-    jacobians: int = 0  # pixel-Jacobians computed (a forward and four backward passes each)
+    jacobians: int = 0  # pixel-Jacobians computed (a forward and a four-row reverse pass each)
     renders: int = 0  # pixel forward passes (doneness checks and line search)
     restarts: int = 0
 
