@@ -69,17 +69,21 @@ def cmd_import(args) -> None:
 def cmd_hide(args) -> None:
     from noisenerf.runtime.images import load_secret
     from noisenerf.train.hide import HideConfig, hide
+    from noisenerf.train.paper_solver import pass_samples_for, recipe
     from noisenerf.train.scene import load_scene
 
     output = Path(args.output)
+    device = resolve_device(args.device)
+    overrides = {name: value for name, value in (("iters", args.iters), ("revival", args.revival)) if value is not None}
     config = HideConfig(method=args.method, layout=args.layout or ("ray" if args.method == "exact" else "sample"),
                         dtype=args.dtype or ("float16" if args.method == "exact" else "float32"),
-                        n_samples=args.samples, tile_size=args.tile_size, view=args.view, seed=args.seed)
+                        n_samples=args.samples, tile_size=args.tile_size, view=args.view, seed=args.seed,
+                        paper=recipe(args.recipe, pass_samples=pass_samples_for(device), **overrides))
     scene = load_scene(args.scene_dir)
     secret, warnings = load_secret(args.secret)
     for warning in warnings:
         print(f"{PROG}: warning: {warning}", file=sys.stderr)
-    report = hide(scene, secret, output, config, resolve_device(args.device), force=args.force,
+    report = hide(scene, secret, output, config, device, force=args.force,
                   show_progress=not args.quiet)
     emit(report, args.json, [
         f"bundle: {report['bundle']} ({report['bundle_bytes']} bytes, {report['bytes_per_pixel']:.1f} B/px)",
@@ -107,7 +111,8 @@ def cmd_bench(args) -> None:
     experiments = tuple(args.only.split(",")) if args.only else EXPERIMENTS
     config = BenchConfig(scene=args.scene, secret=args.secret, data=args.data, photos=tuple(args.photos),
                          view=args.view, small_width=args.small_width, twok_rows=args.twok_rows,
-                         experiments=experiments)
+                         paper_width=args.paper_width, paper_iters=args.paper_iters,
+                         device=str(resolve_device(args.device)), experiments=experiments)
     command = "noisenerf " + " ".join(sys.argv[1:]) if sys.argv[0].endswith("noisenerf") else "noisenerf bench ..."
     sections = run_bench(config, Path(args.output), args.stress, command,
                          progress=lambda line: print(line, file=sys.stderr, flush=True))
@@ -163,6 +168,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--layout", choices=("ray", "sample"), help="noise per ray (exact default) or per sample (paper)")
     p.add_argument("--dtype", choices=("float16", "float32"), help="noise storage (exact: float16, paper: float32)")
     p.add_argument("--samples", type=int, help="samples per ray of the secret view (exact: 1, paper: 64)")
+    p.add_argument("--recipe", choices=("authors", "paper"), default="authors",
+                   help="paper method: the authors' public code (default) or the paper's text")
+    p.add_argument("--iters", type=int, help="paper method: optimisation iterations (default 300)")
+    p.add_argument("--revival", choices=("all", "dead", "off"),
+                   help="paper method: which rays start from a colour donor (default all)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--force", action="store_true", help="overwrite an existing bundle")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
@@ -183,9 +193,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--data", help="dataset whose test views the skipping experiment renders")
     p.add_argument("--photos", nargs="*", default=[], help="secrets hidden at native size (photos experiment)")
     p.add_argument("--view", type=int, default=0, help="scene camera the secrets are hidden at")
-    p.add_argument("--small-width", type=int, default=48, help="secret width for the paper-mode curves")
+    p.add_argument("--small-width", type=int, default=48, help="secret width for the paper-mode curves on a CPU")
+    p.add_argument("--paper-width", type=int, help="paper-quality secret width (default: 400 on CUDA, --small-width on CPU)")
+    p.add_argument("--paper-iters", type=int, default=300, help="paper-mode iterations (the paper's 300)")
     p.add_argument("--twok-rows", type=int, default=1, help="tile rows of the 2048² secret actually hidden (1-4)")
     p.add_argument("--only", help="comma-separated experiments (default: all)")
+    add_device(p)
     p.add_argument("--stress", action="store_true", help="also run the full numerical stress suite")
     p.add_argument("-o", "--output", default="bench", help="folder for BENCHMARKS.md, CSVs and plots")
 

@@ -1,7 +1,8 @@
 """Image quality metrics in numpy: PSNR, SSIM, and the exactness of 8-bit recovery.
 
 SSIM uses data_range = 1 and an 11×11 Gaussian window (σ = 1.5) over the valid region, averaged over
-channels, as tf.image.ssim does; the paper's public code used a lenient data_range of 2.
+channels, as tf.image.ssim does. `ssim_authors` is the variant the paper's public code reports
+(scikit-image's defaults there: a 7×7 uniform window, sample covariance, and a lenient data_range of 2).
 """
 
 from __future__ import annotations
@@ -10,6 +11,8 @@ import numpy as np
 
 SSIM_WINDOW = 11
 SSIM_SIGMA = 1.5
+AUTHORS_WINDOW = 7
+AUTHORS_DATA_RANGE = 2.0
 
 
 def psnr(a: np.ndarray, b: np.ndarray, data_range: float = 1.0) -> float:
@@ -18,27 +21,47 @@ def psnr(a: np.ndarray, b: np.ndarray, data_range: float = 1.0) -> float:
     return float("inf") if mse == 0 else float(10 * np.log10(data_range ** 2 / mse))
 
 
-def _gaussian_filter_valid(image: np.ndarray) -> np.ndarray:
-    """Separable 11×11 Gaussian filter without padding. image: (H, W, C) -> (H − 10, W − 10, C)."""
+def gaussian_kernel() -> np.ndarray:
+    """The 11-tap Gaussian (σ = 1.5), normalised. -> (11,)."""
     x = np.arange(SSIM_WINDOW) - SSIM_WINDOW // 2
     kernel = np.exp(-(x ** 2) / (2 * SSIM_SIGMA ** 2))
-    kernel /= kernel.sum()
-    rows = sum(kernel[i] * image[i:image.shape[0] - SSIM_WINDOW + 1 + i] for i in range(SSIM_WINDOW))
-    return sum(kernel[i] * rows[:, i:rows.shape[1] - SSIM_WINDOW + 1 + i] for i in range(SSIM_WINDOW))
+    return kernel / kernel.sum()
+
+
+def _filter_valid(image: np.ndarray, kernel: np.ndarray) -> np.ndarray:
+    """Separable filter without padding. image: (H, W, C), kernel: (k,) -> (H − k + 1, W − k + 1, C)."""
+    k = kernel.size
+    rows = sum(kernel[i] * image[i:image.shape[0] - k + 1 + i] for i in range(k))
+    return sum(kernel[i] * rows[:, i:rows.shape[1] - k + 1 + i] for i in range(k))
+
+
+def _ssim(a: np.ndarray, b: np.ndarray, data_range: float, kernel: np.ndarray, covariance_scale: float) -> float:
+    """Mean SSIM over the valid windows and channels for a given window (statistics scaled by
+    covariance_scale: 1, or N/(N − 1) for sample covariance). a, b: (H, W, C)."""
+    a, b = np.asarray(a, np.float64), np.asarray(b, np.float64)
+    if a.shape != b.shape or a.ndim != 3 or min(a.shape[:2]) < kernel.size:
+        raise ValueError(f"ssim needs two equal (H, W, C) images of at least {kernel.size}×{kernel.size}, "
+                         f"got {a.shape}, {b.shape}")
+    c1, c2 = (0.01 * data_range) ** 2, (0.03 * data_range) ** 2
+    mu_a, mu_b = _filter_valid(a, kernel), _filter_valid(b, kernel)
+    var_a = covariance_scale * (_filter_valid(a * a, kernel) - mu_a ** 2)
+    var_b = covariance_scale * (_filter_valid(b * b, kernel) - mu_b ** 2)
+    cov = covariance_scale * (_filter_valid(a * b, kernel) - mu_a * mu_b)
+    score = ((2 * mu_a * mu_b + c1) * (2 * cov + c2)) / ((mu_a ** 2 + mu_b ** 2 + c1) * (var_a + var_b + c2))
+    return float(score.mean())
 
 
 def ssim(a: np.ndarray, b: np.ndarray, data_range: float = 1.0) -> float:
-    """Structural similarity, mean over the valid windows and channels. a, b: (H, W, C), H, W ≥ 11."""
-    a, b = np.asarray(a, np.float64), np.asarray(b, np.float64)
-    if a.shape != b.shape or a.ndim != 3 or min(a.shape[:2]) < SSIM_WINDOW:
-        raise ValueError(f"ssim needs two equal (H, W, C) images of at least 11×11, got {a.shape}, {b.shape}")
-    c1, c2 = (0.01 * data_range) ** 2, (0.03 * data_range) ** 2
-    mu_a, mu_b = _gaussian_filter_valid(a), _gaussian_filter_valid(b)
-    var_a = _gaussian_filter_valid(a * a) - mu_a ** 2
-    var_b = _gaussian_filter_valid(b * b) - mu_b ** 2
-    cov = _gaussian_filter_valid(a * b) - mu_a * mu_b
-    score = ((2 * mu_a * mu_b + c1) * (2 * cov + c2)) / ((mu_a ** 2 + mu_b ** 2 + c1) * (var_a + var_b + c2))
-    return float(score.mean())
+    """Structural similarity, 11×11 Gaussian window, mean over the valid windows and channels.
+    a, b: (H, W, C), H, W ≥ 11."""
+    return _ssim(a, b, data_range, gaussian_kernel(), 1.0)
+
+
+def ssim_authors(a: np.ndarray, b: np.ndarray) -> float:
+    """The paper's public code's SSIM: skimage.metrics.structural_similarity with data_range 2 (7×7
+    uniform window, sample covariance, border windows dropped). a, b: (H, W, C) in [0, 1], H, W ≥ 7."""
+    n = AUTHORS_WINDOW ** 2
+    return _ssim(a, b, AUTHORS_DATA_RANGE, np.full(AUTHORS_WINDOW, 1.0 / AUTHORS_WINDOW), n / (n - 1))
 
 
 def exact_fraction(pixels: np.ndarray, target: np.ndarray) -> float:

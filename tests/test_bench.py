@@ -36,6 +36,7 @@ def test_every_experiment_writes_csv_and_report(report):
         assert f"## {section.title}" in text
     assert (out / "error_vs_time.png").read_bytes()[:4] == b"\x89PNG"
     assert (out / "ablation.png").read_bytes()[:4] == b"\x89PNG"
+    assert (out / "paper_quality.png").read_bytes()[:4] == b"\x89PNG"
 
 
 def test_exact_curve_ends_exact_and_photos_reveal_exactly(report):

@@ -12,7 +12,7 @@ from noisenerf.runtime.errors import UserError
 from noisenerf.runtime.reveal import reveal, to_uint8
 from noisenerf.train.hide import HideConfig, hide
 from noisenerf.train.renderer import numpy_field
-from noisenerf.train.solvers import PaperSettings
+from noisenerf.train.paper_solver import PaperSettings
 from noisenerf.train.tiling import tile_rects
 
 CPU = torch.device("cpu")

@@ -138,7 +138,7 @@ def test_tiny_and_many_tile_secrets_hide_and_reveal_exactly(exported, tmp_path, 
 
 @pytest.mark.parametrize("method", ["exact", "paper"])
 def test_same_seed_same_bundle_bytes(exported, tmp_path, method):
-    from noisenerf.train.solvers import PaperSettings
+    from noisenerf.train.paper_solver import PaperSettings
 
     scene = exported[0]
     secret = np.random.default_rng(5).integers(0, 256, (12, 20, 3), dtype=np.uint8)

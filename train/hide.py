@@ -29,7 +29,8 @@ from noisenerf.runtime.reveal import to_uint8
 from noisenerf.runtime.sampling import SamplingConfig
 from noisenerf.train.scene import Scene
 from noisenerf.train.secret_view import SecretView
-from noisenerf.train.solvers import ExactSettings, PaperSettings, solve_exact, solve_paper
+from noisenerf.train.paper_solver import PaperSettings, pass_slices, recorded_points, solve_blocks, survey
+from noisenerf.train.solvers import ExactSettings, solve_exact
 from noisenerf.train.tiling import tile_camera, tile_rects
 
 TORCH_DTYPES = {"float16": torch.float16, "float32": torch.float32}
@@ -157,26 +158,25 @@ def hide_tile_exact(view: SecretView, pixels: torch.Tensor, shape: tuple[int, in
 
 def hide_tile_paper(view: SecretView, pixels: torch.Tensor, shape: tuple[int, int], config: HideConfig,
                     progress: Progress, k: int, bar) -> tuple[torch.Tensor, dict]:
-    """The paper's optimisation on the whole tile (resumes per tile). -> noise, {records}."""
-    saved = progress.load(k, 0)
-    if saved is None:
-        records = []
-
-        def record(t, colors, loss):
-            image = colors.reshape(-1, 3).cpu().numpy()
-            records.append({"iteration": t, "loss": loss, **quality(image, pixels.cpu().numpy(), shape)})
-
-        torch.manual_seed(config.seed + k)
-        noise = solve_paper(view, pixels, config.paper, torch.zeros(noise_shape(view, config), device=pixels.device),
-                            record)
-        noise = noise.to(TORCH_DTYPES[config.dtype]).float()
-        saved = {"noise": noise, "records": torch.tensor([[r["iteration"], r["loss"], r["ssim"] or 0, r["psnr"]]
-                                                          for r in records], dtype=torch.float64)}
-        progress.save(k, 0, saved)
-    bar.update(view.n_rays)
-    records = [{"iteration": int(r[0]), "loss": float(r[1]), "ssim": float(r[2]), "psnr": float(r[3])}
-               for r in saved["records"].tolist()]
-    return saved["noise"], {"records": records}
+    """The paper's optimisation, block after block (each saved, so a hide resumes per block). The tile's
+    noise waits on the CPU in the storage dtype, so device memory holds one block. pixels: (n, 3) uint8
+    -> noise (n, k, dims), {records: tile quality at each recorded iteration, dead_rays}."""
+    settings = config.paper
+    points = recorded_points(settings)
+    clean = survey(view, settings.pass_samples)
+    noise = torch.zeros(noise_shape(view, config), dtype=TORCH_DTYPES[config.dtype])
+    colors = torch.zeros(len(points), view.n_rays, 3)
+    for b, block in enumerate(solve_blocks(view, pixels, noise.shape[1], settings, clean, noise.dtype,
+                                           lambda b: progress.load(k, b))):
+        if block.solved:
+            progress.save(k, b, {"noise": block.noise, "colors": block.colors})
+        noise[block.index.cpu()] = block.noise
+        colors[:, block.index.cpu()] = block.colors
+        bar.update(block.index.numel())
+    target = pixels.cpu().float() / 255.0
+    records = [{"iteration": t, "loss": float(((colors[i] - target) ** 2).sum(-1).mean()),
+                **quality(colors[i].numpy(), pixels.cpu().numpy(), shape)} for i, t in enumerate(points)]
+    return noise, {"records": records, "dead_rays": int((~clean.alive).sum())}
 
 
 def quality(colors: np.ndarray, pixels: np.ndarray, shape: tuple[int, int]) -> dict:
@@ -211,9 +211,9 @@ def hide(scene: Scene, secret: np.ndarray, output: Path, config: HideConfig, dev
         pixels = torch.tensor(secret[y0:y0 + h, x0:x0 + w].reshape(-1, 3), device=device)
         noise, counts = solve(view, pixels, (h, w), config, progress, k, bar)
         with torch.no_grad():
-            colors = torch.cat([view.render(torch.arange(s, min(s + config.chunk_pixels, view.n_rays), device=device),
-                                            noise[s:s + config.chunk_pixels])
-                                for s in range(0, view.n_rays, config.chunk_pixels)])
+            colors = torch.cat([view.render(torch.arange(part.start, part.stop, device=device),
+                                            noise[part].to(device, torch.float32))
+                                for part in pass_slices(view.n_rays, view.n_samples, config.paper.pass_samples)])
         stored = noise.reshape(h, w, *noise.shape[1:]) if config.layout == "sample" else noise.reshape(h, w, -1)
         tiles.append(dataclasses.replace(tile, noise=stored.to(TORCH_DTYPES[config.dtype]).cpu().numpy()))
         reports.append({"rect": list(tile.rect), "view": tile.view,

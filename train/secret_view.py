@@ -50,8 +50,11 @@ class SecretView:
         m = index.shape[0]
         return raw_rgb.reshape(m, self.n_samples, 3), raw_density.reshape(m, self.n_samples)
 
-    def render(self, index: torch.Tensor, noise: torch.Tensor) -> torch.Tensor:
-        """Colours (m, 3) of rays `index` (m,) with noise (m, 1 or n_samples, dims)."""
-        raw_rgb, raw_density = self.raw(index, noise)
+    def shade(self, index: torch.Tensor, raw_rgb: torch.Tensor, raw_density: torch.Tensor) -> torch.Tensor:
+        """Colours (m, 3) of rays `index` (m,) from their raw outputs (m, n_samples, 3), (m, n_samples)."""
         weights = render_weights(torch.relu(raw_density), self.deltas[index])
         return composite(weights, torch.sigmoid(raw_rgb), self.background)
+
+    def render(self, index: torch.Tensor, noise: torch.Tensor) -> torch.Tensor:
+        """Colours (m, 3) of rays `index` (m,) with noise (m, 1 or n_samples, dims)."""
+        return self.shade(index, *self.raw(index, noise))

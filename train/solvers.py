@@ -19,8 +19,7 @@ target colour (pixels of one view map noise to colour almost alike); every other
 random start instead, and each further restart of the same pixel draws from more donors and adds a
 wider seeded jitter.
 
-`solve_paper`: the paper's optimisation (Adam, lr 1e-2 decaying by 0.3 over the run, Pixel
-Perturbation for the first μ iterations, Adaptive Pixel Selection), see its docstring.
+The paper's own method lives in paper_solver.py.
 """
 
 from __future__ import annotations
@@ -268,90 +267,3 @@ def solve_exact(view: SecretView, index: torch.Tensor, pixels: torch.Tensor, sto
         noise, _ = refine(view, index, criteria.goal, noise, criteria.rounds_right, store, settings, generator,
                           counts, observe)
     return ChunkResult(noise, counts)
-
-
-@dataclass(frozen=True)
-class PaperSettings:
-    """The paper's optimisation; the two strategies can be switched off for its Table 3 ablation.
-
-    Our reading of Adaptive Pixel Selection (the paper gives no formula): every iteration computes the
-    loss gradient once on the largest batch, which is the whole view; for each size s in
-    batch_fractions·(n pixels) the candidate update is the Adam step applied to the s pixels with the
-    largest gradient norms; one forward pass of the tentatively updated view gives each pixel's L_rgb
-    reduction, and the size with the largest reduction per pixel queried is applied. Without APS every
-    pixel is updated every iteration.
-    """
-
-    iters: int = 300
-    lr: float = 1e-2
-    lr_decay: float = 0.3  # lr·decay^(t/iters), nerf-pytorch's exponential schedule
-    mu: int = 50  # Pixel Perturbation for iterations t ≤ μ (eq. 8)
-    lambda_rgb: float = 0.5
-    lambda_perturb: float = 0.5
-    batch_fractions: tuple[float, ...] = (0.25, 0.5, 1.0)
-    pixel_perturbation: bool = True
-    adaptive_selection: bool = True
-    record_at: tuple[int, ...] = (50, 200, 300)
-
-
-def rgb_losses(colors: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
-    """‖Ĉ(γ(p)+δ) − C_M‖² per pixel (eq. 5). (m, 3) -> (m,)."""
-    return ((colors - target) ** 2).sum(-1)
-
-
-def perturb_losses(colors: torch.Tensor, clean: torch.Tensor) -> torch.Tensor:
-    """−‖Ĉ(γ(p)+δ) − Ĉ(γ(p))‖² per pixel (eq. 7). (m, 3) -> (m,)."""
-    return -((colors - clean) ** 2).sum(-1)
-
-
-def adam_direction(grad: torch.Tensor, moments: tuple[torch.Tensor, torch.Tensor], steps: torch.Tensor,
-                   betas=(0.9, 0.999), eps: float = 1e-8) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """Adam with a step count per pixel (pixels are updated at different times).
-    grad, moments: (m, k, dims), steps: (m,) counts after this update -> direction, new moments."""
-    first = betas[0] * moments[0] + (1 - betas[0]) * grad
-    second = betas[1] * moments[1] + (1 - betas[1]) * grad * grad
-    correction1 = (1 - betas[0] ** steps.float())[:, None, None]
-    correction2 = (1 - betas[1] ** steps.float())[:, None, None]
-    return (first / correction1) / ((second / correction2).sqrt() + eps), first, second
-
-
-def solve_paper(view: SecretView, pixels: torch.Tensor, settings: PaperSettings, noise: torch.Tensor,
-                record=None) -> torch.Tensor:
-    """Optimise the noise of every pixel of the view (paper eq. 5–8). pixels: (n, 3) uint8,
-    noise: (n, k, dims) -> noise. `record(t, colors, loss)` is called at settings.record_at."""
-    index = torch.arange(view.n_rays, device=noise.device)
-    target = pixels.float() / 255.0
-    with torch.no_grad():
-        clean = view.render(index, torch.zeros_like(noise[:, :1]))
-    moments = (torch.zeros_like(noise), torch.zeros_like(noise))
-    steps = torch.zeros(view.n_rays, dtype=torch.int64, device=noise.device)
-    sizes = sorted({max(1, int(round(f * view.n_rays))) for f in settings.batch_fractions})
-    for t in range(1, settings.iters + 1):
-        lr = settings.lr * settings.lr_decay ** (t / settings.iters)
-        noise = noise.detach().requires_grad_(True)
-        with torch.enable_grad():
-            colors = view.render(index, noise)
-            losses = rgb_losses(colors, target)
-            if settings.pixel_perturbation and t <= settings.mu:
-                losses = settings.lambda_rgb * losses + settings.lambda_perturb * perturb_losses(colors, clean)
-            grad = torch.autograd.grad(losses.sum(), noise)[0]
-        noise = noise.detach()
-        direction, first, second = adam_direction(grad, moments, steps + 1)
-        tentative = noise - lr * direction
-        if settings.adaptive_selection and len(sizes) > 1:
-            with torch.no_grad():
-                new_colors = view.render(index, tentative)
-            order = torch.argsort(grad.flatten(1).norm(dim=-1), descending=True)
-            gain = (rgb_losses(colors.detach(), target) - rgb_losses(new_colors, target))[order].cumsum(0)
-            best = max(sizes, key=lambda s: float(gain[s - 1]) / s)
-            chosen = order[:best]
-        else:
-            chosen = index
-        noise[chosen] = tentative[chosen]
-        moments[0][chosen], moments[1][chosen] = first[chosen], second[chosen]
-        steps[chosen] += 1
-        if record is not None and t in settings.record_at:
-            with torch.no_grad():
-                final = view.render(index, noise)
-            record(t, final, float(rgb_losses(final, target).mean()))
-    return noise

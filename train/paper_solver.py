@@ -1,0 +1,345 @@
+"""The paper's method (`--method paper`): first-order optimisation of per-sample noise, block by block.
+
+Two recipes are settings of one solver (RECIPES):
+
+- `paper`, the paper's text: Adam, lr 1e-2 decaying by 0.3 over the run, L = λ1·L_rgb + λ2·L_perturb for
+  t ≤ μ, else L_rgb (eq. 5, 7, 8; Pixel Perturbation), and Adaptive Pixel Selection (our reading below).
+- `authors`, the authors' public code: AdamW over the encoded inputs themselves (so the noise is the
+  optimised input minus the clean encoding), lr 0.1 for t < 50 then 0.01, weight decay 0.8·0.3^(t/T)
+  applied to the whole encoded input γ + δ, L_rgb only, no APS, no PP.
+
+Both stream the secret view through the solver in contiguous blocks of `block_pixels` pixels (the
+authors' 6,144), each optimised for all its iterations before the next starts, and evaluate a block in
+passes of at most `pass_samples` samples (gradients summed over passes: each pixel's loss depends on its
+own noise only, so this is exact), so memory is bounded by the block and the pass, not the view.
+
+Revival (our addition, on by default; `revival="off"` is the paper as written) has two parts.
+
+- Donor starts. A ray whose samples all have raw density ≤ 0 renders the background whatever its
+  colour branch says, and its gradient is exactly zero, so Adam never moves it (32–51 % of a view's
+  rays start so; lego's white background is all dead). Before a block is optimised, such a ray starts
+  from the encodings of a donor, the live ray of the view whose clean colour is nearest its target
+  colour: noise = γ(donor) − γ(ray), sample by sample. It then renders the donor's colour (up to its
+  own sample spacing), is live, and receives gradients. `revival="all"` (the default) also gives that
+  start to every live ray whose donor is nearer its target than its own clean colour, so most pixels
+  begin close to their colour; `"dead"` revives dead rays only.
+- A density floor term, floor_weight·relu(density_floor − max_s raw σ_s) per ray, added to L. Rays
+  also die during the optimisation (lr 0.1 moves inputs far), and a ray whose densest sample sits
+  below zero gets its only gradient from this term; it is zero for clearly live rays.
+
+Measured on the demo scene (12-px procedural secret, 64 samples, authors' recipe, 300 iterations):
+SSIM 0.83 with donor starts alone, 0.992 with both (BENCHMARKS.md has lego).
+
+Our reading of Adaptive Pixel Selection (the paper gives no formula): every iteration computes the loss
+gradient once on the largest batch, the whole block; for each size s in batch_fractions·(block size) the
+candidate update is the Adam step applied to the s pixels with the largest gradient norms; one forward
+pass of the tentatively updated block gives each pixel's L_rgb reduction, and the size with the largest
+reduction per pixel queried is applied. Without APS every pixel is updated every iteration.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+from dataclasses import dataclass
+from typing import Callable, Iterator
+
+import torch
+
+from noisenerf.train.secret_view import SecretView
+
+
+@dataclass(frozen=True)
+class PaperSettings:
+    """One paper-mode run; RECIPES holds the two named presets, the ablation switches the strategies."""
+
+    recipe: str = "authors"  # the preset these settings started from (recorded in the bundle)
+    iters: int = 300
+    lr: float = 0.1
+    lr_schedule: str = "step"  # step: lr for t ≤ lr_step_at, then lr_after; exponential: lr·lr_decay^(t/iters)
+    lr_decay: float = 0.3
+    lr_step_at: int = 50
+    lr_after: float = 0.01
+    weight_decay: float = 0.8  # decoupled (AdamW), on the encoded input γ + δ, times weight_decay_decay^(t/iters)
+    weight_decay_decay: float = 0.3
+    pixel_perturbation: bool = False  # eq. 7–8 for t ≤ mu
+    mu: int = 50
+    lambda_rgb: float = 0.5
+    lambda_perturb: float = 0.5
+    adaptive_selection: bool = False
+    batch_fractions: tuple[float, ...] = (0.25, 0.5, 1.0)
+    revival: str = "all"  # off | dead | all: which rays start from a colour donor's encodings
+    floor_weight: float = 0.1  # weight of revival's density floor term, see density_shortfall
+    density_floor: float = 1.0
+    block_pixels: int = 6144  # pixels optimised together (the authors' block)
+    pass_samples: int = 1 << 16  # samples per forward/backward pass (memory bound, not a result)
+    record_at: tuple[int, ...] = (50, 200, 300)
+    tf32: bool = True  # CUDA matmuls in TF32: ~3× faster on Ampere and later; this method is approximate anyway
+
+    def __post_init__(self):
+        if self.lr_schedule not in ("step", "exponential"):
+            raise ValueError(f"unknown lr schedule {self.lr_schedule!r}")
+        if self.revival not in ("off", "dead", "all"):
+            raise ValueError(f"unknown revival {self.revival!r} (off, dead or all)")
+        if self.iters < 1 or self.block_pixels < 1 or self.pass_samples < 1:
+            raise ValueError("iters, block_pixels and pass_samples must be positive")
+
+
+RECIPES = {
+    "paper": PaperSettings(recipe="paper", lr=1e-2, lr_schedule="exponential", weight_decay=0.0,
+                           pixel_perturbation=True, adaptive_selection=True),
+    "authors": PaperSettings(recipe="authors"),
+}
+
+
+def recipe(name: str, **overrides) -> PaperSettings:
+    """The named recipe with some settings replaced (iters, revival, the ablation switches, ...)."""
+    return dataclasses.replace(RECIPES[name], **overrides)
+
+
+def rgb_losses(colors: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+    """L_rgb per pixel, ‖Ĉ(γ(p)+δ) − C_M‖² (eq. 5). colors, target: (m, 3) -> (m,)."""
+    return ((colors - target) ** 2).sum(-1)
+
+
+def perturb_losses(colors: torch.Tensor, clean: torch.Tensor) -> torch.Tensor:
+    """L_perturb per pixel, −‖Ĉ(γ(p)+δ) − Ĉ(γ(p))‖² (eq. 7). colors, clean: (m, 3) -> (m,)."""
+    return -((colors - clean) ** 2).sum(-1)
+
+
+def total_losses(colors: torch.Tensor, target: torch.Tensor, clean: torch.Tensor, t: int,
+                 settings: PaperSettings) -> torch.Tensor:
+    """L per pixel at iteration t: λ1·L_rgb + λ2·L_perturb while t ≤ μ with Pixel Perturbation, else L_rgb
+    (eq. 8). colors, target, clean: (m, 3) -> (m,)."""
+    if settings.pixel_perturbation and t <= settings.mu:
+        return settings.lambda_rgb * rgb_losses(colors, target) + settings.lambda_perturb * perturb_losses(colors, clean)
+    return rgb_losses(colors, target)
+
+
+def density_shortfall(raw_density: torch.Tensor, floor: float) -> torch.Tensor:
+    """How far each ray's densest sample is below the floor, relu(floor − max_s raw σ_s): zero for rays
+    that are clearly live, and the only term with a gradient for a dead ray (its colour has none).
+    raw_density: (m, n_samples) -> (m,)."""
+    return torch.relu(floor - raw_density.amax(-1))
+
+
+def learning_rate(settings: PaperSettings, t: int) -> float:
+    """The step size at iteration t (1-based)."""
+    if settings.lr_schedule == "step":
+        return settings.lr if t <= settings.lr_step_at else settings.lr_after
+    return settings.lr * settings.lr_decay ** (t / settings.iters)
+
+
+def decay_rate(settings: PaperSettings, t: int) -> float:
+    """The decoupled weight decay at iteration t: weight_decay·weight_decay_decay^(t/iters)."""
+    return settings.weight_decay * settings.weight_decay_decay ** (t / settings.iters)
+
+
+def adam_direction(grad: torch.Tensor, moments: tuple[torch.Tensor, torch.Tensor], steps: torch.Tensor,
+                   betas=(0.9, 0.999), eps: float = 1e-8) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Adam with a step count per pixel (APS updates pixels at different times).
+    grad, moments: (m, k, dims), steps: (m,) counts after this update -> direction, new moments."""
+    first = betas[0] * moments[0] + (1 - betas[0]) * grad
+    second = betas[1] * moments[1] + (1 - betas[1]) * grad * grad
+    correction1 = (1 - betas[0] ** steps.float())[:, None, None]
+    correction2 = (1 - betas[1] ** steps.float())[:, None, None]
+    return (first / correction1) / ((second / correction2).sqrt() + eps), first, second
+
+
+def pass_samples_for(device: torch.device) -> int:
+    """Samples per pass: what fits comfortably on a GPU (a few GiB of activations at width 256), or
+    what keeps a CPU run's memory near 1 GiB."""
+    return 1 << 18 if device.type == "cuda" else 1 << 16
+
+
+def pass_slices(n_rays: int, n_samples: int, pass_samples: int) -> list[slice]:
+    """Contiguous ray ranges of at most pass_samples samples each (at least one ray per pass)."""
+    step = max(1, pass_samples // n_samples)
+    return [slice(s, min(s + step, n_rays)) for s in range(0, n_rays, step)]
+
+
+@dataclass(frozen=True)
+class ViewSurvey:
+    """The clean view: each ray's colour and whether any of its samples has positive raw density."""
+
+    colors: torch.Tensor  # (n_rays, 3)
+    alive: torch.Tensor  # (n_rays,) bool
+
+
+def survey(view: SecretView, pass_samples: int) -> ViewSurvey:
+    """Render the view without noise, pass by pass, noting dead rays (all raw densities ≤ 0)."""
+    colors, alive = [], []
+    device = view.encoded.device
+    zero = torch.zeros(1, 1, view.encoded.shape[-1], device=device)
+    with torch.no_grad():
+        for part in pass_slices(view.n_rays, view.n_samples, pass_samples):
+            index = torch.arange(part.start, part.stop, device=device)
+            _, raw_density = view.raw(index, zero)
+            alive.append(raw_density.amax(-1) > 0)
+            colors.append(view.render(index, zero))
+    return ViewSurvey(torch.cat(colors), torch.cat(alive))
+
+
+def nearest_donors(targets: torch.Tensor, clean: ViewSurvey, rows: int = 1024) -> tuple[torch.Tensor, torch.Tensor]:
+    """For each target colour, the live ray whose clean colour is nearest, and that distance, a few rows
+    at a time so memory stays rows × n_live. targets: (m, 3) -> donors (m,) int64, distances (m,);
+    donors are −1 where the view has no live ray."""
+    live = clean.alive.nonzero()[:, 0]
+    if live.numel() == 0:
+        return (torch.full(targets.shape[:1], -1, device=targets.device),
+                torch.full(targets.shape[:1], float("inf"), device=targets.device))
+    distances, donors = [], []
+    for start in range(0, targets.shape[0], rows):
+        nearest = torch.cdist(targets[start:start + rows], clean.colors[live]).min(dim=1)
+        distances.append(nearest.values)
+        donors.append(live[nearest.indices])
+    return torch.cat(donors), torch.cat(distances)
+
+
+def revival_noise(view: SecretView, index: torch.Tensor, targets: torch.Tensor, clean: ViewSurvey,
+                  mode: str) -> torch.Tensor:
+    """Starting noise per sample that gives rays `index` (m,) the encodings of their colour donor,
+    γ(donor) − γ(ray): for dead rays (mode "dead"), or also for live rays whose donor is nearer their
+    target than their own clean colour (mode "all"); zero elsewhere. targets: (m, 3) in [0, 1]
+    -> (m, n_samples, dims)."""
+    noise = torch.zeros(index.numel(), view.n_samples, view.encoded.shape[-1], device=view.encoded.device)
+    if mode == "off":
+        return noise
+    donors, distances = nearest_donors(targets, clean)
+    own = torch.linalg.vector_norm(targets - clean.colors[index], dim=-1)
+    revive = (donors >= 0) & (~clean.alive[index] | ((mode == "all") & (distances < own)))
+    noise[revive] = view.encoded[donors[revive]] - view.encoded[index[revive]]
+    return noise
+
+
+def select_pixels(gain: torch.Tensor, grad_norms: torch.Tensor, sizes: list[int]) -> torch.Tensor:
+    """Adaptive Pixel Selection: of the prefixes (largest gradient norm first) of each size, the one with
+    the largest total L_rgb reduction per pixel. gain, grad_norms: (m,) -> chosen pixel positions (s,)."""
+    order = torch.argsort(grad_norms, descending=True)
+    cumulative = gain[order].cumsum(0)
+    best = max(sizes, key=lambda s: float(cumulative[s - 1]) / s)
+    return order[:best]
+
+
+Recorder = Callable[[int, torch.Tensor, float], None]  # (iteration, colours (m, 3), mean L_rgb)
+
+
+class BlockProblem:
+    """One block's rays of a secret view, rendered in bounded passes."""
+
+    def __init__(self, view: SecretView, index: torch.Tensor, pass_samples: int):
+        self.view, self.index = view, index
+        self.parts = pass_slices(index.numel(), view.n_samples, pass_samples)
+
+    def render(self, noise: torch.Tensor) -> torch.Tensor:
+        """Colours (m, 3) with noise (m, k, dims), without gradients."""
+        with torch.no_grad():
+            return torch.cat([self.view.render(self.index[p], noise[p]) for p in self.parts])
+
+    def losses_and_grad(self, noise: torch.Tensor, loss: Callable[[torch.Tensor, torch.Tensor, slice], torch.Tensor]
+                        ) -> tuple[torch.Tensor, torch.Tensor]:
+        """Colours (m, 3) and ∂Σloss/∂noise (m, k, dims), pass by pass;
+        loss(colors (p, 3), raw densities (p, n_samples), part) -> (p,)."""
+        colors, grads = [], []
+        for part in self.parts:
+            piece = noise[part].detach().requires_grad_(True)
+            with torch.enable_grad():
+                raw_rgb, raw_density = self.view.raw(self.index[part], piece)
+                rendered = self.view.shade(self.index[part], raw_rgb, raw_density)
+                grads.append(torch.autograd.grad(loss(rendered, raw_density, part).sum(), piece)[0])
+            colors.append(rendered.detach())
+        return torch.cat(colors), torch.cat(grads)
+
+
+@contextlib.contextmanager
+def matmul_precision(tf32: bool):
+    """CUDA matmuls in TF32 inside the block when asked, restoring the caller's setting after."""
+    before = torch.backends.cuda.matmul.allow_tf32
+    torch.backends.cuda.matmul.allow_tf32 = tf32
+    try:
+        yield
+    finally:
+        torch.backends.cuda.matmul.allow_tf32 = before
+
+
+def solve_block(view: SecretView, index: torch.Tensor, pixels: torch.Tensor, noise: torch.Tensor,
+                clean: torch.Tensor, settings: PaperSettings, record: Recorder | None = None) -> torch.Tensor:
+    """Optimise the noise of rays `index` (m,) toward 8-bit pixels (m, 3) from a starting noise
+    (m, k, dims) (k = 1 or n_samples), clean colours (m, 3) for eq. 7. Returns the noise (m, k, dims)."""
+    problem = BlockProblem(view, index, settings.pass_samples)
+    target = pixels.float() / 255.0
+    noise = noise.clone()
+    # the encoded input the authors' weight decay shrinks: γ + δ, with γ broadcast to the noise's shape
+    encoded = view.encoded[index] if noise.shape[1] == view.n_samples else view.encoded[index].mean(1, keepdim=True)
+    with matmul_precision(settings.tf32 and noise.is_cuda):
+        return optimise(problem, target, noise, clean, encoded, settings, record)
+
+
+def optimise(problem: BlockProblem, target: torch.Tensor, noise: torch.Tensor, clean: torch.Tensor,
+             encoded: torch.Tensor, settings: PaperSettings, record: Recorder | None) -> torch.Tensor:
+    """The iterations of solve_block (see there)."""
+    moments = (torch.zeros_like(noise), torch.zeros_like(noise))
+    steps = torch.zeros(noise.shape[0], dtype=torch.int64, device=noise.device)
+    sizes = sorted({max(1, int(round(f * noise.shape[0]))) for f in settings.batch_fractions})
+    floor_weight = settings.floor_weight if settings.revival != "off" else 0.0
+    for t in range(1, settings.iters + 1):
+        lr = learning_rate(settings, t)
+        colors, grad = problem.losses_and_grad(
+            noise, lambda rendered, raw_density, part: total_losses(rendered, target[part], clean[part], t, settings)
+            + floor_weight * density_shortfall(raw_density, settings.density_floor))
+        direction, first, second = adam_direction(grad, moments, steps + 1)
+        tentative = noise - lr * direction
+        if settings.weight_decay:
+            tentative = tentative - lr * decay_rate(settings, t) * (encoded + noise)
+        if settings.adaptive_selection and len(sizes) > 1:
+            gain = rgb_losses(colors, target) - rgb_losses(problem.render(tentative), target)
+            chosen = select_pixels(gain, grad.flatten(1).norm(dim=-1), sizes)
+            noise[chosen], steps[chosen] = tentative[chosen], steps[chosen] + 1
+            moments[0][chosen], moments[1][chosen] = first[chosen], second[chosen]
+        else:
+            noise, moments, steps = tentative, (first, second), steps + 1
+        if record is not None and t in settings.record_at:
+            final = problem.render(noise)
+            record(t, final, float(rgb_losses(final, target).mean()))
+    return noise
+
+
+@dataclass(frozen=True)
+class BlockResult:
+    index: torch.Tensor  # (m,) rays of the view
+    noise: torch.Tensor  # (m, k, dims), on the CPU in the storage dtype
+    colors: torch.Tensor  # (len(points), m, 3): the block's colours at each recorded iteration, on the CPU
+    solved: bool  # False where the result came from `cached`
+
+
+def recorded_points(settings: PaperSettings) -> list[int]:
+    """The iterations at which blocks record their colours."""
+    return [t for t in settings.record_at if t <= settings.iters]
+
+
+def solve_blocks(view: SecretView, pixels: torch.Tensor, layout_samples: int, settings: PaperSettings,
+                 clean: ViewSurvey, dtype: torch.dtype,
+                 cached: Callable[[int], dict | None] = lambda b: None) -> Iterator[BlockResult]:
+    """The view's blocks one after another, each solved (or taken from cached(b), a dict with "noise"
+    and "colors" as BlockResult has them). pixels: (n_rays, 3) uint8."""
+    n_points = len(recorded_points(settings))
+    for b, start in enumerate(range(0, view.n_rays, settings.block_pixels)):
+        index = torch.arange(start, min(start + settings.block_pixels, view.n_rays), device=pixels.device)
+        saved = cached(b)
+        if saved is not None:
+            yield BlockResult(index, saved["noise"], saved["colors"], solved=False)
+            continue
+        recorded = []
+        noise = solve_block(view, index, pixels[index],
+                            start_noise(view, index, pixels[index], layout_samples, clean, settings),
+                            clean.colors[index], settings, lambda t, colors, loss: recorded.append(colors.cpu()))
+        colors = torch.stack(recorded) if recorded else torch.zeros(n_points, index.numel(), 3)
+        yield BlockResult(index, noise.to(dtype).cpu(), colors, solved=True)
+
+
+def start_noise(view: SecretView, index: torch.Tensor, pixels: torch.Tensor, layout_samples: int,
+                clean: ViewSurvey, settings: PaperSettings) -> torch.Tensor:
+    """The block's starting noise (m, layout_samples, dims): revival noise (zero with revival off); in
+    the ray layout a ray's one noise vector is the mean of its samples' revival noise."""
+    noise = revival_noise(view, index, pixels.float() / 255.0, clean, settings.revival)
+    return noise if layout_samples == view.n_samples else noise.mean(1, keepdim=True)
