@@ -70,6 +70,7 @@ def cmd_hide(args) -> None:
     from noisenerf.runtime.images import load_secret
     from noisenerf.train.hide import HideConfig, hide
     from noisenerf.train.paper_solver import pass_samples_for, recipe
+    from noisenerf.train.solvers import chunk_pixels_for
     from noisenerf.train.scene import load_scene
 
     output = Path(args.output)
@@ -78,7 +79,7 @@ def cmd_hide(args) -> None:
     config = HideConfig(method=args.method, layout=args.layout or ("ray" if args.method == "exact" else "sample"),
                         dtype=args.dtype or ("float16" if args.method == "exact" else "float32"),
                         n_samples=args.samples, tile_size=args.tile_size, view=args.view, seed=args.seed,
-                        paper=recipe(args.recipe, pass_samples=pass_samples_for(device), **overrides))
+                        chunk_pixels=chunk_pixels_for(device), paper=recipe(args.recipe, pass_samples=pass_samples_for(device), **overrides))
     scene = load_scene(args.scene_dir)
     secret, warnings = load_secret(args.secret)
     for warning in warnings:

@@ -54,7 +54,7 @@ class HideConfig:
     tile_size: int = 512
     view: int = 0
     seed: int = 0
-    chunk_pixels: int = 16384
+    chunk_pixels: int = 16384  # exact method: pixels per solved (and resumable) chunk; CLI: chunk_pixels_for
     exact: ExactSettings = ExactSettings()
     paper: PaperSettings = PaperSettings()
 

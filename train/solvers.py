@@ -31,6 +31,12 @@ import torch
 
 from noisenerf.train.secret_view import SecretView
 
+def chunk_pixels_for(device: torch.device) -> int:
+    """Pixels solved together: a GPU needs large batches to be busy (its Jacobians of 4 × 90 per pixel
+    stay well under a GiB at 2^18); on a CPU smaller chunks resume at a finer grain and cost the same."""
+    return 1 << 18 if device.type == "cuda" else 16384
+
+
 END_PULL_BINS = 0.2  # targets for 0 and 255 sit this far inside, where a sigmoid can arrive
 
 
