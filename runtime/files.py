@@ -144,16 +144,12 @@ def write_json(path: str | os.PathLike, data) -> None:
         tmp.write_text(json_text(data, indent=2) + "\n")
 
 
-def reject_constant(name: str):
-    """json's hook for NaN/Infinity tokens: strict JSON has none, and no number we read may be non-finite."""
-    raise ValueError(f"{name} is not a JSON number")
-
-
 def parse_json(text: str | bytes, what: str, source: str | os.PathLike = ""):
-    """Parse JSON from a file someone else made: NaN/Infinity refused, nesting at most MAX_JSON_DEPTH (json's
-    recursive decoder raises RecursionError on a deep enough input; that becomes one UserError too)."""
+    """Parse JSON from a file someone else made, nesting at most MAX_JSON_DEPTH (json's recursive decoder
+    raises RecursionError on a deep enough input; that becomes one UserError too). NaN and Infinity still
+    parse: every number is checked where it is used (runtime.limits), with a message naming it."""
     try:
-        data = json.loads(text, parse_constant=reject_constant)
+        data = json.loads(text)
         too_deep = json_depth(data) > MAX_JSON_DEPTH
     except RecursionError:
         data, too_deep = None, True
