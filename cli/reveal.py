@@ -4,8 +4,10 @@
     noisenerf-reveal MODEL.onnx --view I -o OUT.png [--json]         an ordinary render of dataset view I
 
 OUT's extension picks the format: .png 8-bit (the very pixels the bundle's digest is checked on), .tif
-16-bit, .exr float; a lossy format (.jpg, .webp, …) is refused for a reveal, whose pixels must be exact. `exact` says whether the revealed 8-bit pixels hash to the bundle's secret digest;
-an inexact reveal still exits 0 (the image is written), bad input exits 2 with one line on stderr.
+16-bit, .exr float; a reveal refuses JPEG (lossy: the pixels written would not be the ones checked), an
+ordinary --view render may be one. `exact` says whether the revealed 8-bit pixels hash to the bundle's
+secret digest; an inexact reveal still exits 0 (the image is written), bad input exits 2 with one line on
+stderr.
 """
 
 from __future__ import annotations

@@ -29,14 +29,14 @@ def os_failure(what: str, path: str | os.PathLike, error: OSError) -> UserError:
 
 
 def existing_kind(path: Path) -> str | None:
-    """What is at `path` without following a symlink: None (nothing), 'file', or a description."""
+    """What is at `path` without following a symlink: None (nothing), "a file" (a regular one), or another kind."""
     try:
         mode = path.lstat().st_mode
     except FileNotFoundError:
         return None
     except OSError as error:
         raise os_failure("inspect", path, error) from None
-    kinds = {stat.S_ISREG: "file", stat.S_ISDIR: "a directory", stat.S_ISLNK: "a symlink",
+    kinds = {stat.S_ISREG: "a file", stat.S_ISDIR: "a directory", stat.S_ISLNK: "a symlink",
              stat.S_ISFIFO: "a FIFO", stat.S_ISSOCK: "a socket"}
     return next((name for test, name in kinds.items() if test(mode)), "a device")
 
@@ -57,13 +57,13 @@ def check_output_path(path: str | os.PathLike, force: bool = True) -> Path:
     path = Path(path)
     if not path.parent.is_dir():
         raise UserError(f"output folder does not exist: {path.parent}")
-    kind = existing_kind(path)
-    if kind not in (None, "file"):
-        raise UserError(f"output path is {kind}, not a regular file: {path}")
-    if kind == "file" and not force:
-        raise UserError(f"output exists (pass --force to overwrite): {path}")
     if len(path.name.encode()) > 255:
         raise UserError(f"output file name is longer than 255 bytes: {path.name[:40]}…")
+    kind = existing_kind(path)
+    if kind not in (None, "a file"):
+        raise UserError(f"output path is {kind}, not a regular file: {path}")
+    if kind == "a file" and not force:
+        raise UserError(f"output exists (pass --force to overwrite): {path}")
     probe_writable(path.parent)
     return path
 
@@ -75,7 +75,7 @@ def check_output_directory(path: str | os.PathLike) -> Path:
         raise UserError(f"output folder does not exist: {path.parent}")
     kind = existing_kind(path)
     if kind not in (None, "a directory"):
-        raise UserError(f"output path is {'a file' if kind == 'file' else kind}, not a folder: {path}")
+        raise UserError(f"output path is {kind}, not a folder: {path}")
     return path
 
 

@@ -142,7 +142,7 @@ class Progress:
     def owns_folder(self) -> bool:
         """Whether the folder's key file is a regular file holding this run's key."""
         key_file = self.directory / "key"
-        return existing_kind(key_file) == "file" and key_file.read_bytes() == self.key.encode()
+        return existing_kind(key_file) == "a file" and key_file.read_bytes() == self.key.encode()
 
     def discard_all(self) -> None:
         """Remove everything in the folder but the lock we hold (another run's chunks, a stray key folder)."""
