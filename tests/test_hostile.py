@@ -637,6 +637,16 @@ def test_hostile_fit_input_is_refused_and_leaves_no_folder(tiny_dataset, tmp_pat
     assert not (tmp_path / "scene").is_dir()
 
 
+def test_scene_with_nan_weights_is_refused_before_the_solve(world, tmp_path, capfd):
+    """A fit that diverged: hiding in it used to spend minutes before failing."""
+    shutil.copytree(world.scene, tmp_path / "scene")
+    weights = load_torch_file(str(tmp_path / "scene" / "weights.safetensors"))
+    next(iter(weights.values())).view(-1)[0] = float("nan")
+    save_torch_file(weights, str(tmp_path / "scene" / "weights.safetensors"))
+    args = ["hide", tmp_path / "scene", world.secret, "-o", tmp_path / "s.bundle", "--quiet"]
+    assert_refused(run_main(noisenerf_main, args, capfd), tmp_path / "s.bundle", "NaN or infinite weights")
+
+
 # ---- arguments ------------------------------------------------------------------------------------
 
 ARGUMENTS = {  # case: (which main, args(world, folder), message)
@@ -660,6 +670,8 @@ ARGUMENTS = {  # case: (which main, args(world, folder), message)
                            "unknown --device"),
     "hide: samples 10**6": (noisenerf_main, lambda w, d: hide_args(w, d / "s.bundle", "--method", "paper",
                                                                    "--samples", 10 ** 6), "1 to 1024 samples"),
+    "hide: ray layout 300 samples": (noisenerf_main, lambda w, d: hide_args(
+        w, d / "s.bundle", "--method", "paper", "--layout", "ray", "--samples", 300), "at most 256"),
     "export: output a symlink": (noisenerf_main, lambda w, d: ["export", w.scene, "-o", (d / "m.onnx").symlink_to(
         d / "elsewhere.onnx") or d / "m.onnx"], "is a symlink"),
     "export: unknown flag": (noisenerf_main, lambda w, d: ["export", w.scene, "-o", d / "m.onnx", "--forse"],

@@ -27,7 +27,7 @@ import noisenerf
 from noisenerf.runtime.bundle import DTYPES, Bundle, Tile, secret_digest
 from noisenerf.runtime.errors import UserError
 from noisenerf.runtime.files import atomic_output, check_output_path, existing_kind
-from noisenerf.runtime.limits import checked_image_size
+from noisenerf.runtime.limits import MAX_RAY_LAYOUT_SAMPLES, checked_image_size
 from noisenerf.runtime.metrics import exact_fraction, psnr, ssim
 from noisenerf.runtime.reveal import to_uint8
 from noisenerf.runtime.sampling import SamplingConfig
@@ -131,18 +131,24 @@ class Progress:
             raise UserError(f"cannot use the resume folder {self.directory}: {error.strerror or error}") from None
         try:
             fcntl.flock(self.lock, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            if not self.owns_folder():
+                self.discard_all()
+            with atomic_output(self.directory / "key") as tmp:
+                tmp.write_text(key)
         except BlockingIOError:
             os.close(self.lock)
             raise UserError(f"another hide is writing to {self.directory}; wait for it or choose another -o") from None
-        if not self.owns_folder():
-            self.discard_all()
-        with atomic_output(self.directory / "key") as tmp:
-            tmp.write_text(key)
+        except BaseException:
+            os.close(self.lock)  # a failed start must not keep the folder locked (in-process callers go on)
+            raise
 
     def owns_folder(self) -> bool:
         """Whether the folder's key file is a regular file holding this run's key."""
         key_file = self.directory / "key"
-        return existing_kind(key_file) == "a file" and key_file.read_bytes() == self.key.encode()
+        if existing_kind(key_file) != "a file":
+            return False
+        with open(key_file, "rb") as handle:
+            return handle.read(len(self.key) + 1) == self.key.encode()
 
     def discard_all(self) -> None:
         """Remove everything in the folder but the lock we hold (another run's chunks, a stray key folder)."""
@@ -280,6 +286,9 @@ def hide(scene: Scene, secret: np.ndarray, output: Path, config: HideConfig, dev
     """Hide `secret` (H, W, 3) uint8 in the scene; write the bundle to `output`; return the report."""
     output = check_output_path(output, force=force)
     checked_image_size(secret.shape[1], secret.shape[0], "the secret image")  # what a bundle may hold
+    if config.layout == "ray" and config.n_samples > MAX_RAY_LAYOUT_SAMPLES:
+        raise UserError(f"the ray layout serves at most {MAX_RAY_LAYOUT_SAMPLES} samples per ray, "
+                        f"not {config.n_samples}")
     hide_plan = plan(scene, secret, config)
     scene.to(device)
     field = scene.render_field
