@@ -13,7 +13,7 @@ import math
 from noisenerf.runtime.errors import UserError
 
 MAX_IMAGE_SIDE = 16384  # px: width or height of a secret, tile or camera
-MAX_IMAGE_PIXELS = 8192 * 8192  # px: width × height of a secret or of a rendered camera
+MAX_IMAGE_PIXELS = 4096 * 4096  # px: width × height of a secret or rendered camera (a 4K secret; 200 MB as float RGB)
 MAX_SAMPLES_PER_RAY = 1024  # samples per ray of any render (nerf-pytorch uses 64 + 128)
 MAX_RAY_LAYOUT_SAMPLES = 256  # ray layout: one stored vector serves this many samples at most
 MAX_TILES = MAX_IMAGE_PIXELS // 16 ** 2  # tiles in one bundle: the largest secret in the smallest (16 px) tiles

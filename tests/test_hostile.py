@@ -421,12 +421,12 @@ def header_case(world, d):
 
 def area_claim(meta, tensors):
     """A secret size within the caps that the tiles do not cover: refused before any mask is built."""
-    meta["secret"].update(width=16384, height=4096)
+    meta["secret"].update(width=4096, height=4096)
 
 
 ALLOCATIONS = {  # case: (command(world, folder), message)
     "bundle claims 100000x100000": (bundle_case(setter(("secret", "width"), 100_000)), "between 1 and"),
-    "bundle claims 16384x4096": (bundle_case(area_claim), "do not add up"),
+    "bundle claims 4096x4096": (bundle_case(area_claim), "do not add up"),
     "ray n_samples 20000": (bundle_case(setter((*SAMPLING, "n_samples"), 20_000)), "between 1 and"),
     "ray n_samples 1000": (bundle_case(setter((*SAMPLING, "n_samples"), 1000)), "at most 256"),
     "bundle JSON 100000 deep": (lambda world, d: ["noisenerf.cli.reveal", world.model, (
