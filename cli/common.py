@@ -9,6 +9,7 @@ onnxruntime's logger) is silenced: every check that matters is explicit and rais
 from __future__ import annotations
 
 import argparse
+import contextlib
 import sys
 import warnings
 
@@ -30,10 +31,13 @@ def one_line(text: str) -> str:
     return " ".join(str(text).split())
 
 
-def quiet_warnings() -> None:
-    """Non-finite arithmetic is checked where it matters; NumPy's warnings about it would be extra lines."""
-    np.seterr(all="ignore")
-    warnings.simplefilter("ignore", RuntimeWarning)
+@contextlib.contextmanager
+def quiet_warnings():
+    """Non-finite arithmetic is checked where it matters; NumPy's warnings about it would be extra lines.
+    Scoped to one command, so a caller running `main` in-process keeps its own settings."""
+    with np.errstate(all="ignore"), warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        yield
 
 
 def failure(prog: str, error: BaseException) -> int:

@@ -209,9 +209,9 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
-    quiet_warnings()
     try:
-        args.handler(args)
+        with quiet_warnings():
+            args.handler(args)
     except FAILURES as error:
         return failure(PROG, error)
     except ModuleNotFoundError as error:

@@ -140,9 +140,9 @@ def main(argv: list[str] | None = None) -> int:
         parser.error("give either SECRET.bundle or --view I")
     if args.no_skip and args.view is None:
         parser.error("--no-skip applies to --view renders only (a reveal never skips)")
-    quiet_warnings()
     try:
-        report = run(args)
+        with quiet_warnings():
+            report = run(args)
     except FAILURES as error:
         return failure(PROG, error)
     print(json_text(report) if args.json else "\n".join(summary_lines(report)))

@@ -685,6 +685,24 @@ def test_bad_arguments_are_one_line(world, tmp_path, capfd, case):
     assert_refused(run_main(main, make_args(world, tmp_path), capfd), tmp_path / "o.png", message)
 
 
+def test_numpy_warnings_add_no_line(world, tmp_path, capfd, monkeypatch):
+    """Arithmetic on a hostile file may warn on its way to a refusal: only the refusal is printed."""
+    import warnings
+
+    from noisenerf.cli import reveal as reveal_module
+    from noisenerf.runtime.errors import UserError
+
+    def warn_then_refuse(args):
+        np.divide(np.ones(2, np.float32), np.zeros(2, np.float32))
+        warnings.warn("overflow somewhere", RuntimeWarning)
+        raise UserError("refused")
+
+    monkeypatch.setattr(reveal_module, "run", warn_then_refuse)
+    assert_refused(run_main(reveal_main, [world.model, world.bundle, "-o", tmp_path / "o.png"], capfd), None,
+                   "refused")
+    assert np.geterr()["divide"] == "warn"  # the command's silence did not outlive it
+
+
 def test_threads_beyond_the_cores_are_capped(world, tmp_path, capfd):
     result = run_main(reveal_main, [world.model, world.bundle, "-o", tmp_path / "o.png", "--threads", 100_000], capfd)
     assert result.code == 0 and result.err == "", result
