@@ -7,17 +7,25 @@ line. Bad input is one line on stderr and exit code 2; `--json` prints one JSON 
 from __future__ import annotations
 
 import argparse
+import re
 import sys
 from pathlib import Path
 
+from noisenerf.cli.common import FAILURES, OneLineParser, failure, quiet_warnings
 from noisenerf.runtime.errors import UserError
-from noisenerf.runtime.files import json_text
+from noisenerf.runtime.files import check_output_directory, json_text
 
 PROG = "noisenerf"
 
 
+DEVICE_PATTERN = re.compile(r"auto|cpu|cuda(:[0-9]{1,2})?")
+
+
 def resolve_device(name: str):
-    """'auto' picks CUDA when torch sees a GPU; an explicit 'cuda' without one is refused."""
+    """'auto' picks CUDA when torch sees a GPU; an explicit 'cuda' without one is refused, and so is any
+    name but auto, cpu, cuda and cuda:N."""
+    if not DEVICE_PATTERN.fullmatch(name):
+        raise UserError(f"unknown --device {name[:40]!r} (expected auto, cpu, cuda or cuda:N)")
     import torch
 
     if name == "auto":
@@ -43,6 +51,8 @@ def cmd_fit(args) -> None:
         raise UserError("give exactly one of --minutes M or --iters N")
     if (args.iters is not None and args.iters < 1) or (args.minutes is not None and args.minutes <= 0):
         raise UserError("--minutes and --iters must be positive")
+    device = resolve_device(args.device)
+    check_output_directory(args.output)
     config = PRESETS[args.preset]
     if args.seed is not None or args.no_skip:
         import dataclasses
@@ -50,7 +60,7 @@ def cmd_fit(args) -> None:
         config = dataclasses.replace(config, seed=config.seed if args.seed is None else args.seed,
                                      skipping=config.skipping and not args.no_skip)
     dataset = load_dataset(args.data_dir, resolution=args.resolution)
-    report = fit(dataset, Path(args.output), config, Budget(args.iters, args.minutes), resolve_device(args.device),
+    report = fit(dataset, Path(args.output), config, Budget(args.iters, args.minutes), device,
                  progress=not args.quiet)
     test = report["test"]
     emit(report, args.json, [f"scene: {report['scene']}", f"steps: {report['steps']} in {report['seconds']} s",
@@ -73,6 +83,7 @@ def cmd_hide(args) -> None:
     from noisenerf.train.solvers import chunk_pixels_for
     from noisenerf.train.scene import load_scene
 
+    device = resolve_device(args.device)
     output = Path(args.output)
     device = resolve_device(args.device)
     overrides = {name: value for name, value in (("iters", args.iters), ("revival", args.revival)) if value is not None}
@@ -129,7 +140,7 @@ def cmd_make_dataset(args) -> None:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog=PROG, description=__doc__.splitlines()[0])
+    parser = OneLineParser(prog=PROG, description=__doc__.splitlines()[0])
     sub = parser.add_subparsers(dest="command", required=True)
 
     def add(name: str, handler, help_text: str) -> argparse.ArgumentParser:
@@ -213,10 +224,10 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
-        args.handler(args)
-    except UserError as error:
-        print(f"{PROG}: error: {error}", file=sys.stderr)
-        return 2
+        with quiet_warnings():
+            args.handler(args)
+    except FAILURES as error:
+        return failure(PROG, error)
     except ModuleNotFoundError as error:
         if error.name not in ("torch", "onnx"):
             raise

@@ -4,8 +4,10 @@
     noisenerf-reveal MODEL.onnx --view I -o OUT.png [--json]         an ordinary render of dataset view I
 
 OUT's extension picks the format: .png 8-bit (the very pixels the bundle's digest is checked on), .tif
-16-bit, .exr float. `exact` says whether the revealed 8-bit pixels hash to the bundle's secret digest;
-an inexact reveal still exits 0 (the image is written), bad input exits 2 with one line on stderr.
+16-bit, .exr float; a reveal refuses JPEG (lossy: the pixels written would not be the ones checked), an
+ordinary --view render may be one. `exact` says whether the revealed 8-bit pixels hash to the bundle's
+secret digest; an inexact reveal still exits 0 (the image is written), bad input exits 2 with one line on
+stderr.
 """
 
 from __future__ import annotations
@@ -19,6 +21,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from noisenerf.cli.common import FAILURES, OneLineParser, failure, quiet_warnings
 from noisenerf.runtime.errors import UserError
 from noisenerf.runtime.files import json_text
 
@@ -29,7 +32,7 @@ PROG = "noisenerf-reveal"
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog=PROG, description=__doc__.splitlines()[0])
+    parser = OneLineParser(prog=PROG, description=__doc__.splitlines()[0])
     parser.add_argument("model", help="the .onnx model the secret was hidden in")
     parser.add_argument("bundle", nargs="?", help="the secret .bundle to reveal")
     parser.add_argument("--view", type=int, help="render dataset view I instead of revealing a bundle")
@@ -38,7 +41,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--no-skip", action="store_true",
                         help="with --view: no empty-space skipping or early termination inside the scene's box "
                              "(comparison)")
-    parser.add_argument("--threads", type=int, help="onnxruntime threads (default: all cores)")
+    parser.add_argument("--threads", type=int, help="onnxruntime threads (default and most: the cores there are)")
     parser.add_argument("--device", choices=("cpu", "cuda"), default="cpu")
     parser.add_argument("--force", action="store_true", help="overwrite an existing output")
     return parser
@@ -82,15 +85,19 @@ def render_dataset_view(model: Model, view: int, skip: bool) -> tuple[np.ndarray
                    "samples_dense": stats.n_samples_dense}
 
 
-def checked_output(path: str, force: bool) -> Path:
-    """Refuse an output path before any rendering: missing folder, existing file, unknown format."""
-    from noisenerf.runtime.files import check_output_path
+def checked_output(path: str, force: bool, reveal: bool) -> Path:
+    """Refuse an output path before any rendering: missing or unwritable folder, existing file (or anything
+    not a regular file), unknown format, and for a reveal a lossy one (the exactness claim is made on the
+    8-bit pixels, so they must be the pixels written; an ordinary --view render may be a JPEG)."""
+    from noisenerf.runtime.files import check_output_path, refuse_lossy
     from noisenerf.runtime.images import WRITE_FORMATS
 
     output = check_output_path(path, force=force)
     if (output.suffix.lower() or ".png") not in WRITE_FORMATS:
         raise UserError(f"unknown image extension {output.suffix!r} for {output}; use one of "
                         f"{', '.join(WRITE_FORMATS)}")
+    if reveal:
+        refuse_lossy(output)
     return output
 
 
@@ -100,7 +107,7 @@ def run(args: argparse.Namespace) -> dict:
     from noisenerf.runtime.model import load_model
 
     start = time.perf_counter()
-    output = checked_output(args.output, args.force)
+    output = checked_output(args.output, args.force, reveal=args.bundle is not None)
     model = load_model(args.model, device=args.device, threads=args.threads)
     loaded = time.perf_counter()
     if args.bundle is not None:
@@ -134,10 +141,10 @@ def main(argv: list[str] | None = None) -> int:
     if args.no_skip and args.view is None:
         parser.error("--no-skip applies to --view renders only (a reveal never skips)")
     try:
-        report = run(args)
-    except UserError as error:
-        print(f"{PROG}: error: {' '.join(str(error).split())}", file=sys.stderr)
-        return 2
+        with quiet_warnings():
+            report = run(args)
+    except FAILURES as error:
+        return failure(PROG, error)
     print(json_text(report) if args.json else "\n".join(summary_lines(report)))
     return 0
 

@@ -15,6 +15,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from noisenerf.runtime.errors import UserError
+from noisenerf.runtime.limits import checked_float, checked_image_size
 
 
 @dataclass(frozen=True)
@@ -51,20 +52,22 @@ class Camera:
         return dataclasses.asdict(self)
 
     @staticmethod
-    def from_dict(data: dict) -> "Camera":
+    def from_dict(data) -> "Camera":
+        """From metadata someone else wrote: integer size within the caps, finite intrinsics, finite pose."""
+        if not isinstance(data, dict):
+            raise UserError("malformed camera: expected an object")
         try:
-            c2w = np.asarray(data["c2w"], dtype=np.float64)
+            c2w = np.asarray(data["c2w"])
             if c2w.shape == (3, 4):
                 c2w = np.vstack([c2w, [0.0, 0.0, 0.0, 1.0]])
-            if c2w.shape != (4, 4) or not np.isfinite(c2w).all():
+            if c2w.shape != (4, 4) or c2w.dtype.kind not in "iuf" or not np.isfinite(c2w).all():
                 raise ValueError("c2w must be a finite 4x4 matrix")
-            camera = Camera(_as_tuple(c2w), int(data["width"]), int(data["height"]), float(data["fx"]),
-                            float(data["fy"]), float(data["cx"]), float(data["cy"]))
+            width, height = checked_image_size(data["width"], data["height"], "camera")
+            fx, fy = (checked_float(data[name], f"camera {name}", 1e-6, 1e9) for name in ("fx", "fy"))
+            cx, cy = (checked_float(data[name], f"camera {name}", -1e9, 1e9) for name in ("cx", "cy"))
         except (KeyError, TypeError, ValueError) as error:
             raise UserError(f"malformed camera: {error}") from None
-        if camera.width < 1 or camera.height < 1 or camera.fx <= 0 or camera.fy <= 0:
-            raise UserError(f"malformed camera: size {camera.width}x{camera.height}, focal {camera.fx}")
-        return camera
+        return Camera(_as_tuple(c2w), width, height, fx, fy, cx, cy)
 
 
 @dataclass(frozen=True)
@@ -78,6 +81,14 @@ class NDCSpace:
     tan_half_fov_x: float
     tan_half_fov_y: float
     near_plane: float = 1.0
+
+    @staticmethod
+    def from_dict(data) -> "NDCSpace":
+        """From metadata: positive finite values only (a zero would divide by zero in every ray)."""
+        if not isinstance(data, dict) or not {"tan_half_fov_x", "tan_half_fov_y"} <= set(data) <= {
+                "tan_half_fov_x", "tan_half_fov_y", "near_plane"}:
+            raise UserError("ndc must be an object with tan_half_fov_x, tan_half_fov_y and near_plane")
+        return NDCSpace(**{name: checked_float(value, f"ndc {name}", 1e-6, 1e6) for name, value in data.items()})
 
 
 def _as_tuple(matrix: np.ndarray) -> tuple[tuple[float, ...], ...]:

@@ -1,4 +1,10 @@
-"""Output files appear whole or not at all: everything is written to a temporary sibling, then renamed."""
+"""Output files appear whole or not at all: everything is written to a temporary sibling, fsynced, then renamed.
+
+Every output check lives here, so each command refuses the same things the same way, before any work:
+a missing folder, an existing path that is not a regular file (a symlink, FIFO, device or folder is
+never replaced, even with --force), an existing file without --force, and a folder we cannot write to.
+Every OSError while writing becomes one UserError line.
+"""
 
 from __future__ import annotations
 
@@ -6,36 +12,111 @@ import contextlib
 import json
 import math
 import os
+import stat
 import tempfile
 from pathlib import Path
 
 from noisenerf.runtime.errors import UserError
+from noisenerf.runtime.limits import MAX_JSON_DEPTH, json_depth
+
+# Formats that do not store the 8-bit pixels they are given: a reveal written in one could not be exact.
+LOSSY_SUFFIXES = (".jpg", ".jpeg", ".jpe", ".jfif", ".webp", ".heic", ".heif", ".avif", ".jxl", ".jp2", ".gif")
+
+
+def os_failure(what: str, path: str | os.PathLike, error: OSError) -> UserError:
+    """One readable line for an OSError: what we tried, on which path, and the system's reason."""
+    return UserError(f"cannot {what} {path}: {error.strerror or error}")
+
+
+def existing_kind(path: Path) -> str | None:
+    """What is at `path` without following a symlink: None (nothing), "a file" (a regular one), or another kind."""
+    try:
+        mode = path.lstat().st_mode
+    except FileNotFoundError:
+        return None
+    except OSError as error:
+        raise os_failure("inspect", path, error) from None
+    kinds = {stat.S_ISREG: "a file", stat.S_ISDIR: "a directory", stat.S_ISLNK: "a symlink",
+             stat.S_ISFIFO: "a FIFO", stat.S_ISSOCK: "a socket"}
+    return next((name for test, name in kinds.items() if test(mode)), "a device")
+
+
+def probe_writable(folder: Path) -> None:
+    """Create and remove a scratch file in `folder`, so an unwritable folder is refused before any work."""
+    try:
+        fd, scratch = tempfile.mkstemp(prefix=".noisenerf-", dir=folder)
+        os.close(fd)
+        os.unlink(scratch)
+    except OSError as error:
+        raise os_failure("write to folder", folder, error) from None
 
 
 def check_output_path(path: str | os.PathLike, force: bool = True) -> Path:
-    """Refuse an output whose folder does not exist, or (without force) that already exists."""
+    """Refuse an output whose folder is missing or unwritable, that exists as anything but a regular file
+    (even with force: we never replace a symlink, FIFO or folder), or (without force) that exists."""
     path = Path(path)
     if not path.parent.is_dir():
         raise UserError(f"output folder does not exist: {path.parent}")
-    if path.is_dir():
-        raise UserError(f"output path is a directory: {path}")
-    if path.exists() and not force:
+    if len(path.name.encode()) > 255:
+        raise UserError(f"output file name is longer than 255 bytes: {path.name[:40]}…")
+    kind = existing_kind(path)
+    if kind not in (None, "a file"):
+        raise UserError(f"output path is {kind}, not a regular file: {path}")
+    if kind == "a file" and not force:
         raise UserError(f"output exists (pass --force to overwrite): {path}")
+    probe_writable(path.parent)
     return path
+
+
+def check_output_directory(path: str | os.PathLike) -> Path:
+    """A folder to write into: its parent must exist, and it may already exist only as a folder."""
+    path = Path(path)
+    if not path.parent.is_dir():
+        raise UserError(f"output folder does not exist: {path.parent}")
+    kind = existing_kind(path)
+    if kind not in (None, "a directory"):
+        raise UserError(f"output path is {kind}, not a folder: {path}")
+    return path
+
+
+def refuse_lossy(path: Path) -> None:
+    """A reveal is checked on its 8-bit pixels, so it is only written where those pixels survive."""
+    if path.suffix.lower() in LOSSY_SUFFIXES:
+        raise UserError(f"{path.suffix} is a lossy format: the revealed pixels would not be the secret's; "
+                        f"write .png, .tif or .exr")
+
+
+def fsync_path(path: str | os.PathLike) -> None:
+    """Flush a file's (or a folder's) data to disk, so a rename never publishes an empty file after a crash."""
+    fd = os.open(path, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
 
 
 @contextlib.contextmanager
 def atomic_output(path: str | os.PathLike):
-    """Yield a temporary path beside `path`; rename it onto `path` only if the block succeeds."""
+    """Yield a temporary path beside `path`; fsync it and rename it onto `path` only if the block succeeds.
+
+    The temporary name is short (not derived from the output's), so any valid output name works.
+    """
     path = check_output_path(path)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=path.suffix or ".tmp", dir=path.parent)
-    os.close(fd)
+    try:
+        fd, tmp = tempfile.mkstemp(prefix=".noisenerf-", suffix=path.suffix[:16] or ".tmp", dir=path.parent)
+        os.close(fd)
+    except OSError as error:
+        raise os_failure("write", path, error) from None
     umask = os.umask(0)
     os.umask(umask)
     try:
         yield Path(tmp)
         os.chmod(tmp, 0o666 & ~umask)  # mkstemp's 0600 would make every output owner-only
+        fsync_path(tmp)
         os.replace(tmp, path)
+        fsync_path(path.parent)
+    except OSError as error:
+        raise os_failure("write", path, error) from None
     finally:
         if os.path.exists(tmp):
             os.unlink(tmp)
@@ -63,14 +144,32 @@ def write_json(path: str | os.PathLike, data) -> None:
         tmp.write_text(json_text(data, indent=2) + "\n")
 
 
+def parse_json(text: str | bytes, what: str, source: str | os.PathLike = ""):
+    """Parse JSON from a file someone else made, nesting at most MAX_JSON_DEPTH (json's recursive decoder
+    raises RecursionError on a deep enough input; that becomes one UserError too). NaN and Infinity still
+    parse: every number is checked where it is used (runtime.limits), with a message naming it."""
+    try:
+        data = json.loads(text)
+        too_deep = json_depth(data) > MAX_JSON_DEPTH
+    except RecursionError:
+        data, too_deep = None, True
+    except (UnicodeDecodeError, ValueError) as error:  # JSONDecodeError is a ValueError
+        raise UserError(f"{what} is not valid JSON{f': {source}' if source else ''} "
+                        f"({' '.join(str(error).split())[:160]})") from None
+    if too_deep:
+        raise UserError(f"{what} is nested deeper than {MAX_JSON_DEPTH} levels{f': {source}' if source else ''}")
+    return data
+
+
 def read_json(path: str | os.PathLike, what: str) -> dict:
     """Read a JSON object or raise one clear UserError naming `what`."""
     try:
-        data = json.loads(Path(path).read_text())
+        text = Path(path).read_bytes()
     except FileNotFoundError:
         raise UserError(f"{what} not found: {path}") from None
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as error:
-        raise UserError(f"{what} is not valid JSON: {path} ({error})") from None
+    except OSError as error:
+        raise os_failure(f"read {what}", path, error) from None
+    data = parse_json(text, what, path)
     if not isinstance(data, dict):
         raise UserError(f"{what} must hold a JSON object: {path}")
     return data

@@ -7,7 +7,9 @@ premultiply them; files that store associated alpha (EXR, associated TIFF) are d
 
 from __future__ import annotations
 
+import contextlib
 import os
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -15,6 +17,7 @@ import OpenImageIO as oiio
 
 from noisenerf.runtime.errors import UserError
 from noisenerf.runtime.files import atomic_output
+from noisenerf.runtime.limits import checked_image_size
 from noisenerf.runtime.reveal import to_uint8
 
 # extension -> (OpenImageIO format name, pixel type written)
@@ -24,6 +27,24 @@ WRITE_FORMATS = {
 }
 JPEG_QUALITY = 95
 SECRET_CHANNELS = {1: "grey", 2: "grey+alpha", 3: "RGB", 4: "RGBA"}
+MAX_CHANNELS = 16  # channels decoded from any image (RGBA needs 4; more are refused before decoding)
+
+
+@contextlib.contextmanager
+def c_stderr_silenced():
+    """The C libraries under OpenImageIO (libpng, libjpeg, libtiff) print their own warnings and errors
+    straight to file descriptor 2; OpenImageIO also hands us each error through geterror(), which we report
+    as one line. So descriptor 2 points at /dev/null for the length of an OpenImageIO call."""
+    sys.stderr.flush()
+    saved = os.dup(2)
+    devnull = os.open(os.devnull, os.O_WRONLY)
+    try:
+        os.dup2(devnull, 2)
+        yield
+    finally:
+        os.dup2(saved, 2)
+        os.close(saved)
+        os.close(devnull)
 
 
 def _open(path: str | os.PathLike) -> oiio.ImageInput:
@@ -41,6 +62,7 @@ def _open(path: str | os.PathLike) -> oiio.ImageInput:
     return image
 
 
+@c_stderr_silenced()
 def image_shape(path: str | os.PathLike) -> tuple[int, int, int]:
     """(height, width, channels) from the file header, without decoding pixels."""
     image = _open(path)
@@ -51,6 +73,7 @@ def image_shape(path: str | os.PathLike) -> tuple[int, int, int]:
     return spec.height, spec.width, spec.nchannels
 
 
+@c_stderr_silenced()
 def read_native(path: str | os.PathLike) -> np.ndarray:
     """Pixels as stored, (H, W, C): integers in their stored type, floats as float32; alpha straight.
 
@@ -59,6 +82,13 @@ def read_native(path: str | os.PathLike) -> np.ndarray:
     """
     image = _open(path)
     spec = image.spec()
+    try:
+        checked_image_size(spec.width, spec.height, f"image {path}")  # the header's claim, before decoding
+        if not 1 <= spec.nchannels <= MAX_CHANNELS:
+            raise UserError(f"image {path} has {spec.nchannels} channels; at most {MAX_CHANNELS} are read")
+    except UserError:
+        image.close()
+        raise
     pixels = image.read_image(oiio.UNKNOWN)
     error = image.geterror()
     image.close()
@@ -139,6 +169,7 @@ def encoded(image: np.ndarray, pixel_type: str) -> np.ndarray:
     return values
 
 
+@c_stderr_silenced()
 def write_image(path: str | os.PathLike, image: np.ndarray) -> None:
     """Write (H, W, 3) RGB or (H, W, 4) straight RGBA, uint8 or float in [0, 1], atomically.
 

@@ -23,6 +23,10 @@ import numpy as np
 from noisenerf.runtime.bundle import Bundle
 from noisenerf.runtime.camera import Camera
 from noisenerf.runtime.errors import UserError
+from noisenerf.runtime.files import parse_json
+from noisenerf.runtime.limits import (
+    MAX_CAMERAS, MAX_GRID_RESOLUTION, MAX_NOISE_DIMS, checked_float, checked_int, checked_list,
+)
 from noisenerf.runtime.render import RenderConfig
 from noisenerf.runtime.sampling import OccupancyGrid
 from noisenerf.runtime.session import OnnxField
@@ -39,15 +43,21 @@ def grid_to_dict(grid: OccupancyGrid) -> dict:
             "occupancy": base64.b64encode(bits.tobytes()).decode("ascii")}
 
 
-def grid_from_dict(data: dict) -> OccupancyGrid:
-    """Inverse of grid_to_dict; refuses a bit string of the wrong length."""
-    resolution = int(data["resolution"])
+def grid_from_dict(data) -> OccupancyGrid:
+    """Inverse of grid_to_dict; the resolution is capped and the bit string must have exactly its length,
+    so the unpacked cube is never more than 8x the metadata that carried it."""
+    if not isinstance(data, dict) or not isinstance(data.get("occupancy"), str):
+        raise UserError("grid must be an object with aabb, resolution and occupancy")
+    resolution = checked_int(data.get("resolution"), "grid resolution", 1, MAX_GRID_RESOLUTION)
+    aabb = [checked_float(v, "grid aabb", -1e9, 1e9) for v in checked_list(data.get("aabb"), "grid aabb", length=6)]
+    if not all(lo < hi for lo, hi in zip(aabb[:3], aabb[3:])):
+        raise UserError(f"grid aabb must have min < max on every axis, got {aabb}")
     packed = np.frombuffer(base64.b64decode(data["occupancy"], validate=True), dtype=np.uint8)
     n_cells = resolution ** 3
-    if resolution < 1 or packed.size != (n_cells + 7) // 8:
+    if packed.size != (n_cells + 7) // 8:
         raise ValueError(f"occupancy holds {packed.size} bytes, a {resolution}^3 grid needs {(n_cells + 7) // 8}")
     occupied = np.unpackbits(packed, count=n_cells).astype(bool).reshape((resolution,) * 3)
-    return OccupancyGrid(data["aabb"], occupied)
+    return OccupancyGrid(aabb, occupied)
 
 
 @dataclass(frozen=True, eq=False)
@@ -78,21 +88,24 @@ class ModelMetadata:
         if props[VERSION_KEY] != str(MODEL_FORMAT_VERSION):
             raise UserError(f"{source} has model format version {props[VERSION_KEY]!r}; "
                             f"this noisenerf reads version {MODEL_FORMAT_VERSION}")
+        data = parse_json(props[METADATA_KEY], f"{source}: noisenerf metadata")
         try:
-            data = json.loads(props[METADATA_KEY])
-            if data["format_version"] != MODEL_FORMAT_VERSION:
-                raise ValueError(f"format_version {data['format_version']!r} disagrees with {VERSION_KEY}")
+            if not isinstance(data, dict) or data["format_version"] != MODEL_FORMAT_VERSION:
+                raise ValueError(f"format_version disagrees with {VERSION_KEY}")
             field = dict(data["field"])
+            cameras = checked_list(data["cameras"], "cameras", most=MAX_CAMERAS)
             return ModelMetadata(
                 fingerprint=str(data["fingerprint"]),
                 field={k: v for k, v in field.items() if k != "noise_dims"},
-                noise_dims=int(field["noise_dims"]),
+                noise_dims=checked_int(field.get("noise_dims"), "noise_dims", 1, MAX_NOISE_DIMS),
                 render_config=RenderConfig.from_dict(data["render"]),
-                cameras=tuple(Camera.from_dict(camera) for camera in data["cameras"]),
+                cameras=tuple(Camera.from_dict(camera) for camera in cameras),
                 grid=grid_from_dict(data["grid"]),
             )
         except (KeyError, TypeError, ValueError, binascii.Error) as error:
             raise UserError(f"{source}: malformed noisenerf metadata ({error!r})") from None
+        except UserError as error:
+            raise UserError(f"{source}: {error}") from None
 
 
 @dataclass(frozen=True, eq=False)

@@ -12,12 +12,16 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from noisenerf.runtime.camera import Camera, NDCSpace, camera_rays, ndc_rays, normalize_directions
+from noisenerf.runtime.camera import Camera, NDCSpace, ndc_rays, normalize_directions, pixel_rays
 from noisenerf.runtime.compositing import composite, render_weights
 from noisenerf.runtime.errors import UserError
+from noisenerf.runtime.limits import checked_float, checked_list
 from noisenerf.runtime.sampling import (
     FieldFn, OccupancyGrid, SamplingConfig, march_rays, sample_deltas, sample_positions,
 )
+
+
+VIEW_CHUNK_SAMPLES = 1 << 19  # samples per chunk of an ordinary render (4096 rays of 128): ~60 MB of buffers
 
 
 @dataclass(frozen=True)
@@ -34,17 +38,22 @@ class RenderConfig:
         return dataclasses.asdict(self)
 
     @staticmethod
-    def from_dict(data: dict) -> "RenderConfig":
+    def from_dict(data) -> "RenderConfig":
+        """From metadata someone else wrote: every number finite and in range (a NaN background would
+        silently paint every pixel NaN)."""
+        if not isinstance(data, dict):
+            raise UserError("malformed render config: expected an object")
         try:
+            background = checked_list(data["background"], "render background", length=3)
             return RenderConfig(
-                sampling=SamplingConfig(**data["sampling"]),
-                background=tuple(float(v) for v in data["background"]),
-                ndc=NDCSpace(**data["ndc"]) if data.get("ndc") else None,
-                pixel_center=float(data["pixel_center"]),
-                early_stop=float(data.get("early_stop", 1e-4)),
+                sampling=SamplingConfig.from_dict(data["sampling"]),
+                background=tuple(checked_float(v, "render background", 0.0, 1.0) for v in background),
+                ndc=NDCSpace.from_dict(data["ndc"]) if data.get("ndc") else None,
+                pixel_center=checked_float(data["pixel_center"], "render pixel_center", 0.0, 1.0),
+                early_stop=checked_float(data.get("early_stop", 1e-4), "render early_stop", 0.0, 1.0),
             )
-        except (KeyError, TypeError, ValueError) as error:
-            raise UserError(f"malformed render config: {error}") from None
+        except KeyError as error:
+            raise UserError(f"malformed render config: missing {error}") from None
 
 
 @dataclass(frozen=True)
@@ -93,19 +102,35 @@ def render_rays(config: RenderConfig, rays: RayBatch, field: FieldFn, grid: Occu
     return colors, RenderStats(len(rays), deltas.size, march.n_evaluated)
 
 
+def rays_per_chunk(most_rays: int, n_samples: int, most_samples: int) -> int:
+    """Rays per chunk: at most `most_rays`, and few enough that a chunk holds at most `most_samples` samples,
+    so a render's buffers stay bounded whatever n_samples a file asks for."""
+    return max(1, min(most_rays, most_samples // n_samples))
+
+
+def view_rays(camera: Camera, config: RenderConfig, start: int, stop: int) -> RayBatch:
+    """Rays of pixels start..stop (row-major) in the field's space: the same rays as camera_rays gives for
+    the whole image, computed a chunk at a time so a large camera never holds all its rays at once."""
+    index = np.arange(start, stop)
+    px = (index % camera.width).astype(np.float32) + config.pixel_center
+    py = (index // camera.width).astype(np.float32) + config.pixel_center
+    return prepare_rays(config, *pixel_rays(camera, px, py))
+
+
 def render_view(camera: Camera, config: RenderConfig, field: FieldFn, grid: OccupancyGrid | None,
                 chunk_rays: int = 4096, early_stop: float | None = None, progress=None
                 ) -> tuple[np.ndarray, RenderStats]:
     """An ordinary (noise-free) render of a camera: image (height, width, 3) float32 and counts."""
-    rays_o, rays_d = camera_rays(camera, config.pixel_center)
-    rays = prepare_rays(config, rays_o, rays_d)
-    colors, evaluated = [], 0
-    for start in range(0, len(rays), chunk_rays):
-        chunk = RayBatch(*(a[start:start + chunk_rays] for a in (rays.origins, rays.directions, rays.viewdirs)))
-        chunk_colors, stats = render_rays(config, chunk, field, grid, early_stop)
-        colors.append(chunk_colors)
+    n_rays = camera.width * camera.height
+    chunk = rays_per_chunk(chunk_rays, config.sampling.n_samples, VIEW_CHUNK_SAMPLES)
+    image = np.empty((n_rays, 3), dtype=np.float32)
+    evaluated = 0
+    for start in range(0, n_rays, chunk):
+        stop = min(start + chunk, n_rays)
+        image[start:stop], stats = render_rays(config, view_rays(camera, config, start, stop), field, grid,
+                                               early_stop)
         evaluated += stats.n_samples_evaluated
         if progress is not None:
-            progress.update(len(chunk))
-    image = np.concatenate(colors).reshape(camera.height, camera.width, 3)
-    return image, RenderStats(len(rays), len(rays) * config.sampling.n_samples, evaluated)
+            progress.update(stop - start)
+    return image.reshape(camera.height, camera.width, 3), RenderStats(n_rays, n_rays * config.sampling.n_samples,
+                                                                      evaluated)

@@ -14,8 +14,10 @@ import numpy as np
 from noisenerf.runtime.bundle import Bundle, Tile, secret_digest
 from noisenerf.runtime.camera import camera_rays
 from noisenerf.runtime.compositing import composite, render_weights
-from noisenerf.runtime.render import RayBatch, RenderConfig, prepare_rays, sample_along
+from noisenerf.runtime.render import RayBatch, RenderConfig, prepare_rays, rays_per_chunk, sample_along
 from noisenerf.runtime.sampling import sample_positions
+
+REVEAL_CHUNK_SAMPLES = 1 << 17  # samples per chunk of a reveal (2048 rays of 64): ~50 MB of float32 noise
 
 # field(points (m, 3), viewdirs (m, 3), noise (m, dims)) -> rgb (m, 3), sigma (m,)
 NoisyFieldFn = Callable[[np.ndarray, np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]]
@@ -55,6 +57,7 @@ def render_tile(tile: Tile, config: RenderConfig, field: NoisyFieldFn, chunk_ray
     rays = tile_rays(tile, config)
     t_vals = sample_positions(tile.sampling)
     noise = tile.noise.reshape(len(rays), *tile.noise.shape[2:])
+    chunk_rays = rays_per_chunk(chunk_rays, tile.sampling.n_samples, REVEAL_CHUNK_SAMPLES)
     colors = []
     for start in range(0, len(rays), chunk_rays):
         stop = min(start + chunk_rays, len(rays))

@@ -14,6 +14,7 @@ import numpy as np
 
 from noisenerf.runtime.compositing import optical_depths
 from noisenerf.runtime.errors import UserError
+from noisenerf.runtime.limits import MAX_SAMPLES_PER_RAY, checked_float, checked_int
 
 LAST_DELTA = 1e10
 
@@ -29,8 +30,16 @@ class SamplingConfig:
     def __post_init__(self):
         if not (np.isfinite(self.near) and np.isfinite(self.far) and 0 <= self.near < self.far):
             raise UserError(f"sampling needs 0 <= near < far, got near={self.near}, far={self.far}")
-        if self.n_samples < 1:
-            raise UserError(f"sampling needs at least one sample per ray, got {self.n_samples}")
+        if not 1 <= self.n_samples <= MAX_SAMPLES_PER_RAY:
+            raise UserError(f"sampling needs 1 to {MAX_SAMPLES_PER_RAY} samples per ray, got {self.n_samples}")
+
+    @staticmethod
+    def from_dict(data) -> "SamplingConfig":
+        """From metadata someone else wrote: exactly near, far and an integer n_samples, all checked."""
+        if not isinstance(data, dict) or set(data) != {"near", "far", "n_samples"}:
+            raise UserError("sampling must be an object with near, far and n_samples")
+        return SamplingConfig(checked_float(data["near"], "sampling near"), checked_float(data["far"], "sampling far"),
+                              checked_int(data["n_samples"], "sampling n_samples", 1, MAX_SAMPLES_PER_RAY))
 
 
 def sample_positions(config: SamplingConfig) -> np.ndarray:

@@ -14,12 +14,15 @@ import numpy as np
 import onnxruntime as ort
 
 from noisenerf.runtime.errors import UserError
+from noisenerf.runtime.limits import MAX_NOISE_DIMS
 
 INPUT_NAMES = ("points", "viewdirs", "noise")
 OUTPUT_NAMES = ("rgb", "sigma")
 DEVICES = {"cpu": "CPUExecutionProvider", "cuda": "CUDAExecutionProvider"}
 DEFAULT_CHUNK = 16384  # points per run: as fast as larger chunks on CPU, ~16 MB per 256-wide activation
-SILENT = 4  # onnxruntime's FATAL log level: every error also raises, and is reported once by our callers
+QUIET = 3  # onnxruntime's ERROR log level: no warnings or telemetry notes; errors raise and are reported once
+# The shapes a noisenerf field declares; a str is a free (symbolic) batch size, an int a fixed width.
+PORT_SHAPES = {"points": ("n", 3), "viewdirs": ("n", 3), "noise": ("n", None), "rgb": ("n", 3), "sigma": ("n",)}
 
 
 def available_cores() -> int:
@@ -40,14 +43,18 @@ def providers_for(device: str) -> list[str]:
 
 
 def session_options(threads: int | None) -> ort.SessionOptions:
-    """Intra-op threads (default: all cores); one inter-op thread, the graph being a single chain."""
-    threads = available_cores() if threads is None else threads
+    """Intra-op threads (default, and at most: the cores there are; more only oversubscribes and, in
+    the thousands, hangs onnxruntime); one inter-op thread, the graph being a single chain. onnxruntime's
+    own logging is silenced, so a failure is our one line on stderr."""
+    cores = available_cores()
+    threads = cores if threads is None else threads
     if threads < 1:
         raise UserError(f"threads must be at least 1, got {threads}")
+    ort.set_default_logger_severity(QUIET)
     options = ort.SessionOptions()
-    options.intra_op_num_threads = threads
+    options.intra_op_num_threads = min(threads, cores)
     options.inter_op_num_threads = 1
-    options.log_severity_level = SILENT
+    options.log_severity_level = QUIET
     return options
 
 
@@ -71,16 +78,30 @@ def read_model_bytes(model: str | os.PathLike | bytes) -> tuple[bytes, str]:
     return path.read_bytes(), str(path)
 
 
+def port_shape_matches(shape: list, expected: tuple) -> bool:
+    """A declared port shape against PORT_SHAPES: a symbolic batch where "n", the fixed width where an int."""
+    if len(shape) != len(expected):
+        return False
+    return all(not isinstance(dim, int) if want == "n" else want is None or dim == want
+               for dim, want in zip(shape, expected))
+
+
 def check_ports(session: ort.InferenceSession, source: str) -> int:
-    """Refuse a graph without our inputs and outputs; returns the noise width."""
+    """Refuse a graph without our inputs and outputs, or whose declared shapes are not (n, 3) points and
+    view directions, (n, dims) noise, (n, 3) rgb and (n,) sigma with a free batch n; returns the noise width."""
     inputs = {node.name: node.shape for node in session.get_inputs()}
-    outputs = {node.name for node in session.get_outputs()}
-    if set(inputs) != set(INPUT_NAMES) or not set(OUTPUT_NAMES) <= outputs:
+    outputs = {node.name: node.shape for node in session.get_outputs()}
+    if set(inputs) != set(INPUT_NAMES) or not set(OUTPUT_NAMES) <= set(outputs):
         raise UserError(f"{source} is not a noisenerf field: inputs {sorted(inputs)}, outputs {sorted(outputs)} "
                         f"(expected inputs {list(INPUT_NAMES)}, outputs {list(OUTPUT_NAMES)})")
+    ports = {**inputs, **{name: outputs[name] for name in OUTPUT_NAMES}}
+    for name, expected in PORT_SHAPES.items():
+        if not port_shape_matches(ports[name], expected):
+            raise UserError(f"{source}: {name} has shape {ports[name]}, expected {list(expected)} (n free)")
     noise_dims = inputs["noise"][-1]
-    if not isinstance(noise_dims, int):
-        raise UserError(f"{source}: the noise input has no fixed width ({inputs['noise']})")
+    if not isinstance(noise_dims, int) or not 1 <= noise_dims <= MAX_NOISE_DIMS:
+        raise UserError(f"{source}: the noise input has no fixed width within 1..{MAX_NOISE_DIMS} "
+                        f"({inputs['noise']})")
     return noise_dims
 
 
@@ -118,7 +139,20 @@ class OnnxField:
             window = slice(start, start + self.chunk)
             feed = {name: np.ascontiguousarray(array[window], dtype=np.float32)
                     for name, array in zip(INPUT_NAMES, (points, viewdirs, noise))}
-            rgb[window], sigma[window] = self.session.run(list(OUTPUT_NAMES), feed)
+            rgb[window], sigma[window] = self.evaluate(feed)
+        return rgb, sigma
+
+    def evaluate(self, feed: dict[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+        """One chunk through onnxruntime; a failing graph, or outputs of another shape than the declared
+        (m, 3) and (m,), is one UserError."""
+        m = feed["points"].shape[0]
+        try:
+            rgb, sigma = self.session.run(list(OUTPUT_NAMES), feed)
+        except Exception as error:  # onnxruntime's pybind errors share no base class but Exception
+            raise UserError(f"{self.source} failed to evaluate: {' '.join(str(error).split())[:200]}") from None
+        if rgb.shape != (m, 3) or sigma.shape != (m,):
+            raise UserError(f"{self.source} returned rgb {rgb.shape} and sigma {sigma.shape} for {m} points, "
+                            f"expected ({m}, 3) and ({m},)")
         return rgb, sigma
 
     def metadata(self) -> dict[str, str]:

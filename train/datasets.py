@@ -97,6 +97,8 @@ def load_rgb(path: Path, size: tuple[int, int], background: tuple[float, float, 
     """One image as RGB at size (width, height): alpha composited (or dropped), area-downscaled, and its
     alpha coverage (ones without alpha). -> (height, width, 3), (height, width) float32."""
     pixels = read_image(path)
+    if not np.isfinite(pixels).all():
+        raise UserError(f"image {path} holds NaN or infinite values; a NeRF cannot be fitted to them")
     alpha = pixels[..., 3:] if pixels.shape[-1] == 4 else np.ones_like(pixels[..., :1])
     if pixels.shape[-1] == 4:
         pixels = composite_over(pixels, background) if composite else pixels[..., :3]
@@ -229,6 +231,8 @@ def llff_c2w(poses: np.ndarray, bounds: np.ndarray) -> np.ndarray:
     """LLFF poses (n, 3, 5) and bounds (n, 2) -> recentred OpenGL c2w (n, 4, 4) float32, scaled so the
     nearest bound is 1/bd_factor."""
     c2w = to_opengl(poses)[:, :, :4]
+    if not np.all(np.abs(np.linalg.det(c2w[:, :, :3].astype(np.float64))) > 1e-6):
+        raise UserError("poses_bounds.npy has degenerate poses (a rotation that is not invertible)")
     scale = 1.0 / (bounds.astype(np.float32).min() * LLFF_BD_FACTOR)
     c2w[:, :, 3] *= scale
     return recenter(c2w)

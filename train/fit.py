@@ -28,7 +28,7 @@ from tqdm import tqdm
 
 from noisenerf.runtime.camera import camera_rays
 from noisenerf.runtime.errors import UserError
-from noisenerf.runtime.files import atomic_output, read_json, write_json
+from noisenerf.runtime.files import atomic_output, check_output_directory, read_json, write_json
 from noisenerf.runtime.metrics import psnr, ssim
 from noisenerf.runtime.render import RenderConfig, prepare_rays, render_rays, render_view
 from noisenerf.runtime.sampling import (
@@ -327,12 +327,11 @@ def curve_psnr(scene: Scene, dataset: Dataset, views: list[int], rays_per_view: 
 def fit(dataset: Dataset, out_dir: Path, config: FitConfig, budget: Budget, device: torch.device,
         checkpoint_seconds: float = 60.0, curve_seconds: float = 120.0, curve_views: int = 3,
         progress: bool = True) -> dict:
-    """Fit, checkpointing into out_dir, then save the scene there and report test-view quality."""
-    out_dir = Path(out_dir)
-    if not out_dir.parent.is_dir():
-        raise UserError(f"output folder does not exist: {out_dir.parent}")
-    out_dir.mkdir(exist_ok=True)
+    """Fit, checkpointing into out_dir, then save the scene there and report test-view quality. The folder
+    is created only once the data has given a fitter, so input the fitter refuses leaves no empty folder."""
+    out_dir = check_output_directory(out_dir)
     fitter = Fitter(dataset, config, device)
+    out_dir.mkdir(exist_ok=True)
     resumed = fitter.load_checkpoint(out_dir)
     test_views = list(dataset.splits.get("test") or dataset.splits["train"])
     curve_subset = test_views[:: max(1, len(test_views) // curve_views)][:curve_views]

@@ -8,8 +8,10 @@ run again with the same arguments resumes where it stopped and writes a byte-ide
 from __future__ import annotations
 
 import dataclasses
+import fcntl
 import hashlib
 import json
+import os
 import shutil
 import time
 from dataclasses import dataclass
@@ -17,13 +19,15 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from safetensors.torch import load_file, save_file
+from safetensors import safe_open
+from safetensors.torch import save_file
 from tqdm import tqdm
 
 import noisenerf
 from noisenerf.runtime.bundle import DTYPES, Bundle, Tile, secret_digest
 from noisenerf.runtime.errors import UserError
-from noisenerf.runtime.files import atomic_output, check_output_path
+from noisenerf.runtime.files import atomic_output, check_output_path, existing_kind
+from noisenerf.runtime.limits import MAX_RAY_LAYOUT_SAMPLES, checked_image_size
 from noisenerf.runtime.metrics import exact_fraction, psnr, ssim
 from noisenerf.runtime.reveal import to_uint8
 from noisenerf.runtime.sampling import SamplingConfig
@@ -106,28 +110,114 @@ def run_key(scene: Scene, secret: np.ndarray, config: HideConfig) -> str:
 
 
 class Progress:
-    """Finished chunks of noise in OUT.partial/, keyed by the run; anything else there is discarded."""
+    """Finished chunks of noise in OUT.partial/, for one run at a time.
+
+    A run holds an exclusive lock on OUT.partial/lock for its whole life, so a second hide writing to the
+    same output is refused at once instead of mixing two secrets' chunks. Each chunk is written atomically
+    (fsynced, then renamed) and carries the run key, its own position and a SHA-256 of its tensors; a
+    chunk that fails any check on load (another run's, truncated, edited, wrong shape or dtype, NaN,
+    missing fields) is deleted and solved again. The key file says which run the folder belongs to; if it
+    is anything but this run's key in a regular file, every chunk there is discarded.
+    """
 
     def __init__(self, output: Path, key: str):
         self.directory = output.with_name(output.name + ".partial")
-        if (self.directory / "key").is_file() and (self.directory / "key").read_text() != key:
-            shutil.rmtree(self.directory)
-        self.directory.mkdir(exist_ok=True)
-        (self.directory / "key").write_text(key)
+        self.key = key
+        if existing_kind(self.directory) not in (None, "a directory"):
+            raise UserError(f"the resume folder {self.directory} is {existing_kind(self.directory)}; remove it")
+        try:
+            self.directory.mkdir(exist_ok=True)
+            self.lock = os.open(self.directory / "lock", os.O_RDWR | os.O_CREAT | os.O_NOFOLLOW, 0o600)
+        except OSError as error:
+            raise UserError(f"cannot use the resume folder {self.directory}: {error.strerror or error}") from None
+        try:
+            fcntl.flock(self.lock, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            if not self.owns_folder():
+                self.discard_all()
+            with atomic_output(self.directory / "key") as tmp:
+                tmp.write_text(key)
+        except BlockingIOError:
+            os.close(self.lock)
+            raise UserError(f"another hide is writing to {self.directory}; wait for it or choose another -o") from None
+        except BaseException:
+            os.close(self.lock)  # a failed start must not keep the folder locked (in-process callers go on)
+            raise
+
+    def owns_folder(self) -> bool:
+        """Whether the folder's key file is a regular file holding this run's key."""
+        key_file = self.directory / "key"
+        if existing_kind(key_file) != "a file":
+            return False
+        with open(key_file, "rb") as handle:
+            return handle.read(len(self.key) + 1) == self.key.encode()
+
+    def discard_all(self) -> None:
+        """Remove everything in the folder but the lock we hold (another run's chunks, a stray key folder)."""
+        for entry in self.directory.iterdir():
+            if entry.name != "lock":
+                remove(entry)
 
     def path(self, tile: int, chunk: int) -> Path:
         return self.directory / f"tile{tile:04d}_chunk{chunk:05d}.safetensors"
 
-    def load(self, tile: int, chunk: int) -> dict | None:
+    def stamp(self, tile: int, chunk: int, tensors: dict[str, torch.Tensor]) -> dict[str, str]:
+        """What a chunk must carry to be reused: this run, this place, and a digest of exactly these tensors."""
+        digest = hashlib.sha256(f"{self.key}/{tile}/{chunk}".encode())
+        for name in sorted(tensors):
+            value = tensors[name].contiguous().cpu()
+            digest.update(f"{name}:{value.dtype}:{tuple(value.shape)}".encode())
+            digest.update(value.view(torch.uint8).numpy().tobytes() if value.numel() else b"")
+        return {"run_key": self.key, "tile": str(tile), "chunk": str(chunk), "sha256": digest.hexdigest()}
+
+    def load(self, tile: int, chunk: int, shapes: dict[str, tuple[int, ...]] | None = None) -> dict | None:
+        """A saved chunk that passes every check (and has exactly `shapes`, when given), else None; a chunk
+        that fails is deleted, so it is solved again and rewritten."""
         path = self.path(tile, chunk)
-        return load_file(str(path)) if path.is_file() else None
+        if existing_kind(path) is None:
+            return None
+        tensors = self.verified(path, tile, chunk, shapes)
+        if tensors is None:
+            remove(path)
+        return tensors
+
+    def verified(self, path: Path, tile: int, chunk: int, shapes: dict | None) -> dict | None:
+        """The chunk's tensors if its stamp, shapes and values are sound; None for anything else."""
+        try:
+            with safe_open(str(path), framework="pt") as handle:
+                metadata = handle.metadata() or {}
+                tensors = {name: handle.get_tensor(name) for name in handle.keys()}
+        except Exception:  # safetensors raises several types for bad files; any of them means "recompute"
+            return None
+        if metadata != self.stamp(tile, chunk, tensors):
+            return None
+        if shapes is not None and {name: tuple(value.shape) for name, value in tensors.items()} != shapes:
+            return None
+        if any(value.is_floating_point() and not torch.isfinite(value).all() for value in tensors.values()):
+            return None
+        return tensors
 
     def save(self, tile: int, chunk: int, tensors: dict) -> None:
+        tensors = {k: v.contiguous().cpu() for k, v in tensors.items()}
         with atomic_output(self.path(tile, chunk)) as tmp:
-            save_file({k: v.contiguous().cpu() for k, v in tensors.items()}, str(tmp))
+            save_file(tensors, str(tmp), metadata=self.stamp(tile, chunk, tensors))
 
     def clear(self) -> None:
+        """Remove the folder once the bundle is written (the lock is released on leaving the run)."""
         shutil.rmtree(self.directory, ignore_errors=True)
+
+    def __enter__(self) -> "Progress":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        os.close(self.lock)  # releases the flock, whether the run finished or failed
+
+
+def remove(entry: Path) -> None:
+    """Delete a file, symlink or folder in OUT.partial/ (a folder where a chunk or the key should be)."""
+    if existing_kind(entry) == "a directory":
+        shutil.rmtree(entry)
+    else:
+        entry.unlink(missing_ok=True)
 
 
 def noise_shape(view: SecretView, config: HideConfig) -> tuple[int, int, int]:
@@ -142,7 +232,7 @@ def hide_tile_exact(view: SecretView, pixels: torch.Tensor, shape: tuple[int, in
     totals = {"iterations": 0, "jacobians": 0, "renders": 0, "restarts": 0}
     for c, start in enumerate(range(0, view.n_rays, config.chunk_pixels)):
         index = torch.arange(start, min(start + config.chunk_pixels, view.n_rays), device=pixels.device)
-        saved = progress.load(k, c)
+        saved = progress.load(k, c, {"noise": (len(index), *noise.shape[1:]), "counts": (len(totals),)})
         if saved is None:
             generator = torch.Generator().manual_seed(config.seed * 1_000_003 + k * 10_007 + c)
             result = solve_exact(view, index, pixels[index], TORCH_DTYPES[config.dtype], config.exact, generator)
@@ -166,8 +256,12 @@ def hide_tile_paper(view: SecretView, pixels: torch.Tensor, shape: tuple[int, in
     clean = survey(view, settings.pass_samples)
     noise = torch.zeros(noise_shape(view, config), dtype=TORCH_DTYPES[config.dtype])
     colors = torch.zeros(len(points), view.n_rays, 3)
-    for b, block in enumerate(solve_blocks(view, pixels, noise.shape[1], settings, clean, noise.dtype,
-                                           lambda b: progress.load(k, b))):
+
+    def saved_block(b: int) -> dict | None:
+        m = min(settings.block_pixels, view.n_rays - b * settings.block_pixels)
+        return progress.load(k, b, {"noise": (m, *noise.shape[1:]), "colors": (len(points), m, 3)})
+
+    for b, block in enumerate(solve_blocks(view, pixels, noise.shape[1], settings, clean, noise.dtype, saved_block)):
         if block.solved:
             progress.save(k, b, {"noise": block.noise, "colors": block.colors})
         noise[block.index.cpu()] = block.noise
@@ -195,38 +289,42 @@ def hide(scene: Scene, secret: np.ndarray, output: Path, config: HideConfig, dev
          force: bool = False, show_progress: bool = True) -> dict:
     """Hide `secret` (H, W, 3) uint8 in the scene; write the bundle to `output`; return the report."""
     output = check_output_path(output, force=force)
+    checked_image_size(secret.shape[1], secret.shape[0], "the secret image")  # what a bundle may hold
+    if config.layout == "ray" and config.n_samples > MAX_RAY_LAYOUT_SAMPLES:
+        raise UserError(f"the ray layout serves at most {MAX_RAY_LAYOUT_SAMPLES} samples per ray, "
+                        f"not {config.n_samples}")
     hide_plan = plan(scene, secret, config)
     scene.to(device)
     field = scene.render_field
-    progress = Progress(output, run_key(scene, secret, config))
-    solve = hide_tile_exact if config.method == "exact" else hide_tile_paper
-    tiles, reports = [], []
-    started = time.perf_counter()
-    bar = tqdm(total=secret.shape[0] * secret.shape[1], unit="px", desc=f"hide ({config.method})",
-               disable=not show_progress, dynamic_ncols=True)
-    for k, tile in enumerate(hide_plan.tiles):
-        tile_start = time.perf_counter()
-        x0, y0, w, h = tile.rect
-        view = SecretView(field, tile, scene.config.render, device)
-        pixels = torch.tensor(secret[y0:y0 + h, x0:x0 + w].reshape(-1, 3), device=device)
-        noise, counts = solve(view, pixels, (h, w), config, progress, k, bar)
-        with torch.no_grad():
-            colors = torch.cat([view.render(torch.arange(part.start, part.stop, device=device),
-                                            noise[part].to(device, torch.float32))
-                                for part in pass_slices(view.n_rays, view.n_samples, config.paper.pass_samples)])
-        stored = noise.reshape(h, w, *noise.shape[1:]) if config.layout == "sample" else noise.reshape(h, w, -1)
-        tiles.append(dataclasses.replace(tile, noise=stored.to(TORCH_DTYPES[config.dtype]).cpu().numpy()))
-        reports.append({"rect": list(tile.rect), "view": tile.view,
-                        **quality(colors.cpu().numpy(), pixels.cpu().numpy(), (h, w)),
-                        **counts, "seconds": round(time.perf_counter() - tile_start, 2)})
-    bar.close()
-    bundle = Bundle(model_fingerprint=scene.fingerprint(), width=secret.shape[1], height=secret.shape[0],
-                    secret_sha256=secret_digest(secret), layout=config.layout,
-                    noise_dims=field.config.noise_dims, dtype=config.dtype, tiles=tuple(tiles),
-                    extra={"method": config.method, "noisenerf": noisenerf.__version__,
-                           "config": config.to_dict()})
-    bundle.save(output)
-    progress.clear()
+    with Progress(output, run_key(scene, secret, config)) as progress:
+        solve = hide_tile_exact if config.method == "exact" else hide_tile_paper
+        tiles, reports = [], []
+        started = time.perf_counter()
+        bar = tqdm(total=secret.shape[0] * secret.shape[1], unit="px", desc=f"hide ({config.method})",
+                   disable=not show_progress, dynamic_ncols=True)
+        for k, tile in enumerate(hide_plan.tiles):
+            tile_start = time.perf_counter()
+            x0, y0, w, h = tile.rect
+            view = SecretView(field, tile, scene.config.render, device)
+            pixels = torch.tensor(secret[y0:y0 + h, x0:x0 + w].reshape(-1, 3), device=device)
+            noise, counts = solve(view, pixels, (h, w), config, progress, k, bar)
+            with torch.no_grad():
+                colors = torch.cat([view.render(torch.arange(part.start, part.stop, device=device),
+                                                noise[part].to(device, torch.float32))
+                                    for part in pass_slices(view.n_rays, view.n_samples, config.paper.pass_samples)])
+            stored = noise.reshape(h, w, *noise.shape[1:]) if config.layout == "sample" else noise.reshape(h, w, -1)
+            tiles.append(dataclasses.replace(tile, noise=stored.to(TORCH_DTYPES[config.dtype]).cpu().numpy()))
+            reports.append({"rect": list(tile.rect), "view": tile.view,
+                            **quality(colors.cpu().numpy(), pixels.cpu().numpy(), (h, w)),
+                            **counts, "seconds": round(time.perf_counter() - tile_start, 2)})
+        bar.close()
+        bundle = Bundle(model_fingerprint=scene.fingerprint(), width=secret.shape[1], height=secret.shape[0],
+                        secret_sha256=secret_digest(secret), layout=config.layout,
+                        noise_dims=field.config.noise_dims, dtype=config.dtype, tiles=tuple(tiles),
+                        extra={"method": config.method, "noisenerf": noisenerf.__version__,
+                               "config": config.to_dict()})
+        bundle.save(output)
+        progress.clear()
     n_pixels = secret.shape[0] * secret.shape[1]
     exact_pixels = sum(r["exact_fraction"] * r["rect"][2] * r["rect"][3] for r in reports)
     return {

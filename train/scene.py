@@ -152,6 +152,8 @@ def _load_field_weights(field: NeRFField, tensors: dict[str, np.ndarray], prefix
         if tuple(value.shape) != tuple(expected[name].shape):
             raise UserError(f"{path}: {prefix}.{name} has shape {tuple(value.shape)}, "
                             f"the config needs {tuple(expected[name].shape)}")
+        if not np.isfinite(value).all():  # a fit that diverged: hiding in it would solve for minutes in vain
+            raise UserError(f"{path}: {prefix}.{name} holds NaN or infinite weights")
     field.load_state_dict({k: torch.from_numpy(np.asarray(v, dtype=np.float32)) for k, v in found.items()})
 
 

@@ -1,0 +1,73 @@
+"""Caps on every number a file may dictate, and the checks that enforce them before anything is allocated.
+
+A bundle or model arrives from someone else: a size it claims must never decide how much memory or time a
+reveal spends beyond what the file itself holds. So every count read from JSON metadata must be a true
+integer (not a bool, not 2.5, not 1e300, not Infinity) inside one of these documented caps, and every
+real number must be finite. The caps are far above anything noisenerf writes itself.
+"""
+
+from __future__ import annotations
+
+import math
+
+from noisenerf.runtime.errors import UserError
+
+MAX_IMAGE_SIDE = 16384  # px: width or height of a secret, tile or camera
+MAX_IMAGE_PIXELS = 4096 * 4096  # px: width × height of a secret or rendered camera (a 4K secret; 200 MB as float RGB)
+MAX_SAMPLES_PER_RAY = 1024  # samples per ray of any render (nerf-pytorch uses 64 + 128)
+MAX_RAY_LAYOUT_SAMPLES = 256  # ray layout: one stored vector serves this many samples at most
+MAX_TILES = MAX_IMAGE_PIXELS // 16 ** 2  # tiles in one bundle: the largest secret in the smallest (16 px) tiles
+MAX_NOISE_DIMS = 4096  # width of the noise input (positional encodings use 90)
+MAX_GRID_RESOLUTION = 512  # cells per side of a model's occupancy grid (128 Mi cells)
+MAX_CAMERAS = 100_000  # dataset cameras listed in a model or scene
+MAX_JSON_DEPTH = 32  # nesting of any JSON metadata (ours is at most 5 deep)
+
+
+def checked_int(value, what: str, low: int, high: int) -> int:
+    """`value` as an int in [low, high]: JSON integers only, so 2.5, 16.0, 1e300, true and Infinity are
+    refused rather than truncated or overflowed."""
+    if isinstance(value, bool) or not isinstance(value, int):
+        raise UserError(f"{what} must be an integer, got {value!r:.40}")
+    if not low <= value <= high:
+        raise UserError(f"{what} must be between {low} and {high}, got {value:.6g}")
+    return value
+
+
+def checked_float(value, what: str, low: float = -math.inf, high: float = math.inf) -> float:
+    """`value` as a finite float in [low, high]; NaN, Infinity, strings and bools are refused."""
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise UserError(f"{what} must be a number, got {value!r:.40}")
+    number = float(value)
+    if not math.isfinite(number) or not low <= number <= high:
+        raise UserError(f"{what} must be a finite number in [{low}, {high}], got {value!r:.40}")
+    return number
+
+
+def checked_list(value, what: str, length: int | None = None, most: int = MAX_CAMERAS) -> list:
+    """`value` as a JSON list of `length` items (or at most `most`)."""
+    if not isinstance(value, list):
+        raise UserError(f"{what} must be a list, got {type(value).__name__}")
+    if (length is not None and len(value) != length) or len(value) > most:
+        raise UserError(f"{what} must hold {length if length is not None else f'at most {most}'} items, "
+                        f"got {len(value)}")
+    return value
+
+
+def checked_image_size(width, height, what: str) -> tuple[int, int]:
+    """(width, height) of an image or camera within MAX_IMAGE_SIDE and MAX_IMAGE_PIXELS."""
+    width = checked_int(width, f"{what} width", 1, MAX_IMAGE_SIDE)
+    height = checked_int(height, f"{what} height", 1, MAX_IMAGE_SIDE)
+    if width * height > MAX_IMAGE_PIXELS:
+        raise UserError(f"{what} is {width}x{height}, more than the {MAX_IMAGE_PIXELS} pixels noisenerf renders")
+    return width, height
+
+
+def json_depth(data) -> int:
+    """Nesting depth of parsed JSON (a scalar is 0), walked iteratively so no input can overflow the stack."""
+    deepest, stack = 0, [(data, 0)]
+    while stack:
+        item, depth = stack.pop()
+        deepest = max(deepest, depth)
+        children = item.values() if isinstance(item, dict) else item if isinstance(item, list) else ()
+        stack.extend((child, depth + 1) for child in children)
+    return deepest
