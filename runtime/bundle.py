@@ -4,7 +4,9 @@
               pixel shared by all its samples) or (h, w, n_samples, dims) for the paper's "sample" layout
     metadata  {"noisenerf_bundle": JSON}: format version, model fingerprint, secret size and the SHA-256
               of its 8-bit RGB pixels, noise layout and dtype, per tile its rectangle in the final image,
-              camera and sampling.
+              camera, sampling and network ("coarse" or "fine": the network the noise was trained
+              through; a tile without it, as bundles made before the field existed, means the scene's
+              render network, the fine one where there is one).
 
 The bundle holds noise and metadata only: without the model's exact weights it renders nothing.
 """
@@ -23,7 +25,7 @@ from safetensors.numpy import save_file
 from noisenerf.runtime.camera import Camera
 from noisenerf.runtime.errors import UserError
 from noisenerf.runtime.files import atomic_output
-from noisenerf.runtime.sampling import SamplingConfig
+from noisenerf.runtime.sampling import NETWORKS, SamplingConfig
 
 BUNDLE_FORMAT_VERSION = 1
 METADATA_KEY = "noisenerf_bundle"
@@ -48,11 +50,13 @@ class Tile:
     sampling: SamplingConfig
     noise: np.ndarray
     view: int | None = None  # the scene camera it was derived from, if any
+    network: str | None = None  # coarse | fine; None: the scene's render network
 
     def metadata(self, tensor_name: str) -> dict:
         return {"rect": list(self.rect), "camera": self.camera.to_dict(), "view": self.view,
                 "sampling": {"near": self.sampling.near, "far": self.sampling.far,
-                             "n_samples": self.sampling.n_samples}, "tensor": tensor_name}
+                             "n_samples": self.sampling.n_samples}, "tensor": tensor_name,
+                **({"network": self.network} if self.network is not None else {})}
 
 
 @dataclass(frozen=True)
@@ -104,6 +108,8 @@ def validate(bundle: Bundle) -> None:
     covered = np.zeros((bundle.height, bundle.width), dtype=np.int32)
     for i, tile in enumerate(bundle.tiles):
         x0, y0, w, h = tile.rect
+        if tile.network is not None and tile.network not in NETWORKS:
+            raise UserError(f"bundle: tile {i} names network {tile.network!r} (expected one of {NETWORKS})")
         if w < 1 or h < 1 or x0 < 0 or y0 < 0 or x0 + w > bundle.width or y0 + h > bundle.height:
             raise UserError(f"bundle: tile {i} rectangle {tile.rect} lies outside the "
                             f"{bundle.width}x{bundle.height} image")
@@ -146,7 +152,7 @@ def load_bundle(path: str | Path) -> Bundle:
                 raise UserError(f"bundle: tile {i} tensor {tile['tensor']!r} is missing")
             tiles.append(Tile(rect=tuple(int(v) for v in tile["rect"]), camera=Camera.from_dict(tile["camera"]),
                               sampling=SamplingConfig(**tile["sampling"]), noise=tensors[tile["tensor"]],
-                              view=tile.get("view")))
+                              view=tile.get("view"), network=tile.get("network")))
         bundle = Bundle(model_fingerprint=str(meta["model_fingerprint"]), width=int(meta["secret"]["width"]),
                         height=int(meta["secret"]["height"]), secret_sha256=str(meta["secret"]["sha256"]),
                         layout=str(meta["noise"]["layout"]), noise_dims=int(meta["noise"]["dims"]),

@@ -15,7 +15,7 @@ from safetensors.numpy import save_file
 
 from conftest import make_tiny_scene
 from noisenerf.export.onnx_export import export_scene
-from noisenerf.train.renderer import numpy_field
+from noisenerf.train.renderer import numpy_fields
 from noisenerf.runtime.bundle import METADATA_KEY, Bundle, Tile, load_bundle, secret_digest
 from noisenerf.runtime.images import read_image, read_native
 from noisenerf.runtime.model import load_model
@@ -37,7 +37,7 @@ def two_tile_bundle(scene, layout: str = "ray", seed: int = 0) -> Bundle:
         tiles.append(Tile((i * camera.width, 0, camera.width, camera.height), camera, config.sampling, noise, i))
     width, height = sum(t.rect[2] for t in tiles), tiles[0].rect[3]
     bundle = Bundle(scene.fingerprint(), width, height, "0" * 64, layout, dims, "float32", tuple(tiles), {})
-    pixels = reveal(bundle, config, numpy_field(scene.render_field)).pixels
+    pixels = reveal(bundle, config, numpy_fields(scene.fields())).pixels
     return dataclasses.replace(bundle, secret_sha256=secret_digest(pixels))
 
 
@@ -72,7 +72,7 @@ def test_reveal_writes_the_library_reveal_and_reports_exact(inputs, tmp_path):
     assert report["rays"] == 32 * 12 and report["samples"] == 32 * 12 * 24
     assert report["output"] == str(tmp_path / "out.png") and report["seconds"] > 0
     loaded = load_model(model)
-    expected = reveal(load_bundle(bundle), loaded.render_config, loaded.field)
+    expected = reveal(load_bundle(bundle), loaded.render_config, loaded.fields())
     np.testing.assert_array_equal(read_native(tmp_path / "out.png"), expected.pixels)
 
 
@@ -89,7 +89,7 @@ def test_exr_output_holds_the_float_image(inputs, tmp_path):
     result = run_reveal(model, bundle, "-o", tmp_path / "out.exr")
     assert result.returncode == 0, result.stderr
     loaded = load_model(model)
-    expected = reveal(load_bundle(bundle), loaded.render_config, loaded.field)
+    expected = reveal(load_bundle(bundle), loaded.render_config, loaded.fields())
     np.testing.assert_array_equal(read_image(tmp_path / "out.exr"), expected.image)
 
 

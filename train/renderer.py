@@ -100,3 +100,8 @@ def numpy_field(field: NeRFField) -> NoisyFieldFn:
         return rgb.cpu().numpy(), sigma.cpu().numpy()
 
     return evaluate
+
+
+def numpy_fields(fields: dict[str, NeRFField]) -> dict[str, NoisyFieldFn]:
+    """numpy_field of each network of a scene (Scene.fields()), as runtime.reveal.reveal takes them."""
+    return {name: numpy_field(field) for name, field in fields.items()}
