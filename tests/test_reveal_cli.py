@@ -26,15 +26,17 @@ from noisenerf.runtime.sampling import sample_positions
 from noisenerf.train.scene import load_scene
 
 
-def two_tile_bundle(scene, layout: str = "ray", seed: int = 0) -> Bundle:
-    """Random noise in two views side by side; the digest is that of torch's render of this very noise."""
+def two_tile_bundle(scene, layout: str = "ray", seed: int = 0, network: str | None = None) -> Bundle:
+    """Random noise in two views side by side, for `network` (None: no network field, as bundles made
+    before it existed); the digest is that of torch's render of this very noise."""
     config, dims = scene.config.render, scene.render_field.config.noise_dims
     rng = np.random.default_rng(seed)
     tiles = []
     for i, camera in enumerate(scene.config.cameras[:2]):
         shape = (camera.height, camera.width) + ((config.sampling.n_samples,) if layout == "sample" else ())
         noise = rng.normal(size=shape + (dims,)).astype(np.float32)
-        tiles.append(Tile((i * camera.width, 0, camera.width, camera.height), camera, config.sampling, noise, i))
+        tiles.append(Tile((i * camera.width, 0, camera.width, camera.height), camera, config.sampling, noise, i,
+                          network))
     width, height = sum(t.rect[2] for t in tiles), tiles[0].rect[3]
     bundle = Bundle(scene.fingerprint(), width, height, "0" * 64, layout, dims, "float32", tuple(tiles), {})
     pixels = reveal(bundle, config, numpy_fields(scene.fields())).pixels
@@ -50,9 +52,9 @@ def write_reveal_inputs(directory: Path) -> tuple[Path, Path]:
     return directory / "model.onnx", directory / "secret.bundle"
 
 
-def run_reveal(*args) -> subprocess.CompletedProcess:
+def run_reveal(*args, cwd: Path | None = None) -> subprocess.CompletedProcess:
     return subprocess.run([sys.executable, "-m", "noisenerf.cli.reveal", *map(str, args)],
-                          capture_output=True, text=True, timeout=60)
+                          capture_output=True, text=True, timeout=60, cwd=cwd)
 
 
 @pytest.fixture(scope="module")
