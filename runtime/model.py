@@ -36,7 +36,7 @@ from noisenerf.runtime.errors import UserError
 from noisenerf.runtime.fingerprint import weights_fingerprint
 from noisenerf.runtime.onnx_file import parse_model
 from noisenerf.runtime.render import CoarseNetwork, RenderConfig
-from noisenerf.runtime.sampling import Hierarchy, OccupancyGrid
+from noisenerf.runtime.sampling import NETWORKS, Hierarchy, OccupancyGrid
 from noisenerf.runtime.session import OnnxField, read_model_bytes
 
 MODEL_FORMAT_VERSION = 2
@@ -143,8 +143,7 @@ class Model:
 
     def fields(self) -> dict[str, OnnxField]:
         """Network name ("coarse", and "fine" where the scene has one) -> its field."""
-        names = ("coarse", "fine") if self.field.has_fine else ("coarse",)
-        return {name: self.field.network(name) for name in names}
+        return {name: self.field.network(name) for name in NETWORKS if name == "coarse" or self.field.has_fine}
 
     @property
     def coarse(self) -> CoarseNetwork | None:
@@ -169,7 +168,7 @@ def check_weights(weights: dict[str, np.ndarray], metadata: ModelMetadata, sourc
 
 def load_model(path: str | os.PathLike, device: str = "cpu", threads: int | None = None) -> Model:
     """Load a model file for rendering; refuses non-ONNX, truncated, external-data, foreign or modified
-    files, all before onnxruntime sees them."""
+    files (external data and weights are checked before onnxruntime sees the bytes)."""
     data, source = read_model_bytes(path)
     file = parse_model(data, source)
     metadata = ModelMetadata.from_metadata_props(file.metadata_props, source)

@@ -86,6 +86,7 @@ def blob(value: int | memoryview) -> memoryview:
 
 
 def packed_varints(data: memoryview) -> list[int]:
+    """A packed repeated varint field's values."""
     values, position = [], 0
     while position < len(data):
         value, position = read_varint(data, position)
@@ -120,6 +121,7 @@ class TensorRecord:
 
 
 def read_tensor(data: memoryview) -> TensorRecord:
+    """One TensorProto's fields; values are not decoded until TensorRecord.array."""
     name, data_type, dims, raw, floats, external = "", 0, [], None, [], False
     for number, wire, value in fields(data):
         if number == 1:
@@ -143,12 +145,10 @@ def read_tensor(data: memoryview) -> TensorRecord:
 
 @dataclass(frozen=True)
 class ModelFile:
-    """What the runtime reads from a model's bytes: metadata_props, the graph's initializers, and every
-    tensor in the graph (initializers and node attributes), whatever its role."""
+    """What the runtime reads from a model's bytes: metadata_props and the graph's initializers."""
 
     metadata_props: dict[str, str]
     initializers: tuple[TensorRecord, ...]
-    tensors: tuple[TensorRecord, ...]
 
     def weights(self, source: str) -> dict[str, np.ndarray]:
         """Initializer name -> float32 array, refusing duplicate names."""
@@ -161,11 +161,13 @@ class ModelFile:
 
 
 def refuse_unsupported(message: str, number: int, source: str) -> None:
+    """Refuse field `number` of a `message` kind that is in UNSUPPORTED."""
     if (message, number) in UNSUPPORTED:
         raise UserError(f"{source} holds {UNSUPPORTED[message, number]}, which a noisenerf model never has")
 
 
 def node_tensors(node: memoryview, source: str) -> Iterator[TensorRecord]:
+    """The tensors in a NodeProto's attributes (a Constant's value, ...), refusing subgraphs."""
     for number, _, attribute in fields(node):
         if number != 5:
             continue
@@ -179,7 +181,7 @@ def parse_model(data: bytes, source: str) -> ModelFile:
     """Read a model's metadata and tensors; refuses malformed bytes, unsupported structures and, before
     anything could load them, tensors whose data lives outside the file."""
     try:
-        props, initializers, tensors = {}, [], []
+        props, initializers, attributes = {}, [], []
         for number, _, value in fields(memoryview(data)):
             refuse_unsupported("model", number, source)
             if number == 14:
@@ -191,12 +193,11 @@ def parse_model(data: bytes, source: str) -> ModelFile:
                     if inner == 5:
                         initializers.append(read_tensor(blob(item)))
                     elif inner == 1:
-                        tensors.extend(node_tensors(blob(item), source))
+                        attributes.extend(node_tensors(blob(item), source))
     except ValueError as error:  # WireError, UnicodeDecodeError, float_data of a length not divisible by 4
         raise UserError(f"{source} is not a loadable ONNX model (not ONNX, or truncated): {error}") from None
-    tensors = initializers + tensors
-    external = [t.name or "(unnamed)" for t in tensors if t.external]
+    external = [t.name or "(unnamed)" for t in initializers + attributes if t.external]
     if external:
         raise UserError(f"{source} keeps tensor {external[0]!r} in external data; a noisenerf model must be "
                         "one self-contained .onnx file")
-    return ModelFile(props, tuple(initializers), tuple(tensors))
+    return ModelFile(props, tuple(initializers))

@@ -41,6 +41,7 @@ def sample_positions(config: SamplingConfig) -> np.ndarray:
 
 
 NETWORKS = ("coarse", "fine")
+MAX_HIERARCHY_SAMPLES = 1024  # per pass and ray; nerf-pytorch's configs use at most 256
 
 
 def render_network(networks) -> str:
@@ -59,9 +60,11 @@ class Hierarchy:
 
     def __post_init__(self):
         # the fine samples come from coarse weights[1:-1], which needs three coarse samples at least
-        if self.n_coarse < 3 or self.n_importance < 1:
-            raise UserError(f"hierarchical sampling needs n_coarse >= 3 and n_importance >= 1, "
-                            f"got {self.n_coarse} and {self.n_importance}")
+        counts = (self.n_coarse, self.n_importance)
+        if not all(type(n) is int for n in counts) or not (3 <= self.n_coarse <= MAX_HIERARCHY_SAMPLES
+                                                          and 1 <= self.n_importance <= MAX_HIERARCHY_SAMPLES):
+            raise UserError(f"hierarchical sampling needs whole numbers 3 <= n_coarse <= {MAX_HIERARCHY_SAMPLES} "
+                            f"and 1 <= n_importance <= {MAX_HIERARCHY_SAMPLES}, got {counts}")
 
     def coarse(self, sampling: SamplingConfig) -> SamplingConfig:
         """The coarse pass's uniform sampling over the scene's ray interval."""
@@ -79,7 +82,9 @@ def sample_pdf(bins: np.ndarray, weights: np.ndarray, n_samples: int) -> np.ndar
     pdf = weights / weights.sum(axis=-1, keepdims=True, dtype=np.float32)
     cdf = np.concatenate([np.zeros_like(pdf[:, :1]), np.cumsum(pdf, axis=-1, dtype=np.float32)], axis=-1)
     u = np.linspace(0.0, 1.0, n_samples, dtype=np.float32)
-    index = (cdf[:, None, :] <= u[None, :, None]).sum(axis=-1)  # searchsorted(cdf, u, right=True) per ray
+    index = np.zeros((cdf.shape[0], n_samples), dtype=np.int64)  # searchsorted(cdf, u, right=True) per ray
+    for column in cdf.T:  # one bin edge at a time: memory (n_rays, n_samples), not times n_bins
+        index += column[:, None] <= u
     below, above = np.maximum(index - 1, 0), np.minimum(index, cdf.shape[-1] - 1)
     cdf_below, cdf_above = (np.take_along_axis(cdf, i, axis=1) for i in (below, above))
     bin_below, bin_above = (np.take_along_axis(bins, i, axis=1) for i in (below, above))

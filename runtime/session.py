@@ -20,7 +20,7 @@ import numpy as np
 import onnxruntime as ort
 
 from noisenerf.runtime.errors import UserError
-from noisenerf.runtime.onnx_file import ModelFile, parse_model
+from noisenerf.runtime.onnx_file import parse_model
 from noisenerf.runtime.sampling import NETWORKS
 
 INPUT_NAMES = ("points", "viewdirs", "noise")
@@ -101,9 +101,9 @@ class OnnxField:
                  chunk: int = DEFAULT_CHUNK, source: str | None = None):
         if chunk < 1:
             raise UserError(f"chunk must be at least 1 point, got {chunk}")
-        data, self.source = read_model_bytes(model)
-        self.source = source or self.source
-        self.file: ModelFile = parse_model(data, self.source)
+        data, name = read_model_bytes(model)
+        self.source = source or name
+        parse_model(data, self.source)  # refuses external data before onnxruntime could resolve it
         options, providers = session_options(threads), providers_for(device)
         try:
             self.session = ort.InferenceSession(data, options, providers=providers)
