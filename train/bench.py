@@ -37,6 +37,7 @@ from noisenerf.runtime.model import load_model
 from noisenerf.runtime.session import available_cores
 from noisenerf.runtime.render import render_view
 from noisenerf.runtime.reveal import reveal, to_uint8
+from noisenerf.runtime.sampling import render_network
 from noisenerf.train.datasets import load_dataset
 from noisenerf.train.field import NeRFField
 from noisenerf.train.hide import HideConfig, hide, plan, quality
@@ -418,7 +419,8 @@ def throughput(config: BenchConfig, scene: Scene, secret: np.ndarray, state: dic
             torch.set_num_threads(threads)
             field_fn(points[:1024], viewdirs[:1024], noise[:1024])  # warm-up
             _, field_seconds = timed(field_fn, points, viewdirs, noise)
-            revealed, reveal_seconds = timed(reveal, bundle, scene.config.render, field_fn)
+            revealed, reveal_seconds = timed(reveal, bundle, scene.config.render,
+                                             {render_network(scene.fields()): field_fn})
             samples_per_second = len(points) / field_seconds
             rows.append({"backend": name, "threads": threads, "reveal_rays_per_second": bundle.width * bundle.height
                          / reveal_seconds, "field_samples_per_second": samples_per_second,
