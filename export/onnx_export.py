@@ -43,7 +43,6 @@ from noisenerf.runtime.files import atomic_output, check_output_path
 from noisenerf.runtime.fingerprint import weights_fingerprint
 from noisenerf.runtime.model import ModelMetadata
 from noisenerf.runtime.onnx_file import parse_model
-from noisenerf.runtime.sampling import Hierarchy
 from noisenerf.runtime.session import COARSE_OUTPUT_NAMES, INPUT_NAMES, OUTPUT_NAMES, OnnxField
 from noisenerf.train.field import NeRFField
 from noisenerf.train.renderer import numpy_field
@@ -102,9 +101,8 @@ def scene_metadata(scene: Scene) -> ModelMetadata:
     widths = {field.config.noise_dims for field in scene.fields().values()}
     if len(widths) != 1:
         raise UserError(f"export refused: the coarse and fine networks take noise of different widths {sorted(widths)}")
-    hierarchy = Hierarchy(scene.config.n_coarse, scene.config.n_importance) if scene.fine is not None else None
     return ModelMetadata(fingerprint=scene.fingerprint(), architecture=scene.config.architecture(),
-                         noise_dims=widths.pop(), render_config=scene.config.render, hierarchy=hierarchy,
+                         noise_dims=widths.pop(), render_config=scene.config.render, hierarchy=scene.hierarchy,
                          cameras=tuple(scene.config.cameras), grid=scene.grid)
 
 

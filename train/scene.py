@@ -24,7 +24,7 @@ from noisenerf.runtime.errors import UserError
 from noisenerf.runtime.files import atomic_output, read_json, write_json
 from noisenerf.runtime.fingerprint import weights_fingerprint
 from noisenerf.runtime.render import RenderConfig
-from noisenerf.runtime.sampling import OccupancyGrid
+from noisenerf.runtime.sampling import Hierarchy, OccupancyGrid
 from noisenerf.train.field import FieldConfig, NeRFField
 
 SCENE_FORMAT_VERSION = 1
@@ -95,6 +95,11 @@ class Scene:
     def render_field(self) -> NeRFField:
         """The field views, noise and exports use: the fine network when there is one."""
         return self.fine if self.fine is not None else self.coarse
+
+    @property
+    def hierarchy(self) -> Hierarchy | None:
+        """nerf-pytorch's coarse/fine sample counts for ordinary renders, where the scene has a fine network."""
+        return Hierarchy(self.config.n_coarse, self.config.n_importance) if self.fine is not None else None
 
     def fields(self) -> dict[str, NeRFField]:
         return {"coarse": self.coarse, **({"fine": self.fine} if self.fine is not None else {})}
