@@ -127,6 +127,7 @@ def render_rays(config: RenderConfig, rays: RayBatch, field: FieldFn, grid: Occu
     termination; or, given the `coarse` network, nerf-pytorch's hierarchical render with `field` as the
     fine network. Hierarchical renders never skip (grid and early_stop are ignored): every coarse weight
     moves the fine samples, so a skipped coarse sample would move them, and nerf-pytorch evaluates all.
+    Only rays whose transmittance is exactly 0 in float32 stop, where nothing behind counts anyway.
     """
     if coarse is None:
         t_vals, before = sample_positions(config.sampling), RenderStats(len(rays), 0, 0)

@@ -80,7 +80,7 @@ def check_ports(session: ort.InferenceSession, source: str) -> int:
     """Refuse a graph without our inputs and outputs (the coarse pair is optional); returns the noise width."""
     inputs = {node.name: node.shape for node in session.get_inputs()}
     outputs = {node.name for node in session.get_outputs()}
-    if set(inputs) != set(INPUT_NAMES) or not set(OUTPUT_NAMES) <= outputs <= set(OUTPUT_NAMES + COARSE_OUTPUT_NAMES):
+    if set(inputs) != set(INPUT_NAMES) or outputs not in (set(OUTPUT_NAMES), set(OUTPUT_NAMES + COARSE_OUTPUT_NAMES)):
         raise UserError(f"{source} is not a noisenerf field: inputs {sorted(inputs)}, outputs {sorted(outputs)} "
                         f"(expected inputs {list(INPUT_NAMES)}, outputs {list(OUTPUT_NAMES)})")
     noise_dims = inputs["noise"][-1]

@@ -19,8 +19,10 @@ from onnx import numpy_helper
 from conftest import make_tiny_scene
 from noisenerf.export.onnx_export import export_scene
 from noisenerf.runtime.bundle import load_bundle
+from noisenerf.runtime.errors import UserError
 from noisenerf.runtime.images import read_image
 from noisenerf.runtime.model import load_model
+from noisenerf.runtime.onnx_file import parse_model
 from noisenerf.runtime.render import render_view
 from noisenerf.runtime.reveal import render_tile, reveal
 from noisenerf.train.hide import HideConfig, plan
@@ -76,6 +78,30 @@ def test_an_external_initializer_is_refused_and_never_read(fine_model, tmp_path)
     for cwd in (tmp_path, model.parent):
         result = run_reveal(tmp_path / "external.onnx", tmp_path / "s.bundle", "-o", tmp_path / "out.png", cwd=cwd)
         assert_refused(result, tmp_path / "out.png", "keeps tensor 'coarse.rgb_linear.bias' in external data")
+
+
+def with_node(model: onnx.ModelProto, node: onnx.NodeProto) -> bytes:
+    model.graph.node.insert(0, node)
+    return model.SerializeToString()
+
+
+def test_tensors_anywhere_outside_the_file_and_subgraphs_are_refused(fine_model):
+    """A Constant's external tensor is as dangerous as an initializer's; subgraphs would hide more tensors."""
+    model = fine_model[1]
+    value = numpy_helper.from_array(np.zeros(3, np.float32), "c")
+    onnx.external_data_helper.set_external_data(value, location="weights.bin")
+    value.data_location = onnx.TensorProto.EXTERNAL
+    constant = onnx.helper.make_node("Constant", [], ["c"], value=value)
+    with pytest.raises(UserError, match="keeps tensor 'c' in external data"):
+        parse_model(with_node(onnx.load(str(model)), constant), "m.onnx")
+    branch = onnx.helper.make_graph([], "branch", [], [])
+    subgraph = onnx.helper.make_node("If", ["cond"], [], then_branch=branch, else_branch=branch)
+    with pytest.raises(UserError, match="holds subgraphs"):
+        parse_model(with_node(onnx.load(str(model)), subgraph), "m.onnx")
+    data = model.read_bytes()
+    for garbage in (data[:len(data) // 3], b"\xff" * 64):
+        with pytest.raises(UserError, match="not a loadable ONNX model"):
+            parse_model(garbage, "m.onnx")
 
 
 def test_paper_hides_through_the_coarse_network_and_exact_through_the_render_network(fine_model):

@@ -147,6 +147,10 @@ def outside(meta, tensors):
     meta["tiles"][1]["rect"][0] = 24
 
 
+def unknown_network(meta, tensors):
+    meta["tiles"][0]["network"] = "medium"
+
+
 def other_model(meta, tensors):
     meta["model_fingerprint"] = "f" * 64
 
@@ -162,6 +166,7 @@ REFUSALS = {  # case: (tampering, expected message)
     "wrong noise shape": (wrong_shape, "noise is"),
     "overlapping tiles": (overlapping, "overlap"),
     "tile outside the image": (outside, "outside"),
+    "unknown network": (unknown_network, "names network 'medium'"),
 }
 
 

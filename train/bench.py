@@ -534,7 +534,8 @@ def photos(config: BenchConfig, scene: Scene, secret: np.ndarray, state: dict) -
         photo, _ = load_secret(path)
         report = hide(scene, photo, work / "photo.bundle", HideConfig(view=config.view), torch.device("cpu"),
                       force=True, show_progress=False)
-        revealed, reveal_seconds = timed(reveal, load_bundle(work / "photo.bundle"), model.render_config, model.fields())
+        revealed, reveal_seconds = timed(reveal, load_bundle(work / "photo.bundle"), model.render_config,
+                                         model.fields())
         rows.append({"secret": Path(path).name, "width": photo.shape[1], "height": photo.shape[0],
                      "tiles": len(report["tiles"]), "hide_seconds": report["seconds"],
                      "reveal_seconds": reveal_seconds, "torch_exact_fraction": report["exact_fraction"],

@@ -300,9 +300,9 @@ def evaluate(scene: Scene, dataset: Dataset, views: list[int], skipping: bool = 
     field, coarse = numpy_field(scene.render_field), numpy_coarse(scene.coarse, scene.hierarchy)
     scores, dense, evaluated = [], 0, 0
     for index in views:
-        image, stats = render_view(dataset.cameras[index], scene.config.render, field,
-                                   scene.grid if skipping else scene.grid.box_only(), early_stop=None if skipping else 0.0,
-                                   coarse=coarse)
+        grid = scene.grid if skipping else scene.grid.box_only()
+        image, stats = render_view(dataset.cameras[index], scene.config.render, field, grid,
+                                   early_stop=None if skipping else 0.0, coarse=coarse)
         target = dataset.images[index]
         scores.append((psnr(image, target), ssim(image, target)))
         dense += stats.n_samples_dense
