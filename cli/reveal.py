@@ -40,7 +40,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--json", action="store_true", help="print one JSON object on stdout")
     parser.add_argument("--no-skip", action="store_true",
                         help="with --view: no empty-space skipping or early termination inside the scene's box "
-                             "(comparison)")
+                             "(comparison; models with a fine network render hierarchically and never skip)")
     parser.add_argument("--threads", type=int, help="onnxruntime threads (default and most: the cores there are)")
     parser.add_argument("--device", choices=("cpu", "cuda"), default="cpu")
     parser.add_argument("--force", action="store_true", help="overwrite an existing output")
@@ -64,7 +64,7 @@ def reveal_secret(model: Model, bundle_path: str) -> tuple[np.ndarray, dict]:
     check_bundle(model, bundle)
     rays = sum(tile.rect[2] * tile.rect[3] for tile in bundle.tiles)
     with progress_bar(rays) as bar:
-        revealed = reveal(bundle, model.render_config, model.field, progress=bar)
+        revealed = reveal(bundle, model.render_config, model.fields(), progress=bar)
     return revealed.image, {"exact": revealed.exact, "width": bundle.width, "height": bundle.height,
                             "tiles": len(bundle.tiles), "rays": rays,
                             "samples": sum(tile.rect[2] * tile.rect[3] * tile.sampling.n_samples
@@ -72,15 +72,18 @@ def reveal_secret(model: Model, bundle_path: str) -> tuple[np.ndarray, dict]:
 
 
 def render_dataset_view(model: Model, view: int, skip: bool) -> tuple[np.ndarray, dict]:
-    """An ordinary render of one of the model's cameras -> float image (h, w, 3), report."""
+    """An ordinary render of one of the model's cameras -> float image (h, w, 3), report. A model with a
+    fine network renders hierarchically, as nerf-pytorch does, and never skips (see render_rays)."""
     from noisenerf.runtime.render import render_view
 
     camera = model.camera(view)
+    hierarchical = model.coarse is not None
     with progress_bar(camera.width * camera.height) as bar:
         grid = model.grid if skip else model.grid.box_only()
         image, stats = render_view(camera, model.render_config, model.field, grid, early_stop=None if skip else 0.0,
-                                   progress=bar)
-    return image, {"view": view, "width": camera.width, "height": camera.height, "skip": skip,
+                                   progress=bar, coarse=model.coarse)
+    return image, {"view": view, "width": camera.width, "height": camera.height,
+                   "skip": skip and not hierarchical, "hierarchical": hierarchical,
                    "rays": stats.n_rays, "samples": stats.n_samples_evaluated,
                    "samples_dense": stats.n_samples_dense}
 

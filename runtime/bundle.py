@@ -4,7 +4,9 @@
               pixel shared by all its samples) or (h, w, n_samples, dims) for the paper's "sample" layout
     metadata  {"noisenerf_bundle": JSON}: format version, model fingerprint, secret size and the SHA-256
               of its 8-bit RGB pixels, noise layout and dtype, per tile its rectangle in the final image,
-              camera and sampling.
+              camera, sampling and network ("coarse" or "fine": the network the noise was trained
+              through; a tile without it, as bundles made before the field existed, means the scene's
+              render network, the fine one where there is one).
 
 The bundle holds noise and metadata only: without the model's exact weights it renders nothing.
 """
@@ -27,7 +29,7 @@ from noisenerf.runtime.limits import (
     MAX_CAMERAS, MAX_IMAGE_SIDE, MAX_NOISE_DIMS, MAX_RAY_LAYOUT_SAMPLES, MAX_TILES, checked_image_size, checked_int,
     checked_list,
 )
-from noisenerf.runtime.sampling import SamplingConfig
+from noisenerf.runtime.sampling import NETWORKS, SamplingConfig
 
 BUNDLE_FORMAT_VERSION = 1
 METADATA_KEY = "noisenerf_bundle"
@@ -53,11 +55,13 @@ class Tile:
     sampling: SamplingConfig
     noise: np.ndarray
     view: int | None = None  # the scene camera it was derived from, if any
+    network: str | None = None  # coarse | fine; None: the scene's render network
 
     def metadata(self, tensor_name: str) -> dict:
         return {"rect": list(self.rect), "camera": self.camera.to_dict(), "view": self.view,
                 "sampling": {"near": self.sampling.near, "far": self.sampling.far,
-                             "n_samples": self.sampling.n_samples}, "tensor": tensor_name}
+                             "n_samples": self.sampling.n_samples}, "tensor": tensor_name,
+                **({"network": self.network} if self.network is not None else {})}
 
 
 @dataclass(frozen=True)
@@ -103,6 +107,8 @@ def validate_tile(i: int, tile: Tile, bundle: Bundle) -> None:
     serves every sample of its ray, so n_samples is capped there: the render's work stays tied to the noise
     the bundle actually holds."""
     x0, y0, w, h = tile.rect
+    if tile.network is not None and tile.network not in NETWORKS:
+        raise UserError(f"bundle: tile {i} names network {tile.network!r:.40} (expected one of {NETWORKS})")
     if w < 1 or h < 1 or x0 < 0 or y0 < 0 or x0 + w > bundle.width or y0 + h > bundle.height:
         raise UserError(f"bundle: tile {i} rectangle {tile.rect} lies outside the "
                         f"{bundle.width}x{bundle.height} image")
@@ -168,7 +174,8 @@ def parse_tile(i: int, data, tensors: dict[str, np.ndarray]) -> Tile:
     view = data.get("view")
     return Tile(rect=(x0, y0, width, height), camera=Camera.from_dict(data.get("camera")),
                 sampling=SamplingConfig.from_dict(data.get("sampling")), noise=tensors[name],
-                view=None if view is None else checked_int(view, f"bundle: tile {i} view", 0, MAX_CAMERAS))
+                view=None if view is None else checked_int(view, f"bundle: tile {i} view", 0, MAX_CAMERAS),
+                network=None if data.get("network") is None else checked_text(data["network"], f"bundle: tile {i} network"))
 
 
 def checked_text(value, what: str) -> str:

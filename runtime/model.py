@@ -1,10 +1,19 @@
-"""The model file a recipient holds: the ONNX field plus the metadata that says how to render it.
+"""The model file a recipient holds: the ONNX fields plus the metadata that says how to render them.
 
     metadata_props
-      noisenerf_format_version   "1"
-      noisenerf                  JSON: format_version, fingerprint, field (architecture, noise_dims),
-                                 render (RenderConfig), cameras, grid (aabb, resolution, occupancy bits:
-                                 np.packbits of the C-order cube, base64)
+      noisenerf_format_version   "2"
+      noisenerf                  JSON: format_version, fingerprint, architecture ({"coarse": FieldConfig,
+                                 "fine": FieldConfig | null}), noise_dims, render (RenderConfig),
+                                 hierarchy ({n_coarse, n_importance} | null: set iff there is a fine
+                                 network), cameras, grid (aabb, resolution, occupancy bits: np.packbits
+                                 of the C-order cube, base64)
+    initializers                 the weights, named and laid out as in the scene directory
+                                 (coarse.pts_linears.0.weight, ...; nn.Linear's (out, in))
+
+The model is its weights: load_model recomputes the scene fingerprint from the initializers and the
+architecture and refuses a model whose weights were changed after export, even if its metadata kept
+the original fingerprint (and with it, a bundle's). Version 1 models named their weights otherwise and
+are refused with a request to re-export; bundles are tied to the scene, so they keep revealing.
 
 The export writes this metadata (noisenerf.export.onnx_export) and this module reads it back, both
 through ModelMetadata, so the two sides cannot drift apart.
@@ -14,6 +23,7 @@ from __future__ import annotations
 
 import base64
 import binascii
+import dataclasses
 import json
 import os
 from dataclasses import dataclass
@@ -24,14 +34,16 @@ from noisenerf.runtime.bundle import Bundle
 from noisenerf.runtime.camera import Camera
 from noisenerf.runtime.errors import UserError
 from noisenerf.runtime.files import parse_json
+from noisenerf.runtime.fingerprint import weights_fingerprint
 from noisenerf.runtime.limits import (
     MAX_CAMERAS, MAX_GRID_RESOLUTION, MAX_NOISE_DIMS, checked_float, checked_int, checked_list,
 )
-from noisenerf.runtime.render import RenderConfig
-from noisenerf.runtime.sampling import OccupancyGrid
-from noisenerf.runtime.session import OnnxField
+from noisenerf.runtime.onnx_file import parse_model
+from noisenerf.runtime.render import CoarseNetwork, RenderConfig
+from noisenerf.runtime.sampling import NETWORKS, Hierarchy, OccupancyGrid
+from noisenerf.runtime.session import OnnxField, read_model_bytes
 
-MODEL_FORMAT_VERSION = 1
+MODEL_FORMAT_VERSION = 2
 METADATA_KEY = "noisenerf"
 VERSION_KEY = "noisenerf_format_version"
 
@@ -62,18 +74,21 @@ def grid_from_dict(data) -> OccupancyGrid:
 
 @dataclass(frozen=True, eq=False)
 class ModelMetadata:
-    """Everything a model file says about its field besides the graph itself."""
+    """Everything a model file says about its fields besides the graph and weights."""
 
     fingerprint: str
-    field: dict  # the architecture (FieldConfig as a dict); informative, the graph is authoritative
+    architecture: dict  # {"coarse": FieldConfig dict, "fine": FieldConfig dict | None}: part of the fingerprint
     noise_dims: int
     render_config: RenderConfig
+    hierarchy: Hierarchy | None  # set iff the scene has a fine network
     cameras: tuple[Camera, ...]
     grid: OccupancyGrid
 
     def to_dict(self) -> dict:
         return {"format_version": MODEL_FORMAT_VERSION, "fingerprint": self.fingerprint,
-                "field": {**self.field, "noise_dims": self.noise_dims}, "render": self.render_config.to_dict(),
+                "architecture": self.architecture, "noise_dims": self.noise_dims,
+                "render": self.render_config.to_dict(),
+                "hierarchy": dataclasses.asdict(self.hierarchy) if self.hierarchy else None,
                 "cameras": [camera.to_dict() for camera in self.cameras], "grid": grid_to_dict(self.grid)}
 
     def metadata_props(self) -> dict[str, str]:
@@ -86,19 +101,23 @@ class ModelMetadata:
         if METADATA_KEY not in props or VERSION_KEY not in props:
             raise UserError(f"{source} is not a noisenerf model (no '{METADATA_KEY}' metadata)")
         if props[VERSION_KEY] != str(MODEL_FORMAT_VERSION):
-            raise UserError(f"{source} has model format version {props[VERSION_KEY]!r}; "
-                            f"this noisenerf reads version {MODEL_FORMAT_VERSION}")
+            raise UserError(f"{source} has model format version {props[VERSION_KEY]!r}; this noisenerf reads "
+                            f"version {MODEL_FORMAT_VERSION} (export the scene again with `noisenerf export`)")
         data = parse_json(props[METADATA_KEY], f"{source}: noisenerf metadata")
         try:
             if not isinstance(data, dict) or data["format_version"] != MODEL_FORMAT_VERSION:
                 raise ValueError(f"format_version disagrees with {VERSION_KEY}")
-            field = dict(data["field"])
+            architecture = {"coarse": dict(data["architecture"]["coarse"]), "fine": data["architecture"]["fine"]}
+            hierarchy = Hierarchy(**data["hierarchy"]) if data["hierarchy"] is not None else None
+            if (architecture["fine"] is None) != (hierarchy is None):
+                raise ValueError("a fine network and hierarchical sampling go together")
             cameras = checked_list(data["cameras"], "cameras", most=MAX_CAMERAS)
             return ModelMetadata(
                 fingerprint=str(data["fingerprint"]),
-                field={k: v for k, v in field.items() if k != "noise_dims"},
-                noise_dims=checked_int(field.get("noise_dims"), "noise_dims", 1, MAX_NOISE_DIMS),
+                architecture=architecture,
+                noise_dims=checked_int(data["noise_dims"], "noise_dims", 1, MAX_NOISE_DIMS),
                 render_config=RenderConfig.from_dict(data["render"]),
+                hierarchy=hierarchy,
                 cameras=tuple(Camera.from_dict(camera) for camera in cameras),
                 grid=grid_from_dict(data["grid"]),
             )
@@ -110,7 +129,7 @@ class ModelMetadata:
 
 @dataclass(frozen=True, eq=False)
 class Model:
-    """A loaded model: its metadata and the onnxruntime field."""
+    """A loaded model: its metadata and the onnxruntime field (the render network)."""
 
     metadata: ModelMetadata
     field: OnnxField
@@ -135,6 +154,16 @@ class Model:
     def noise_dims(self) -> int:
         return self.metadata.noise_dims
 
+    def fields(self) -> dict[str, OnnxField]:
+        """Network name ("coarse", and "fine" where the scene has one) -> its field."""
+        return {name: self.field.network(name) for name in NETWORKS if name == "coarse" or self.field.has_fine}
+
+    @property
+    def coarse(self) -> CoarseNetwork | None:
+        """What an ordinary render needs besides the render field: the coarse pass, for scenes with a fine network."""
+        hierarchy = self.metadata.hierarchy
+        return CoarseNetwork(self.field.network("coarse"), hierarchy) if hierarchy is not None else None
+
     def camera(self, view: int) -> Camera:
         """The dataset camera of a view index, refusing one out of range."""
         if not 0 <= view < len(self.cameras):
@@ -143,13 +172,26 @@ class Model:
         return self.cameras[view]
 
 
+def check_weights(weights: dict[str, np.ndarray], metadata: ModelMetadata, source: str) -> None:
+    """Refuse a model whose initializers and architecture do not hash to its metadata's fingerprint."""
+    if weights_fingerprint(weights, metadata.architecture) != metadata.fingerprint:
+        raise UserError(f"{source}: its weights do not match its fingerprint {short_fingerprint(metadata.fingerprint)} "
+                        "(the model was changed after export); export the scene again")
+
+
 def load_model(path: str | os.PathLike, device: str = "cpu", threads: int | None = None) -> Model:
-    """Load a model file for rendering; refuses non-ONNX, truncated, external-data or foreign files."""
-    field = OnnxField(path, device=device, threads=threads)
-    metadata = ModelMetadata.from_metadata_props(field.metadata(), field.source)
+    """Load a model file for rendering; refuses non-ONNX, truncated, external-data, foreign or modified
+    files (external data and weights are checked before onnxruntime sees the bytes)."""
+    data, source = read_model_bytes(path)
+    file = parse_model(data, source)
+    metadata = ModelMetadata.from_metadata_props(file.metadata_props, source)
+    check_weights(file.weights(source), metadata, source)
+    field = OnnxField(data, device=device, threads=threads, source=source)
     if metadata.noise_dims != field.noise_dims:
         raise UserError(f"{field.source}: metadata says {metadata.noise_dims} noise dims, "
                         f"the graph takes {field.noise_dims}")
+    if field.has_fine != (metadata.hierarchy is not None):
+        raise UserError(f"{field.source}: metadata and graph disagree on whether there is a fine network")
     return Model(metadata, field)
 
 

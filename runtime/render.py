@@ -2,7 +2,8 @@
 
 The field is a callback `field(points (m, 3), viewdirs (m, 3)) -> rgb (m, 3), sigma (m,)`; everything
 around it — rays, NDC, sample positions, skipping, compositing — is this module's, so two backends
-rendering the same view differ only by their field evaluation.
+rendering the same view differ only by their field evaluation. One pipeline: sampler (uniform, or
+coarse → sample_pdf for scenes with a fine network) → field callback (march_rays) → compositor.
 """
 
 from __future__ import annotations
@@ -17,7 +18,7 @@ from noisenerf.runtime.compositing import composite, render_weights
 from noisenerf.runtime.errors import UserError
 from noisenerf.runtime.limits import checked_float, checked_list
 from noisenerf.runtime.sampling import (
-    FieldFn, OccupancyGrid, SamplingConfig, march_rays, sample_deltas, sample_positions,
+    FieldFn, Hierarchy, OccupancyGrid, SamplingConfig, march_rays, sample_deltas, sample_pdf, sample_positions,
 )
 
 
@@ -91,15 +92,61 @@ class RenderStats:
     n_samples_dense: int
     n_samples_evaluated: int
 
+    def __add__(self, other: "RenderStats") -> "RenderStats":
+        """Counts of two batches of rays together."""
+        return RenderStats(*(a + b for a, b in zip(dataclasses.astuple(self), dataclasses.astuple(other))))
+
+
+@dataclass(frozen=True)
+class CoarseNetwork:
+    """The coarse network of a scene with a fine one, and how nerf-pytorch samples it."""
+
+    field: FieldFn
+    hierarchy: Hierarchy
+
+
+def render_samples(rays: RayBatch, t_vals: np.ndarray, field: FieldFn, grid: OccupancyGrid | None,
+                   early_stop: float) -> tuple[np.ndarray, np.ndarray, RenderStats]:
+    """Weights (n_rays, n_samples) and colours (n_rays, n_samples, 3) of samples at t_vals ((n_samples,) or
+    (n_rays, n_samples)), skipping what the grid rules out and rays past `early_stop`."""
+    points, deltas = sample_along(rays, t_vals)
+    march = march_rays(points, rays.viewdirs, deltas, field, grid, early_stop)
+    return render_weights(march.sigmas, deltas), march.rgbs, RenderStats(len(rays), deltas.size, march.n_evaluated)
+
+
+def importance_positions(config: RenderConfig, rays: RayBatch, coarse: CoarseNetwork
+                         ) -> tuple[np.ndarray, RenderStats]:
+    """nerf-pytorch's fine-pass positions: the coarse network's weights at n_coarse uniform samples place
+    n_importance more (sample_pdf over the midpoints, end weights dropped); both sets, sorted.
+    -> t_vals (n_rays, n_coarse + n_importance), the coarse pass's counts."""
+    t_vals = sample_positions(coarse.hierarchy.coarse(config.sampling))
+    weights, _, stats = render_samples(rays, t_vals, coarse.field, None, 0.0)
+    mids = np.broadcast_to(0.5 * (t_vals[1:] + t_vals[:-1]), (len(rays), t_vals.shape[0] - 1))
+    fine = sample_pdf(mids, weights[:, 1:-1], coarse.hierarchy.n_importance)
+    both = np.concatenate([np.broadcast_to(t_vals, (len(rays), t_vals.shape[0])), fine], axis=-1)
+    return np.sort(both, axis=-1), stats
+
 
 def render_rays(config: RenderConfig, rays: RayBatch, field: FieldFn, grid: OccupancyGrid | None,
-                early_stop: float | None = None) -> tuple[np.ndarray, RenderStats]:
-    """Colours of rays (n_rays, 3) with empty-space skipping (grid) and early ray termination."""
-    points, deltas = sample_along(rays, sample_positions(config.sampling))
-    march = march_rays(points, rays.viewdirs, deltas, field, grid,
-                       config.early_stop if early_stop is None else early_stop)
-    colors = composite(render_weights(march.sigmas, deltas), march.rgbs, np.asarray(config.background))
-    return colors, RenderStats(len(rays), deltas.size, march.n_evaluated)
+                early_stop: float | None = None, coarse: CoarseNetwork | None = None
+                ) -> tuple[np.ndarray, RenderStats]:
+    """Colours of rays (n_rays, 3).
+
+    Uniform samples (config.sampling) through `field`, with empty-space skipping (grid) and early ray
+    termination; or, given the `coarse` network, nerf-pytorch's hierarchical render with `field` as the
+    fine network. Hierarchical renders never skip (grid and early_stop are ignored): every coarse weight
+    moves the fine samples, so a skipped coarse sample would move them, and nerf-pytorch evaluates all.
+    Only rays whose transmittance is exactly 0 in float32 stop, where nothing behind counts anyway.
+    """
+    if coarse is None:
+        t_vals, before = sample_positions(config.sampling), RenderStats(len(rays), 0, 0)
+        early_stop = config.early_stop if early_stop is None else early_stop
+    else:
+        (t_vals, before), grid, early_stop = importance_positions(config, rays, coarse), None, 0.0
+    weights, rgbs, stats = render_samples(rays, t_vals, field, grid, early_stop)
+    return composite(weights, rgbs, np.asarray(config.background)), RenderStats(
+        len(rays), before.n_samples_dense + stats.n_samples_dense,
+        before.n_samples_evaluated + stats.n_samples_evaluated)
 
 
 def rays_per_chunk(most_rays: int, n_samples: int, most_samples: int) -> int:
@@ -118,19 +165,21 @@ def view_rays(camera: Camera, config: RenderConfig, start: int, stop: int) -> Ra
 
 
 def render_view(camera: Camera, config: RenderConfig, field: FieldFn, grid: OccupancyGrid | None,
-                chunk_rays: int = 4096, early_stop: float | None = None, progress=None
-                ) -> tuple[np.ndarray, RenderStats]:
-    """An ordinary (noise-free) render of a camera: image (height, width, 3) float32 and counts."""
+                chunk_rays: int = 4096, early_stop: float | None = None, progress=None,
+                coarse: CoarseNetwork | None = None) -> tuple[np.ndarray, RenderStats]:
+    """An ordinary (noise-free) render of a camera: image (height, width, 3) float32 and counts. With the
+    `coarse` network, hierarchical (see render_rays)."""
     n_rays = camera.width * camera.height
-    chunk = rays_per_chunk(chunk_rays, config.sampling.n_samples, VIEW_CHUNK_SAMPLES)
+    per_ray = (config.sampling.n_samples if coarse is None
+               else coarse.hierarchy.n_coarse + coarse.hierarchy.n_importance)
+    chunk = rays_per_chunk(chunk_rays, per_ray, VIEW_CHUNK_SAMPLES)
     image = np.empty((n_rays, 3), dtype=np.float32)
-    evaluated = 0
+    stats = RenderStats(0, 0, 0)
     for start in range(0, n_rays, chunk):
         stop = min(start + chunk, n_rays)
-        image[start:stop], stats = render_rays(config, view_rays(camera, config, start, stop), field, grid,
-                                               early_stop)
-        evaluated += stats.n_samples_evaluated
+        image[start:stop], chunk_stats = render_rays(config, view_rays(camera, config, start, stop), field, grid,
+                                                     early_stop, coarse)
+        stats = stats + chunk_stats
         if progress is not None:
             progress.update(stop - start)
-    return image.reshape(camera.height, camera.width, 3), RenderStats(n_rays, n_rays * config.sampling.n_samples,
-                                                                      evaluated)
+    return image.reshape(camera.height, camera.width, 3), stats

@@ -1,21 +1,24 @@
 """Revealing a secret: render every tile's view with its noise, stitch, quantise, check the digest.
 
 A secret view is rendered densely (no skipping: noise can put matter anywhere) at the bundle's own
-sampling, with the model's ray convention, NDC space and background.
+sampling, with the model's ray convention, NDC space and background, through the network the tile
+names (the paper's method trains through the coarse network, as its authors do): one pass, uniform
+samples, never hierarchical, since the noise was trained on exactly those samples.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Callable
+from typing import Callable, Mapping
 
 import numpy as np
 
 from noisenerf.runtime.bundle import Bundle, Tile, secret_digest
 from noisenerf.runtime.camera import camera_rays
 from noisenerf.runtime.compositing import composite, render_weights
+from noisenerf.runtime.errors import UserError
 from noisenerf.runtime.render import RayBatch, RenderConfig, prepare_rays, rays_per_chunk, sample_along
-from noisenerf.runtime.sampling import sample_positions
+from noisenerf.runtime.sampling import render_network, sample_positions
 
 REVEAL_CHUNK_SAMPLES = 1 << 17  # samples per chunk of a reveal (2048 rays of 64): ~50 MB of float32 noise
 
@@ -75,10 +78,21 @@ class Revealed:
     exact: bool  # the 8-bit pixels hash to the bundle's secret digest
 
 
-def reveal(bundle: Bundle, config: RenderConfig, field: NoisyFieldFn, progress=None) -> Revealed:
-    """Render and stitch all tiles of a bundle."""
+def tile_field(tile: Tile, fields: Mapping[str, NoisyFieldFn]) -> NoisyFieldFn:
+    """The network a tile's noise was trained through; fields: network name -> noisy field."""
+    name = tile.network or render_network(fields)
+    if name not in fields:
+        raise UserError(f"bundle tile at {tile.rect[:2]} needs the {name} network; this model has only "
+                        f"{' and '.join(fields)}")
+    return fields[name]
+
+
+def reveal(bundle: Bundle, config: RenderConfig, fields: Mapping[str, NoisyFieldFn], progress=None) -> Revealed:
+    """Render and stitch all tiles of a bundle. fields: network name ("coarse", and "fine" where the
+    scene has one) -> noisy field; every tile's network is checked before anything is rendered."""
+    chosen = [tile_field(tile, fields) for tile in bundle.tiles]
     image = np.zeros((bundle.height, bundle.width, 3), dtype=np.float32)
-    for tile in bundle.tiles:
+    for tile, field in zip(bundle.tiles, chosen):
         x0, y0, w, h = tile.rect
         image[y0:y0 + h, x0:x0 + w] = render_tile(tile, config, field, progress=progress)
     pixels = to_uint8(image)

@@ -1,12 +1,18 @@
-"""The frozen field behind onnxruntime: the numpy field callback every render and reveal runs on.
+"""The frozen fields behind onnxruntime: the numpy field callbacks every render and reveal runs on.
 
-The model is always read into memory and handed to onnxruntime as bytes. That makes a model whose
-weights live in external data files fail to load (there is no folder to resolve them against), which
-is what we want: a noisenerf model is one self-contained file.
+The model is read into memory, checked for tensors stored outside the file (runtime.onnx_file refuses
+them: onnxruntime would resolve them against the current directory even for a model given as bytes),
+and only then handed to onnxruntime as bytes.
+
+A model holds one network (outputs `rgb`, `sigma`) or, for a scene with a fine network, both: `rgb`,
+`sigma` are then the fine network (the render network, so models and bundles made before the coarse
+network was exported keep their meaning) and `rgb_coarse`, `sigma_coarse` the coarse one, on the same
+inputs. Each run computes only the outputs asked for.
 """
 
 from __future__ import annotations
 
+import copy
 import os
 from pathlib import Path
 
@@ -15,9 +21,12 @@ import onnxruntime as ort
 
 from noisenerf.runtime.errors import UserError
 from noisenerf.runtime.limits import MAX_NOISE_DIMS
+from noisenerf.runtime.onnx_file import parse_model
+from noisenerf.runtime.sampling import NETWORKS
 
 INPUT_NAMES = ("points", "viewdirs", "noise")
-OUTPUT_NAMES = ("rgb", "sigma")
+OUTPUT_NAMES = ("rgb", "sigma")  # the render network: the fine one where the model has both
+COARSE_OUTPUT_NAMES = ("rgb_coarse", "sigma_coarse")  # the coarse network, present only beside a fine one
 DEVICES = {"cpu": "CPUExecutionProvider", "cuda": "CUDAExecutionProvider"}
 DEFAULT_CHUNK = 16384  # points per run: as fast as larger chunks on CPU, ~16 MB per 256-wide activation
 QUIET = 3  # onnxruntime's ERROR log level: no warnings or telemetry notes; errors raise and are reported once
@@ -60,11 +69,7 @@ def session_options(threads: int | None) -> ort.SessionOptions:
 
 def load_failure(source: str, error: Exception) -> UserError:
     """One readable line for a model onnxruntime could not load."""
-    message = str(error)
-    if "model_path" in message or "external" in message.lower():
-        return UserError(f"{source} keeps its weights in external data files; "
-                         "a noisenerf model must be one self-contained .onnx file")
-    detail = message.replace("\n", " ").strip()
+    detail = str(error).replace("\n", " ").strip()
     return UserError(f"{source} is not a loadable ONNX model (not ONNX, or truncated): {detail[:200]}")
 
 
@@ -87,15 +92,18 @@ def port_shape_matches(shape: list, expected: tuple) -> bool:
 
 
 def check_ports(session: ort.InferenceSession, source: str) -> int:
-    """Refuse a graph without our inputs and outputs, or whose declared shapes are not (n, 3) points and
-    view directions, (n, dims) noise, (n, 3) rgb and (n,) sigma with a free batch n; returns the noise width."""
+    """Refuse a graph without our inputs and outputs (the coarse pair is optional), or whose declared shapes
+    are not (n, 3) points and view directions, (n, dims) noise, (n, 3) rgb and (n,) sigma with a free batch
+    n (the coarse pair likewise); returns the noise width."""
     inputs = {node.name: node.shape for node in session.get_inputs()}
     outputs = {node.name: node.shape for node in session.get_outputs()}
-    if set(inputs) != set(INPUT_NAMES) or not set(OUTPUT_NAMES) <= set(outputs):
+    if set(inputs) != set(INPUT_NAMES) or set(outputs) not in (set(OUTPUT_NAMES),
+                                                               set(OUTPUT_NAMES + COARSE_OUTPUT_NAMES)):
         raise UserError(f"{source} is not a noisenerf field: inputs {sorted(inputs)}, outputs {sorted(outputs)} "
                         f"(expected inputs {list(INPUT_NAMES)}, outputs {list(OUTPUT_NAMES)})")
-    ports = {**inputs, **{name: outputs[name] for name in OUTPUT_NAMES}}
-    for name, expected in PORT_SHAPES.items():
+    ports = {**inputs, **outputs}
+    expected_shapes = {**PORT_SHAPES, **{coarse: PORT_SHAPES[name] for coarse, name in zip(COARSE_OUTPUT_NAMES, OUTPUT_NAMES)}}
+    for name, expected in ((name, expected_shapes[name]) for name in ports):
         if not port_shape_matches(ports[name], expected):
             raise UserError(f"{source}: {name} has shape {ports[name]}, expected {list(expected)} (n free)")
     noise_dims = inputs["noise"][-1]
@@ -108,22 +116,40 @@ def check_ports(session: ort.InferenceSession, source: str) -> int:
 class OnnxField:
     """field(points (n, 3), viewdirs (n, 3), noise (n, noise_dims) | None) -> rgb (n, 3), sigma (n,).
 
-    Satisfies both runtime.sampling.FieldFn (no noise) and runtime.reveal.NoisyFieldFn; inputs are run
-    in chunks of at most `chunk` points so that memory stays bounded whatever the caller passes.
+    The render network; `network(name)` gives either network of the same session. Satisfies both
+    runtime.sampling.FieldFn (no noise) and runtime.reveal.NoisyFieldFn; inputs are run in chunks of at
+    most `chunk` points so that memory stays bounded whatever the caller passes.
     """
 
     def __init__(self, model: str | os.PathLike | bytes, device: str = "cpu", threads: int | None = None,
-                 chunk: int = DEFAULT_CHUNK):
+                 chunk: int = DEFAULT_CHUNK, source: str | None = None):
         if chunk < 1:
             raise UserError(f"chunk must be at least 1 point, got {chunk}")
-        data, self.source = read_model_bytes(model)
+        data, name = read_model_bytes(model)
+        self.source = source or name
+        parse_model(data, self.source)  # refuses external data before onnxruntime could resolve it
         options, providers = session_options(threads), providers_for(device)
         try:
             self.session = ort.InferenceSession(data, options, providers=providers)
         except Exception as error:  # onnxruntime's pybind errors share no base class but Exception
             raise load_failure(self.source, error) from None
         self.noise_dims = check_ports(self.session, self.source)
+        self.has_fine = set(COARSE_OUTPUT_NAMES) <= {node.name for node in self.session.get_outputs()}
+        self.outputs = OUTPUT_NAMES
+        self.run_options = ort.RunOptions()
+        self.run_options.only_execute_path_to_fetches = True  # the coarse outputs alone skip the fine network
         self.chunk = chunk
+
+    def network(self, name: str) -> "OnnxField":
+        """The same session answering for the `coarse` or `fine` network; a model without a fine network
+        has its coarse one on the render outputs."""
+        if name not in NETWORKS:
+            raise UserError(f"unknown network {name!r} (expected one of {', '.join(NETWORKS)})")
+        if name == "fine" and not self.has_fine:
+            raise UserError(f"{self.source} has no fine network")
+        view = copy.copy(self)
+        view.outputs = COARSE_OUTPUT_NAMES if name == "coarse" and self.has_fine else OUTPUT_NAMES
+        return view
 
     def __call__(self, points: np.ndarray, viewdirs: np.ndarray, noise: np.ndarray | None = None
                  ) -> tuple[np.ndarray, np.ndarray]:
@@ -147,14 +173,10 @@ class OnnxField:
         (m, 3) and (m,), is one UserError."""
         m = feed["points"].shape[0]
         try:
-            rgb, sigma = self.session.run(list(OUTPUT_NAMES), feed)
+            rgb, sigma = self.session.run(list(self.outputs), feed, self.run_options)
         except Exception as error:  # onnxruntime's pybind errors share no base class but Exception
             raise UserError(f"{self.source} failed to evaluate: {' '.join(str(error).split())[:200]}") from None
         if rgb.shape != (m, 3) or sigma.shape != (m,):
             raise UserError(f"{self.source} returned rgb {rgb.shape} and sigma {sigma.shape} for {m} points, "
                             f"expected ({m}, 3) and ({m},)")
         return rgb, sigma
-
-    def metadata(self) -> dict[str, str]:
-        """The model's metadata_props, read through onnxruntime (no onnx package needed)."""
-        return dict(self.session.get_modelmeta().custom_metadata_map)

@@ -1,4 +1,6 @@
-"""The exported ONNX field is self-contained, carries its metadata, and renders what torch renders."""
+"""The exported ONNX fields are self-contained, carry their metadata and weights, and render what torch renders."""
+
+import json
 
 import numpy as np
 import onnx
@@ -6,9 +8,10 @@ import pytest
 
 from conftest import make_tiny_scene
 from noisenerf.export import onnx_export
-from noisenerf.export.onnx_export import export_scene, probe_parity
+from noisenerf.export.onnx_export import SceneFields, export_scene, probe_parity
 from noisenerf.runtime.bundle import Tile
 from noisenerf.runtime.errors import UserError
+from noisenerf.runtime.fingerprint import weights_fingerprint
 from noisenerf.runtime.model import grid_from_dict, grid_to_dict, load_model
 from noisenerf.runtime.render import render_view
 from noisenerf.runtime.reveal import render_tile, to_uint8
@@ -45,6 +48,30 @@ def test_model_is_checked_and_self_contained(exported):
     assert tensors and not any(onnx.external_data_helper.uses_external_data(t) for t in tensors)
     assert report["bytes"] == path.stat().st_size and report["opset"] == onnx_export.OPSET
     assert [p.name for p in model.graph.input] == ["points", "viewdirs", "noise"]
+    outputs = ["rgb", "sigma"] + (["rgb_coarse", "sigma_coarse"] if report["networks"] == ["coarse", "fine"] else [])
+    assert [p.name for p in model.graph.output] == outputs
+
+
+def test_initializers_are_the_scene_weights(exported):
+    """Named and laid out as in the scene directory, so the runtime can recompute the fingerprint."""
+    scene, path, _ = exported
+    model = onnx.load(str(path))
+    initializers = {t.name: onnx.numpy_helper.to_array(t) for t in model.graph.initializer}
+    weights = scene.weight_arrays()
+    assert sorted(initializers) == sorted(weights)
+    for name, value in weights.items():
+        np.testing.assert_array_equal(initializers[name], value)
+    assert weights_fingerprint(initializers, scene.config.architecture()) == scene.fingerprint()
+
+
+def test_equal_coarse_and_fine_weights_keep_both_initializers(tmp_path):
+    """The exporter would merge equal tensors (and drop a name); a fine net equal to the coarse one exports."""
+    scene = make_tiny_scene(seed=3, fine=True)
+    scene.fine.load_state_dict(scene.coarse.state_dict())
+    scene.save(tmp_path / "scene")
+    export_scene(tmp_path / "scene", tmp_path / "model.onnx")
+    assert len(onnx.load(str(tmp_path / "model.onnx")).graph.initializer) == len(scene.weight_arrays())
+    assert load_model(tmp_path / "model.onnx", threads=1).fingerprint == scene.fingerprint()
 
 
 def test_metadata_round_trips(exported):
@@ -54,6 +81,9 @@ def test_metadata_round_trips(exported):
     assert model.render_config == scene.config.render
     assert model.cameras == scene.config.cameras
     assert model.noise_dims == scene.render_field.config.noise_dims
+    assert json.dumps(model.metadata.architecture, sort_keys=True) == json.dumps(scene.config.architecture(),
+                                                                                 sort_keys=True)
+    assert (model.coarse is None) == (scene.fine is None) and list(model.fields()) == list(scene.fields())
     np.testing.assert_array_equal(model.grid.occupied, scene.grid.occupied)
     np.testing.assert_array_equal(model.grid.aabb, scene.grid.aabb)
 
@@ -66,12 +96,17 @@ def test_grid_bits_round_trip_for_any_resolution():
 
 def test_field_outputs_match_torch(exported):
     scene, path, _ = exported
-    cases = {case.name: case for case in probe_parity(scene.render_field, OnnxField(path, threads=1),
-                                                      scene.config.aabb, seed=7)}
-    assert cases["zero"].max_abs_diff <= 1e-5 and cases["normal"].max_abs_diff <= 1e-5
-    # ±1e3 noise: float32 itself errs by ~1e-5 there, so the export's float64-anchored criterion applies
-    assert all(case.passed for case in cases.values())
-    assert cases["huge"].max_abs_diff <= 1e-3
+    onnx_field = OnnxField(path, threads=1)
+    for name, field in scene.fields().items():
+        cases = {case.name: case for case in probe_parity(field, onnx_field.network(name), scene.config.aabb, 7)}
+        assert cases["zero"].max_abs_diff <= 1e-5 and cases["normal"].max_abs_diff <= 1e-5
+        # ±1e3 noise: float32 itself errs by ~1e-5 there, so the export's float64-anchored criterion applies
+        assert all(case.passed for case in cases.values())
+        assert cases["huge"].max_abs_diff <= 1e-3
+    # the render outputs are the render network
+    points = np.zeros((4, 3), np.float32)
+    for a, b in zip(onnx_field(points, points), onnx_field.network("fine" if scene.fine else "coarse")(points, points)):
+        np.testing.assert_array_equal(a, b)
 
 
 @pytest.mark.parametrize("layout", ["ray", "sample"])
@@ -121,8 +156,8 @@ def test_export_is_deterministic(exported, tmp_path):
 def test_export_refuses_a_graph_that_disagrees_with_torch(tmp_path, monkeypatch):
     make_tiny_scene(seed=1).save(tmp_path / "scene")
     other = make_tiny_scene(seed=2).render_field  # same architecture, other weights: a faulty export
-    real_export = onnx_export.field_to_onnx
-    monkeypatch.setattr(onnx_export, "field_to_onnx", lambda field: real_export(other))
+    real_export = onnx_export.fields_to_onnx
+    monkeypatch.setattr(onnx_export, "fields_to_onnx", lambda fields: real_export(SceneFields(other, None)))
     with pytest.raises(UserError, match="export refused"):
         export_scene(tmp_path / "scene", tmp_path / "model.onnx")
     assert sorted(p.name for p in tmp_path.iterdir()) == ["scene"]
@@ -146,6 +181,8 @@ def test_cuda_without_its_provider_is_refused(exported):
 
 
 def test_probe_cases_are_reported(exported):
-    report = exported[2]
-    assert [case["name"] for case in report["probe"]] == list(onnx_export.PROBE_NOISE_SCALES)
+    scene, _, report = exported
+    assert report["networks"] == list(scene.fields())
+    assert [(case["network"], case["name"]) for case in report["probe"]] == [
+        (network, name) for network in scene.fields() for name in onnx_export.PROBE_NOISE_SCALES]
     assert all(case["passed"] for case in report["probe"])

@@ -11,7 +11,7 @@ from noisenerf.runtime.bundle import load_bundle
 from noisenerf.runtime.errors import UserError
 from noisenerf.runtime.reveal import reveal, to_uint8
 from noisenerf.train.hide import HideConfig, hide
-from noisenerf.train.renderer import numpy_field
+from noisenerf.train.renderer import numpy_fields
 from noisenerf.train.paper_solver import PaperSettings
 from noisenerf.train.tiling import tile_rects
 
@@ -45,7 +45,7 @@ def test_exact_hide_recovers_every_value_and_leaves_weights_unchanged(scene, tmp
     assert [t["rect"] for t in report["tiles"]] == [list(r) for r in tile_rects(30, 20, 16)]
     bundle = load_bundle(tmp_path / "s.bundle")
     assert bundle.dtype == dtype and bundle.tiles[0].noise.shape == (16, 16, 90)
-    revealed = reveal(bundle, scene.config.render, numpy_field(scene.render_field))
+    revealed = reveal(bundle, scene.config.render, numpy_fields(scene.fields()))
     np.testing.assert_array_equal(revealed.pixels, secret)
     assert revealed.exact
 
@@ -58,7 +58,7 @@ def test_bundle_holds_no_secret_and_other_weights_reveal_nothing(scene, tmp_path
     bundle = load_bundle(tmp_path / "s.bundle")
     other = make_tiny_scene(seed=1, width=64, depth=4)
     assert other.fingerprint() != bundle.model_fingerprint
-    wrong = reveal(bundle, other.config.render, numpy_field(other.render_field))
+    wrong = reveal(bundle, other.config.render, numpy_fields(other.fields()))
     assert not wrong.exact
     assert np.mean(wrong.pixels == secret) < 0.2
 

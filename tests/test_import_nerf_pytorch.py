@@ -1,5 +1,6 @@
-"""Imported nerf-pytorch checkpoints render as nerf-pytorch does (within 1e-5), keep their weights bit for
-bit, and bad input is refused before anything is written.
+"""Imported nerf-pytorch checkpoints render as nerf-pytorch does (within 1e-5 in torch, 1e-4 through the
+exported model and `noisenerf-reveal --view`), keep their weights bit for bit, and bad input is refused
+before anything is written.
 
 The reference below is an independent rewrite of nerf-pytorch's test-time path (NeRF, Embedder,
 get_rays, ndc_rays, raw2outputs with its cumprod, sample_pdf with det=True, render_rays, and the
@@ -19,8 +20,10 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from noisenerf.export.onnx_export import export_scene
 from noisenerf.runtime.camera import camera_rays
 from noisenerf.runtime.errors import UserError
+from noisenerf.runtime.images import read_image
 from noisenerf.runtime.render import prepare_rays
 from noisenerf.runtime.sampling import SamplingConfig, sample_positions
 from noisenerf.train.import_nerf_pytorch import (
@@ -29,6 +32,7 @@ from noisenerf.train.import_nerf_pytorch import (
 )
 from noisenerf.train.renderer import TorchRays, render_hierarchical
 from noisenerf.train.scene import load_scene, weights_fingerprint
+from test_reveal_cli import run_reveal
 
 TOLERANCE = 1e-5
 
@@ -439,6 +443,50 @@ def test_llff_ndc_import_renders_as_nerf_pytorch(tmp_path):
         assert expected.std() > 0.02
         assert np.abs(ours - expected).max() < TOLERANCE
     assert scene.fingerprint() == reference_fingerprint(reference, scene.config.architecture())
+
+
+def revealed_view(model: Path, index: int, folder: Path) -> tuple[np.ndarray, dict]:
+    """`noisenerf-reveal MODEL --view index` as a subprocess -> float image (from EXR), JSON report."""
+    out = folder / f"view{index}.exr"
+    result = run_reveal(model, "--view", index, "-o", out, "--json", "--threads", 1)
+    assert result.returncode == 0, result.stderr
+    return read_image(out), json.loads(result.stdout)
+
+
+HIERARCHICAL_SAMPLES = 32  # N_samples = N_importance: 32 coarse + 32 fine, as in issue 10's reference renders
+
+
+@pytest.mark.parametrize("kind", ["blender", "llff"])
+def test_reveal_view_renders_hierarchically_as_nerf_pytorch(tmp_path, kind):
+    """The recipient's ordinary render is nerf-pytorch's: coarse → sample_pdf → fine, in numpy through
+    onnxruntime. Blender with fresh nets (density everywhere in the box and beyond), LLFF/NDC tamed."""
+    n = HIERARCHICAL_SAMPLES
+    nets = {**TINY_NETS, "N_samples": n, "N_importance": n}
+    if kind == "blender":
+        poses = write_blender(tmp_path / "data")
+        config = blender_config(tmp_path, **nets)
+        reference = make_reference(seed=3, tame=False)
+        width, height = BLENDER_SIZE
+        views = [(index, poses[index], height, width, 0.5 * width / np.tan(0.5 * BLENDER_FOV)) for index in (0, 3)]
+        render_args = (False, 2.0, 6.0, True)
+    else:
+        c2ws, _ = reference_llff_poses(write_llff(tmp_path / "fern_tiny"))
+        config = write_config(tmp_path / "config.txt", datadir=tmp_path / "fern_tiny", dataset_type="llff",
+                              factor=LLFF_FACTOR, llffhold=8, use_viewdirs="True", **nets)
+        reference = make_reference(seed=2, half_size=0.8)
+        height, width, focal = LLFF_FULL[0] // LLFF_FACTOR, LLFF_FULL[1] // LLFF_FACTOR, LLFF_FULL[2] / LLFF_FACTOR
+        views = [(index, c2ws[index], height, width, focal) for index in (0, 2)]
+        render_args = (True, 0.0, 1.0, False)
+    reference.n_samples = reference.n_importance = n
+    import_nerf_pytorch(save_checkpoint(tmp_path / "ckpt.tar", reference), config, tmp_path / "scene",
+                        grid_resolution=8)
+    export_scene(tmp_path / "scene", tmp_path / "model.onnx")
+    for index, c2w, h, w, focal in views:
+        expected = reference.render_view(c2w, h, w, focal, *render_args)
+        ours, report = revealed_view(tmp_path / "model.onnx", index, tmp_path)
+        assert expected.std() > 0.02
+        assert np.abs(ours - expected).max() < 1e-4
+        assert report["hierarchical"] and report["samples"] == h * w * (n + n + n)  # coarse, then fine on 2n
 
 
 def test_llff_without_ndc_uses_scaled_depth_bounds(tmp_path):

@@ -6,7 +6,7 @@ import torch
 
 from noisenerf.runtime import compositing as np_render
 from noisenerf.runtime.encoding import positional_encoding as np_encoding
-from noisenerf.runtime.sampling import LAST_DELTA
+from noisenerf.runtime.sampling import LAST_DELTA, sample_pdf
 from noisenerf.train import rendering as torch_render
 from noisenerf.train.field import positional_encoding as torch_encoding
 
@@ -72,3 +72,23 @@ def test_occupancy_box_is_closed_so_the_ndc_far_plane_sample_is_kept():
     grid = OccupancyGrid((-1, -1, -1, 1, 1, 1), occupied)
     points = np.array([[1, 1, 1], [0.9, 0.9, 1.0], [-1, -1, -1], [0.9, 0.9, 1.0001], [0, 0, 0]], np.float32)
     assert grid.lookup(points).tolist() == [True, True, True, False, False]
+
+
+def test_numpy_sample_pdf_matches_the_torch_twin():
+    """Peaked, flat and all-zero weights (the 1e-5 floor and the denominator guard), over rays' own bins.
+
+    Equal up to float32 rounding of u and of the pdf's normaliser (numpy and torch sum in another order,
+    as torch does between CPU and CUDA), which (u − cdf)/pdf amplifies: ~1e-5 of a bin of width 0.13.
+    The last sample (u = 1) is compared loosely: it lands wherever cdf[-1] rounds, either side of 1,
+    but always in the last bin."""
+    rng = np.random.default_rng(5)
+    weights = rng.random((96, 31)).astype(np.float32) ** 2
+    weights[32:64] = 0.0
+    weights[64:, 10] = 50.0
+    bins = np.sort(rng.random((96, 32)).astype(np.float32) * 4 + 2, axis=1)
+    ours = sample_pdf(bins, weights, 40)
+    theirs = torch_render.sample_pdf(torch.from_numpy(bins), torch.from_numpy(weights), 40).numpy()
+    assert ours.dtype == np.float32 and ours.shape == (96, 40)
+    assert np.all(np.diff(ours, axis=1) >= 0)
+    np.testing.assert_allclose(ours[:, :-1], theirs[:, :-1], rtol=0, atol=2e-4)
+    assert np.all((ours[:, -1] >= bins[:, -2]) & (ours[:, -1] <= bins[:, -1]))

@@ -15,7 +15,7 @@ from safetensors.numpy import save_file
 
 from conftest import make_tiny_scene
 from noisenerf.export.onnx_export import export_scene
-from noisenerf.train.renderer import numpy_field
+from noisenerf.train.renderer import numpy_fields
 from noisenerf.runtime.bundle import METADATA_KEY, Bundle, Tile, load_bundle, secret_digest
 from noisenerf.runtime.images import read_image, read_native
 from noisenerf.runtime.model import load_model
@@ -26,18 +26,20 @@ from noisenerf.runtime.sampling import sample_positions
 from noisenerf.train.scene import load_scene
 
 
-def two_tile_bundle(scene, layout: str = "ray", seed: int = 0) -> Bundle:
-    """Random noise in two views side by side; the digest is that of torch's render of this very noise."""
+def two_tile_bundle(scene, layout: str = "ray", seed: int = 0, network: str | None = None) -> Bundle:
+    """Random noise in two views side by side, for `network` (None: no network field, as bundles made
+    before it existed); the digest is that of torch's render of this very noise."""
     config, dims = scene.config.render, scene.render_field.config.noise_dims
     rng = np.random.default_rng(seed)
     tiles = []
     for i, camera in enumerate(scene.config.cameras[:2]):
         shape = (camera.height, camera.width) + ((config.sampling.n_samples,) if layout == "sample" else ())
         noise = rng.normal(size=shape + (dims,)).astype(np.float32)
-        tiles.append(Tile((i * camera.width, 0, camera.width, camera.height), camera, config.sampling, noise, i))
+        tiles.append(Tile((i * camera.width, 0, camera.width, camera.height), camera, config.sampling, noise, i,
+                          network))
     width, height = sum(t.rect[2] for t in tiles), tiles[0].rect[3]
     bundle = Bundle(scene.fingerprint(), width, height, "0" * 64, layout, dims, "float32", tuple(tiles), {})
-    pixels = reveal(bundle, config, numpy_field(scene.render_field)).pixels
+    pixels = reveal(bundle, config, numpy_fields(scene.fields())).pixels
     return dataclasses.replace(bundle, secret_sha256=secret_digest(pixels))
 
 
@@ -50,9 +52,9 @@ def write_reveal_inputs(directory: Path) -> tuple[Path, Path]:
     return directory / "model.onnx", directory / "secret.bundle"
 
 
-def run_reveal(*args) -> subprocess.CompletedProcess:
+def run_reveal(*args, cwd: Path | None = None) -> subprocess.CompletedProcess:
     return subprocess.run([sys.executable, "-m", "noisenerf.cli.reveal", *map(str, args)],
-                          capture_output=True, text=True, timeout=60)
+                          capture_output=True, text=True, timeout=60, cwd=cwd)
 
 
 @pytest.fixture(scope="module")
@@ -72,7 +74,7 @@ def test_reveal_writes_the_library_reveal_and_reports_exact(inputs, tmp_path):
     assert report["rays"] == 32 * 12 and report["samples"] == 32 * 12 * 24
     assert report["output"] == str(tmp_path / "out.png") and report["seconds"] > 0
     loaded = load_model(model)
-    expected = reveal(load_bundle(bundle), loaded.render_config, loaded.field)
+    expected = reveal(load_bundle(bundle), loaded.render_config, loaded.fields())
     np.testing.assert_array_equal(read_native(tmp_path / "out.png"), expected.pixels)
 
 
@@ -89,7 +91,7 @@ def test_exr_output_holds_the_float_image(inputs, tmp_path):
     result = run_reveal(model, bundle, "-o", tmp_path / "out.exr")
     assert result.returncode == 0, result.stderr
     loaded = load_model(model)
-    expected = reveal(load_bundle(bundle), loaded.render_config, loaded.field)
+    expected = reveal(load_bundle(bundle), loaded.render_config, loaded.fields())
     np.testing.assert_array_equal(read_image(tmp_path / "out.exr"), expected.image)
 
 
@@ -145,6 +147,10 @@ def outside(meta, tensors):
     meta["tiles"][1]["rect"][0] = 24
 
 
+def unknown_network(meta, tensors):
+    meta["tiles"][0]["network"] = "medium"
+
+
 def other_model(meta, tensors):
     meta["model_fingerprint"] = "f" * 64
 
@@ -160,6 +166,7 @@ REFUSALS = {  # case: (tampering, expected message)
     "wrong noise shape": (wrong_shape, "noise is"),
     "overlapping tiles": (overlapping, "overlap"),
     "tile outside the image": (outside, "outside"),
+    "unknown network": (unknown_network, "names network 'medium'"),
 }
 
 

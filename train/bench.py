@@ -37,6 +37,7 @@ from noisenerf.runtime.model import load_model
 from noisenerf.runtime.session import available_cores
 from noisenerf.runtime.render import render_view
 from noisenerf.runtime.reveal import reveal, to_uint8
+from noisenerf.runtime.sampling import render_network
 from noisenerf.train.datasets import load_dataset
 from noisenerf.train.field import NeRFField
 from noisenerf.train.hide import HideConfig, hide, plan, quality
@@ -130,10 +131,11 @@ def small_secret(secret: np.ndarray, width: int) -> np.ndarray:
 def secret_view(scene: Scene, secret: np.ndarray, view: int, n_samples: int, device: torch.device = torch.device("cpu"),
                 field: NeRFField | None = None) -> SecretView:
     """The single-tile secret view of `secret` at scene camera `view` with n_samples per ray, on `field`
-    (default: the scene's render field; paper mode renders the coarse one, as the authors do)."""
+    (default: the tile's network, the coarse one for paper mode as the authors render, else the render field)."""
     config = HideConfig(method="exact" if n_samples == 1 else "paper", n_samples=n_samples, view=view,
                         tile_size=max(*secret.shape[:2], MIN_TILE_SIZE))
-    return SecretView(field or scene.render_field, plan(scene, secret, config).tiles[0], scene.config.render, device)
+    tile = plan(scene, secret, config).tiles[0]
+    return SecretView(field or scene.fields()[tile.network], tile, scene.config.render, device)
 
 
 def square_secret(photo: np.ndarray, width: int) -> np.ndarray:
@@ -365,7 +367,7 @@ def cost(config: BenchConfig, scene: Scene, secret: np.ndarray, state: dict) -> 
     model = state["model"]
     report = full_size_hide(config, scene, secret, state)
     bundle = load_bundle(state["bundle"])
-    revealed, reveal_seconds = timed(reveal, bundle, model.render_config, model.field)
+    revealed, reveal_seconds = timed(reveal, bundle, model.render_config, model.fields())
     _, render_seconds = timed(render_view, bundle.tiles[0].camera, model.render_config, model.field, None,
                               early_stop=0.0)
     rows = [{"secret": Path(config.secret).name, "width": secret.shape[1], "height": secret.shape[0],
@@ -417,7 +419,8 @@ def throughput(config: BenchConfig, scene: Scene, secret: np.ndarray, state: dic
             torch.set_num_threads(threads)
             field_fn(points[:1024], viewdirs[:1024], noise[:1024])  # warm-up
             _, field_seconds = timed(field_fn, points, viewdirs, noise)
-            revealed, reveal_seconds = timed(reveal, bundle, scene.config.render, field_fn)
+            revealed, reveal_seconds = timed(reveal, bundle, scene.config.render,
+                                             {render_network(scene.fields()): field_fn})
             samples_per_second = len(points) / field_seconds
             rows.append({"backend": name, "threads": threads, "reveal_rays_per_second": bundle.width * bundle.height
                          / reveal_seconds, "field_samples_per_second": samples_per_second,
@@ -531,7 +534,8 @@ def photos(config: BenchConfig, scene: Scene, secret: np.ndarray, state: dict) -
         photo, _ = load_secret(path)
         report = hide(scene, photo, work / "photo.bundle", HideConfig(view=config.view), torch.device("cpu"),
                       force=True, show_progress=False)
-        revealed, reveal_seconds = timed(reveal, load_bundle(work / "photo.bundle"), model.render_config, model.field)
+        revealed, reveal_seconds = timed(reveal, load_bundle(work / "photo.bundle"), model.render_config,
+                                         model.fields())
         rows.append({"secret": Path(path).name, "width": photo.shape[1], "height": photo.shape[0],
                      "tiles": len(report["tiles"]), "hide_seconds": report["seconds"],
                      "reveal_seconds": reveal_seconds, "torch_exact_fraction": report["exact_fraction"],
@@ -559,7 +563,7 @@ def twok(config: BenchConfig, scene: Scene, secret: np.ndarray, state: dict) -> 
     part = big[:config.twok_rows * config.twok_tile]
     report = hide(scene, part, work / "twok.bundle", HideConfig(view=config.view, tile_size=config.twok_tile),
                   torch.device("cpu"), force=True, show_progress=False)
-    revealed, reveal_seconds = timed(reveal, load_bundle(work / "twok.bundle"), model.render_config, model.field)
+    revealed, reveal_seconds = timed(reveal, load_bundle(work / "twok.bundle"), model.render_config, model.fields())
     scale = rows_total / config.twok_rows
     row = {"hidden_rows": config.twok_rows, "tile_rows": rows_total, "tiles": len(report["tiles"]),
            "hide_seconds": report["seconds"], "reveal_seconds": reveal_seconds, "exact": revealed.exact,

@@ -64,11 +64,12 @@ def run_demo(out_dir: Path, device: torch.device, show_progress: bool = True) ->
 
     started = time.perf_counter()
     model = load_model(out_dir / "model.onnx")
-    revealed = reveal(load_bundle(out_dir / "secret.bundle"), model.render_config, model.field)
+    revealed = reveal(load_bundle(out_dir / "secret.bundle"), model.render_config, model.fields())
     write_image(out_dir / "revealed.png", revealed.pixels)
     timings["reveal"] = time.perf_counter() - started
 
-    ordinary, _ = render_view(model.cameras[DEMO_VIEW], model.render_config, model.field, model.grid)
+    ordinary, _ = render_view(model.cameras[DEMO_VIEW], model.render_config, model.field, model.grid,
+                              coarse=model.coarse)
     ordinary = to_uint8(ordinary)
     write_image(out_dir / "ordinary.png", ordinary)
     write_image(out_dir / "side_by_side.png", side_by_side([ordinary, secret, revealed.pixels]))

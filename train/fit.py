@@ -36,7 +36,7 @@ from noisenerf.runtime.sampling import (
 )
 from noisenerf.train.field import FieldConfig
 from noisenerf.train.occupancy import OccupancyConfig, OccupancyTracker, build_occupancy_grid, carve, cell_points
-from noisenerf.train.renderer import TorchRays, numpy_field, render_hierarchical, render_masked
+from noisenerf.train.renderer import TorchRays, numpy_coarse, numpy_field, render_hierarchical, render_masked
 from noisenerf.train.rendering import render_weights, sample_deltas
 from noisenerf.train.scene import Scene, SceneConfig, build_fields
 
@@ -295,12 +295,14 @@ class Fitter:
 
 
 def evaluate(scene: Scene, dataset: Dataset, views: list[int], skipping: bool = True) -> dict:
-    """Mean PSNR / SSIM over views rendered the way recipients render them (runtime + skipping)."""
-    field = numpy_field(scene.render_field)
+    """Mean PSNR / SSIM over views rendered the way recipients render them (runtime + skipping, or
+    hierarchical for scenes with a fine network)."""
+    field, coarse = numpy_field(scene.render_field), numpy_coarse(scene.coarse, scene.hierarchy)
     scores, dense, evaluated = [], 0, 0
     for index in views:
-        image, stats = render_view(dataset.cameras[index], scene.config.render, field,
-                                   scene.grid if skipping else scene.grid.box_only(), early_stop=None if skipping else 0.0)
+        grid = scene.grid if skipping else scene.grid.box_only()
+        image, stats = render_view(dataset.cameras[index], scene.config.render, field, grid,
+                                   early_stop=None if skipping else 0.0, coarse=coarse)
         target = dataset.images[index]
         scores.append((psnr(image, target), ssim(image, target)))
         dense += stats.n_samples_dense
@@ -313,13 +315,14 @@ def curve_psnr(scene: Scene, dataset: Dataset, views: list[int], rays_per_view: 
     """PSNR over a seeded random subset of the views' pixels, rendered like `evaluate` renders them: an
     unbiased estimate of the views' PSNR at a fraction of the cost (a full LLFF render is minutes here)."""
     field, rng, errors = numpy_field(scene.render_field), np.random.default_rng(seed), []
+    coarse = numpy_coarse(scene.coarse, scene.hierarchy)
     for index in views:
         camera = dataset.cameras[index]
         chosen = rng.choice(camera.width * camera.height, min(rays_per_view, camera.width * camera.height),
                             replace=False)
         rays_o, rays_d = camera_rays(camera, scene.config.render.pixel_center)
         rays = prepare_rays(scene.config.render, rays_o[chosen], rays_d[chosen])
-        colors, _ = render_rays(scene.config.render, rays, field, scene.grid)
+        colors, _ = render_rays(scene.config.render, rays, field, scene.grid, coarse=coarse)
         errors.append((colors - dataset.images[index].reshape(-1, 3)[chosen]) ** 2)
     return float(-10 * np.log10(max(np.mean(np.concatenate(errors)), 1e-10)))
 

@@ -30,7 +30,7 @@ from noisenerf.runtime.files import atomic_output, check_output_path, existing_k
 from noisenerf.runtime.limits import MAX_RAY_LAYOUT_SAMPLES, checked_image_size
 from noisenerf.runtime.metrics import exact_fraction, psnr, ssim
 from noisenerf.runtime.reveal import to_uint8
-from noisenerf.runtime.sampling import SamplingConfig
+from noisenerf.runtime.sampling import NETWORKS, SamplingConfig, render_network
 from noisenerf.train.scene import Scene
 from noisenerf.train.secret_view import SecretView
 from noisenerf.train.paper_solver import PaperSettings, pass_slices, recorded_points, solve_blocks, survey
@@ -49,6 +49,8 @@ class HideConfig:
 
     The exact method's secret view has one sample per ray (see solvers.py: it makes every pixel a
     piecewise-linear problem); the paper's method samples PAPER_SAMPLES points per ray by default.
+    `network` is the one the secret view renders through, recorded per tile: by default the coarse
+    network for the paper's method (as its authors render), the scene's render network for exact.
     """
 
     method: str = "exact"  # exact | paper
@@ -59,6 +61,7 @@ class HideConfig:
     view: int = 0
     seed: int = 0
     chunk_pixels: int = 16384  # exact method: pixels per solved (and resumable) chunk; CLI: chunk_pixels_for
+    network: str | None = None  # coarse | fine; None: the scene's render network
     exact: ExactSettings = ExactSettings()
     paper: PaperSettings = PaperSettings()
 
@@ -71,6 +74,10 @@ class HideConfig:
             raise UserError(f"unknown noise dtype {self.dtype!r} (float16 or float32)")
         if self.n_samples is None:
             object.__setattr__(self, "n_samples", 1 if self.method == "exact" else PAPER_SAMPLES)
+        if self.network is None and self.method == "paper":
+            object.__setattr__(self, "network", "coarse")
+        if self.network not in (None, *NETWORKS):
+            raise UserError(f"unknown network {self.network!r} (coarse or fine)")
         if self.n_samples < 1:
             raise UserError("the secret view needs at least one sample per ray")
         if self.method == "exact" and self.n_samples != 1:
@@ -95,9 +102,12 @@ def plan(scene: Scene, secret: np.ndarray, config: HideConfig) -> HidePlan:
     n_cameras = len(scene.config.cameras)
     if not 0 <= config.view < n_cameras:
         raise UserError(f"--view {config.view} is out of range: the scene has {n_cameras} cameras (0..{n_cameras - 1})")
+    network = config.network or render_network(scene.fields())
+    if network not in scene.fields():
+        raise UserError(f"the scene has no {network} network")
     sampling = SamplingConfig(scene.config.render.sampling.near, scene.config.render.sampling.far, config.n_samples)
     tiles = tuple(Tile(rect=rect, camera=tile_camera(scene.config.cameras, config.view, k, rect), sampling=sampling,
-                       noise=np.zeros(0, np.float32), view=(config.view + k) % n_cameras)
+                       noise=np.zeros(0, np.float32), view=(config.view + k) % n_cameras, network=network)
                   for k, rect in enumerate(tile_rects(width, height, config.tile_size)))
     return HidePlan(tiles, secret)
 
@@ -305,7 +315,7 @@ def hide(scene: Scene, secret: np.ndarray, output: Path, config: HideConfig, dev
         for k, tile in enumerate(hide_plan.tiles):
             tile_start = time.perf_counter()
             x0, y0, w, h = tile.rect
-            view = SecretView(field, tile, scene.config.render, device)
+            view = SecretView(scene.fields()[tile.network], tile, scene.config.render, device)
             pixels = torch.tensor(secret[y0:y0 + h, x0:x0 + w].reshape(-1, 3), device=device)
             noise, counts = solve(view, pixels, (h, w), config, progress, k, bar)
             with torch.no_grad():

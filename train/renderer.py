@@ -11,8 +11,9 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from noisenerf.runtime.render import RayBatch
+from noisenerf.runtime.render import CoarseNetwork, RayBatch
 from noisenerf.runtime.reveal import NoisyFieldFn
+from noisenerf.runtime.sampling import Hierarchy
 from noisenerf.train.field import NeRFField
 from noisenerf.train.rendering import composite, render_weights, sample_deltas, sample_pdf
 
@@ -100,3 +101,14 @@ def numpy_field(field: NeRFField) -> NoisyFieldFn:
         return rgb.cpu().numpy(), sigma.cpu().numpy()
 
     return evaluate
+
+
+def numpy_fields(fields: dict[str, NeRFField]) -> dict[str, NoisyFieldFn]:
+    """numpy_field of each network of a scene (Scene.fields()), as runtime.reveal.reveal takes them."""
+    return {name: numpy_field(field) for name, field in fields.items()}
+
+
+def numpy_coarse(coarse: NeRFField, hierarchy: Hierarchy | None) -> CoarseNetwork | None:
+    """The coarse pass of runtime.render's hierarchical render on the torch coarse field (None where the
+    scene has no fine network: its renders are uniform)."""
+    return CoarseNetwork(numpy_field(coarse), hierarchy) if hierarchy is not None else None

@@ -11,8 +11,6 @@ architecture config: a bundle hidden in one scene is refused by any other.
 from __future__ import annotations
 
 import dataclasses
-import hashlib
-import json
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -24,8 +22,9 @@ from safetensors.numpy import load_file, save_file
 from noisenerf.runtime.camera import Camera
 from noisenerf.runtime.errors import UserError
 from noisenerf.runtime.files import atomic_output, read_json, write_json
+from noisenerf.runtime.fingerprint import weights_fingerprint
 from noisenerf.runtime.render import RenderConfig
-from noisenerf.runtime.sampling import OccupancyGrid
+from noisenerf.runtime.sampling import Hierarchy, OccupancyGrid
 from noisenerf.train.field import FieldConfig, NeRFField
 
 SCENE_FORMAT_VERSION = 1
@@ -86,18 +85,6 @@ class SceneConfig:
             raise UserError(f"malformed scene config: {error}") from None
 
 
-def weights_fingerprint(tensors: dict[str, np.ndarray], architecture: dict) -> str:
-    """SHA-256 over the weights in sorted-name order (name, dtype, shape, little-endian bytes) and the
-    canonical JSON of the architecture."""
-    digest = hashlib.sha256()
-    for name in sorted(tensors):
-        array = np.ascontiguousarray(tensors[name]).astype(np.asarray(tensors[name]).dtype.newbyteorder("<"))
-        digest.update(f"{name}|{array.dtype.str}|{list(array.shape)}|".encode())
-        digest.update(array.tobytes())
-    digest.update(json.dumps(architecture, sort_keys=True).encode())
-    return digest.hexdigest()
-
-
 class Scene:
     """A loaded scene: config, the coarse (and optional fine) field, and the occupancy grid."""
 
@@ -108,6 +95,11 @@ class Scene:
     def render_field(self) -> NeRFField:
         """The field views, noise and exports use: the fine network when there is one."""
         return self.fine if self.fine is not None else self.coarse
+
+    @property
+    def hierarchy(self) -> Hierarchy | None:
+        """nerf-pytorch's coarse/fine sample counts for ordinary renders, where the scene has a fine network."""
+        return Hierarchy(self.config.n_coarse, self.config.n_importance) if self.fine is not None else None
 
     def fields(self) -> dict[str, NeRFField]:
         return {"coarse": self.coarse, **({"fine": self.fine} if self.fine is not None else {})}

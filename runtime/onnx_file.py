@@ -1,0 +1,203 @@
+"""Reading what a model file holds, without the onnx package: its metadata and its weights.
+
+The runtime must know a model's weights before it trusts it (the fingerprint check in runtime.model)
+and must refuse tensors stored outside the file before onnxruntime sees it: a session created from
+bytes still resolves an external `location` against the current directory, so any file where the
+recipient runs could feed the model. onnxruntime exposes neither, so this module reads the protobuf
+wire format directly, only the few ONNX fields it needs (field numbers from onnx.proto):
+
+    ModelProto      graph 7, metadata_props 14 (key 1, value 2), training_info 20, functions 25
+    GraphProto      node 1, initializer 5, sparse_initializer 15
+    NodeProto       attribute 5
+    AttributeProto  t 5, g 6, tensors 10, graphs 11, sparse_tensor 22, sparse_tensors 23
+    TensorProto     dims 1, data_type 2, float_data 4, name 8, raw_data 9, external_data 13,
+                    data_location 14
+
+A noisenerf model never has subgraphs, functions, training graphs or sparse tensors, so a model with
+any is refused rather than searched: every tensor onnxruntime could load then lies where this module
+looks. Everything here is bounded by the file's own size.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Iterator
+
+import numpy as np
+
+from noisenerf.runtime.errors import UserError
+
+FLOAT = 1  # TensorProto.DataType.FLOAT
+EXTERNAL = 1  # TensorProto.DataLocation.EXTERNAL
+VARINT, FIXED64, LENGTH, FIXED32 = 0, 1, 2, 5
+UNSUPPORTED = {  # (message, field number) -> what it is
+    ("model", 20): "training graphs", ("model", 25): "functions", ("graph", 15): "sparse initializers",
+    ("attribute", 6): "subgraphs", ("attribute", 11): "subgraphs", ("attribute", 22): "sparse tensors",
+    ("attribute", 23): "sparse tensors",
+}
+
+
+class WireError(ValueError):
+    """The bytes are not a well-formed protobuf message."""
+
+
+def read_varint(data: memoryview, position: int) -> tuple[int, int]:
+    """One base-128 varint at `position` -> (value, next position)."""
+    value = 0
+    for shift in range(0, 70, 7):
+        if position >= len(data):
+            raise WireError("truncated varint")
+        byte = data[position]
+        position += 1
+        value |= (byte & 0x7F) << shift
+        if byte < 0x80:
+            return value, position
+    raise WireError("varint longer than 10 bytes")
+
+
+def fields(data: memoryview) -> Iterator[tuple[int, int, int | memoryview]]:
+    """The fields of one message: (field number, wire type, integer or bytes), in file order."""
+    position, size = 0, len(data)
+    while position < size:
+        key, position = read_varint(data, position)
+        number, wire = key >> 3, key & 7
+        if wire == VARINT:
+            value, position = read_varint(data, position)
+        elif wire in (FIXED64, FIXED32):
+            width = 8 if wire == FIXED64 else 4
+            if position + width > size:
+                raise WireError("truncated fixed-width field")
+            value, position = int.from_bytes(data[position:position + width], "little"), position + width
+        elif wire == LENGTH:
+            length, position = read_varint(data, position)
+            if position + length > size:
+                raise WireError("length-delimited field runs past the end")
+            value, position = data[position:position + length], position + length
+        else:
+            raise WireError(f"unsupported wire type {wire}")
+        yield number, wire, value
+
+
+def blob(value: int | memoryview) -> memoryview:
+    """A length-delimited field's bytes, refusing a number where the schema has bytes or a message."""
+    if not isinstance(value, memoryview):
+        raise WireError("a number where bytes or a message belong")
+    return value
+
+
+def packed_varints(data: memoryview) -> list[int]:
+    """A packed repeated varint field's values."""
+    values, position = [], 0
+    while position < len(data):
+        value, position = read_varint(data, position)
+        values.append(value)
+    return values
+
+
+@dataclass(frozen=True)
+class TensorRecord:
+    """A TensorProto as stored: name, element type, dims, and where its values are."""
+
+    name: str
+    data_type: int
+    dims: tuple[int, ...]
+    raw_data: bytes | None
+    float_data: np.ndarray | None  # float32 values stored in the float_data field
+    external: bool
+
+    def array(self, source: str) -> np.ndarray:
+        """The values as a little-endian float32 array of shape dims; refuses any other element type and
+        a byte count that disagrees with the dims."""
+        if self.data_type != FLOAT:
+            raise UserError(f"{source}: initializer {self.name!r} has ONNX data type {self.data_type}; "
+                            "noisenerf weights are float32")
+        count = int(np.prod(self.dims, dtype=np.int64))
+        values = (np.frombuffer(self.raw_data, dtype="<f4") if self.raw_data is not None
+                  else self.float_data if self.float_data is not None else np.zeros(0, "<f4"))
+        if values.size != count:
+            raise UserError(f"{source}: initializer {self.name!r} holds {values.size} values, its dims "
+                            f"{list(self.dims)} need {count}")
+        return values.reshape(self.dims)
+
+
+def read_tensor(data: memoryview) -> TensorRecord:
+    """One TensorProto's fields; values are not decoded until TensorRecord.array."""
+    name, data_type, dims, raw, floats, external = "", 0, [], None, [], False
+    for number, wire, value in fields(data):
+        if number == 1:
+            dims.extend(packed_varints(value) if wire == LENGTH else [value])
+        elif number == 2:
+            data_type = value
+        elif number == 4:
+            if wire not in (LENGTH, FIXED32):
+                raise WireError("float_data neither packed nor 32-bit")
+            floats.append(np.frombuffer(value, "<f4") if wire == LENGTH else np.array([value], "<u4").view("<f4"))
+        elif number == 8:
+            name = bytes(blob(value)).decode("utf-8", "replace")
+        elif number == 9:
+            raw = bytes(blob(value))
+        elif number == 13 or (number == 14 and value == EXTERNAL):
+            external = True
+    if any(d >= 2 ** 63 for d in dims):
+        raise WireError("negative tensor dimension")
+    return TensorRecord(name, data_type, tuple(dims), raw, np.concatenate(floats) if floats else None, external)
+
+
+@dataclass(frozen=True)
+class ModelFile:
+    """What the runtime reads from a model's bytes: metadata_props and the graph's initializers."""
+
+    metadata_props: dict[str, str]
+    initializers: tuple[TensorRecord, ...]
+
+    def weights(self, source: str) -> dict[str, np.ndarray]:
+        """Initializer name -> float32 array, refusing duplicate names."""
+        arrays = {}
+        for record in self.initializers:
+            if record.name in arrays:
+                raise UserError(f"{source}: initializer {record.name!r} appears twice")
+            arrays[record.name] = record.array(source)
+        return arrays
+
+
+def refuse_unsupported(message: str, number: int, source: str) -> None:
+    """Refuse field `number` of a `message` kind that is in UNSUPPORTED."""
+    if (message, number) in UNSUPPORTED:
+        raise UserError(f"{source} holds {UNSUPPORTED[message, number]}, which a noisenerf model never has")
+
+
+def node_tensors(node: memoryview, source: str) -> Iterator[TensorRecord]:
+    """The tensors in a NodeProto's attributes (a Constant's value, ...), refusing subgraphs."""
+    for number, _, attribute in fields(node):
+        if number != 5:
+            continue
+        for inner, _, value in fields(blob(attribute)):
+            refuse_unsupported("attribute", inner, source)
+            if inner in (5, 10):
+                yield read_tensor(blob(value))
+
+
+def parse_model(data: bytes, source: str) -> ModelFile:
+    """Read a model's metadata and tensors; refuses malformed bytes, unsupported structures and, before
+    anything could load them, tensors whose data lives outside the file."""
+    try:
+        props, initializers, attributes = {}, [], []
+        for number, _, value in fields(memoryview(data)):
+            refuse_unsupported("model", number, source)
+            if number == 14:
+                entry = {k: bytes(blob(v)).decode("utf-8") for k, _, v in fields(blob(value)) if k in (1, 2)}
+                props[entry.get(1, "")] = entry.get(2, "")
+            elif number == 7:
+                for inner, _, item in fields(blob(value)):
+                    refuse_unsupported("graph", inner, source)
+                    if inner == 5:
+                        initializers.append(read_tensor(blob(item)))
+                    elif inner == 1:
+                        attributes.extend(node_tensors(blob(item), source))
+    except ValueError as error:  # WireError, UnicodeDecodeError, float_data of a length not divisible by 4
+        raise UserError(f"{source} is not a loadable ONNX model (not ONNX, or truncated): {error}") from None
+    external = [t.name or "(unnamed)" for t in initializers + attributes if t.external]
+    if external:
+        raise UserError(f"{source} keeps tensor {external[0]!r} in external data; a noisenerf model must be "
+                        "one self-contained .onnx file")
+    return ModelFile(props, tuple(initializers))
