@@ -153,6 +153,7 @@ def tile_quality(colors: torch.Tensor, secret: np.ndarray) -> dict:
 def exact_curve(scene: Scene, secret: np.ndarray, view: int, settings: ExactSettings = ExactSettings(),
                 device: torch.device = torch.device("cpu")) -> tuple[list[dict], dict]:
     """Quality of the whole secret after every LM iteration of the exact solver (observation excluded)."""
+    scene.to(device)
     tile_view = secret_view(scene, secret, view, 1, device)
     pixels = torch.from_numpy(secret.reshape(-1, 3).copy()).to(device)
     current = torch.zeros(tile_view.n_rays, 1, tile_view.encoded.shape[-1], device=device)
@@ -193,6 +194,7 @@ def paper_curve(scene: Scene, secret: np.ndarray, view: int, n_samples: int, set
                 device: torch.device, label: str = "paper", keep_noise: bool = False) -> PaperRun:
     """The paper's method on the coarse field, block by block as `hide` runs it. Blocks run one after
     another, so the time at iteration t is the run's time × t / iters (recording renders included)."""
+    scene.to(device)
     tile_view = secret_view(scene, secret, view, n_samples, device, scene.coarse)
     pixels = torch.from_numpy(secret.reshape(-1, 3).copy()).to(device)
     if device.type == "cuda":
