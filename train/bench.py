@@ -296,7 +296,10 @@ def error_vs_time(config: BenchConfig, scene: Scene, secret: np.ndarray, state: 
              f"`{settings.revival}`, {config.paper_samples} samples per ray, {config.paper_iters} iterations, coarse "
              "network; exact: one sample per ray, float16 noise.", "",
              "| target | exact: seconds | paper: seconds | exact ÷ paper |", "|---|---|---|---|"]
-    for key, value, label in (("ssim", 0.99, "SSIM ≥ 0.99"), ("exact_fraction", 1.0, "100 % exact 8-bit values")):
+    paper_final_ssim = paper_rows[-1]["ssim"]
+    targets = (("ssim", paper_final_ssim, f"SSIM ≥ {paper_final_ssim:.4f} (the paper method's final: same quality)"),
+               ("ssim", 0.99, "SSIM ≥ 0.99"), ("exact_fraction", 1.0, "100 % exact 8-bit values"))
+    for key, value, label in targets:
         hit_exact, hit_paper = first_reaching(exact_rows, key, value), first_reaching(paper_rows, key, value)
         paper_text = f"{hit_paper['seconds']:.1f}" if hit_paper else f"not reached in {config.paper_iters} iterations"
         ratio = (f"{hit_exact['seconds'] / hit_paper['seconds']:.4f}" if hit_exact and hit_paper
