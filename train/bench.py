@@ -239,6 +239,9 @@ def paper_quality(config: BenchConfig, scene: Scene, secret: np.ndarray, state: 
         photo = square_secret(load_secret(path)[0], width)
         run = paper_curve(scene, photo, config.view, config.paper_samples, settings, device, label=Path(path).name)
         rows += [{**row, "width": width, "peak_gib": run.peak_gib, "dead_fraction": run.dead_fraction} for row in run.rows]
+        print(f"paper_quality: {Path(path).name} {width}²: SSIM {run.rows[-1]['ssim']:.4f}, authors' SSIM "
+              f"{run.rows[-1]['ssim_authors']:.4f}, PSNR {run.rows[-1]['psnr']:.2f} dB, {run.seconds:.1f} s, "
+              f"peak GPU {run.peak_gib} GiB", file=sys.stderr, flush=True)  # seen even if a long run is cut
         summaries.append((Path(path).name, run))
     memory_lines = []
     if cuda:
