@@ -155,6 +155,7 @@ def tile_quality(colors: torch.Tensor, secret: np.ndarray) -> dict:
 def exact_curve(scene: Scene, secret: np.ndarray, view: int, settings: ExactSettings = ExactSettings(),
                 device: torch.device = torch.device("cpu")) -> tuple[list[dict], dict]:
     """Quality of the whole secret after every LM iteration of the exact solver (observation excluded)."""
+    scene.to(device)
     tile_view = secret_view(scene, secret, view, 1, device)
     pixels = torch.from_numpy(secret.reshape(-1, 3).copy()).to(device)
     current = torch.zeros(tile_view.n_rays, 1, tile_view.encoded.shape[-1], device=device)
@@ -195,6 +196,7 @@ def paper_curve(scene: Scene, secret: np.ndarray, view: int, n_samples: int, set
                 device: torch.device, label: str = "paper", keep_noise: bool = False) -> PaperRun:
     """The paper's method on the coarse field, block by block as `hide` runs it. Blocks run one after
     another, so the time at iteration t is the run's time × t / iters (recording renders included)."""
+    scene.to(device)
     tile_view = secret_view(scene, secret, view, n_samples, device, scene.coarse)
     pixels = torch.from_numpy(secret.reshape(-1, 3).copy()).to(device)
     if device.type == "cuda":
@@ -239,6 +241,9 @@ def paper_quality(config: BenchConfig, scene: Scene, secret: np.ndarray, state: 
         photo = square_secret(load_secret(path)[0], width)
         run = paper_curve(scene, photo, config.view, config.paper_samples, settings, device, label=Path(path).name)
         rows += [{**row, "width": width, "peak_gib": run.peak_gib, "dead_fraction": run.dead_fraction} for row in run.rows]
+        print(f"paper_quality: {Path(path).name} {width}²: SSIM {run.rows[-1]['ssim']:.4f}, authors' SSIM "
+              f"{run.rows[-1]['ssim_authors']:.4f}, PSNR {run.rows[-1]['psnr']:.2f} dB, {run.seconds:.1f} s, "
+              f"peak GPU {run.peak_gib} GiB", file=sys.stderr, flush=True)  # seen even if a long run is cut
         summaries.append((Path(path).name, run))
     memory_lines = []
     if cuda:
@@ -296,7 +301,10 @@ def error_vs_time(config: BenchConfig, scene: Scene, secret: np.ndarray, state: 
              f"`{settings.revival}`, {config.paper_samples} samples per ray, {config.paper_iters} iterations, coarse "
              "network; exact: one sample per ray, float16 noise.", "",
              "| target | exact: seconds | paper: seconds | exact ÷ paper |", "|---|---|---|---|"]
-    for key, value, label in (("ssim", 0.99, "SSIM ≥ 0.99"), ("exact_fraction", 1.0, "100 % exact 8-bit values")):
+    paper_final_ssim = paper_rows[-1]["ssim"]
+    targets = (("ssim", paper_final_ssim, f"SSIM ≥ {paper_final_ssim:.4f} (the paper method's final: same quality)"),
+               ("ssim", 0.99, "SSIM ≥ 0.99"), ("exact_fraction", 1.0, "100 % exact 8-bit values"))
+    for key, value, label in targets:
         hit_exact, hit_paper = first_reaching(exact_rows, key, value), first_reaching(paper_rows, key, value)
         paper_text = f"{hit_paper['seconds']:.1f}" if hit_paper else f"not reached in {config.paper_iters} iterations"
         ratio = (f"{hit_exact['seconds'] / hit_paper['seconds']:.4f}" if hit_exact and hit_paper
