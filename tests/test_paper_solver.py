@@ -109,3 +109,30 @@ def test_paper_mode_reaches_an_ssim_the_old_solver_missed(demo, secret, view):
         scores[name] = ssim(to_uint8(colors.numpy()).reshape(secret.shape) / 255.0, secret / 255.0)
     assert scores["old"] < 0.6
     assert scores["default"] > 0.97
+
+
+def test_interrupted_paper_hide_resumes_per_block_to_a_byte_identical_bundle(demo, secret, tmp_path, monkeypatch):
+    from noisenerf.train import hide as hide_module
+    from noisenerf.train import paper_solver
+
+    config = HideConfig(method="paper", layout="sample", dtype="float32", n_samples=8,
+                        paper=recipe("authors", iters=4, block_pixels=40, record_at=(2, 4)))
+    hide_module.hide(demo, secret, tmp_path / "whole.bundle", config, CPU, show_progress=False)
+    original, saved = hide_module.Progress.save, []
+
+    def save_then_die(self, *args):
+        original(self, *args)
+        saved.append(args[:2])
+        if len(saved) == 2:
+            raise KeyboardInterrupt
+
+    monkeypatch.setattr(hide_module.Progress, "save", save_then_die)
+    with pytest.raises(KeyboardInterrupt):
+        hide_module.hide(demo, secret, tmp_path / "resumed.bundle", config, CPU, show_progress=False)
+    monkeypatch.setattr(hide_module.Progress, "save", original)
+    solved, solve_block = [], paper_solver.solve_block
+    monkeypatch.setattr(paper_solver, "solve_block", lambda *a, **k: solved.append(1) or solve_block(*a, **k))
+    report = hide_module.hide(demo, secret, tmp_path / "resumed.bundle", config, CPU, show_progress=False)
+    assert len(solved) == 4 - 2  # 144 pixels in blocks of 40 make 4 blocks; 2 were saved
+    assert (tmp_path / "resumed.bundle").read_bytes() == (tmp_path / "whole.bundle").read_bytes()
+    assert [r["iteration"] for r in report["tiles"][0]["records"]] == [2, 4]
