@@ -136,3 +136,15 @@ def test_interrupted_paper_hide_resumes_per_block_to_a_byte_identical_bundle(dem
     assert len(solved) == 4 - 2  # 144 pixels in blocks of 40 make 4 blocks; 2 were saved
     assert (tmp_path / "resumed.bundle").read_bytes() == (tmp_path / "whole.bundle").read_bytes()
     assert [r["iteration"] for r in report["tiles"][0]["records"]] == [2, 4]
+
+
+def test_a_view_too_large_to_cache_encodes_per_batch_with_the_same_result(demo, secret, monkeypatch):
+    from noisenerf.train import secret_view
+
+    cached = paper_view(demo, secret, 16)
+    monkeypatch.setattr(secret_view, "ENCODING_CACHE_BYTES", 0)
+    streamed = paper_view(demo, secret, 16)
+    assert cached.cached is not None and streamed.cached is None
+    index = torch.arange(5, 40)
+    noise = torch.randn(index.numel(), 16, streamed.noise_dims, generator=torch.Generator().manual_seed(0))
+    assert torch.equal(streamed.render(index, noise), cached.render(index, noise))

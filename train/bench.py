@@ -158,7 +158,7 @@ def exact_curve(scene: Scene, secret: np.ndarray, view: int, settings: ExactSett
     scene.to(device)
     tile_view = secret_view(scene, secret, view, 1, device)
     pixels = torch.from_numpy(secret.reshape(-1, 3).copy()).to(device)
-    current = torch.zeros(tile_view.n_rays, 1, tile_view.encoded.shape[-1], device=device)
+    current = torch.zeros(tile_view.n_rays, 1, tile_view.noise_dims, device=device)
     index = torch.arange(tile_view.n_rays, device=device)
     watch, rows = Stopwatch(), []
 
@@ -517,7 +517,7 @@ def bundle_size(config: BenchConfig, scene: Scene, secret: np.ndarray, state: di
         rows.append(row)
     if "paper" in state:
         noise, tile_view, paper_secret = state["paper"]
-        index = torch.arange(tile_view.n_rays, device=tile_view.encoded.device)
+        index = torch.arange(tile_view.n_rays, device=tile_view.device)
         with torch.no_grad():
             for row, dtype in ((rows[2], torch.float32), (rows[3], torch.float16)):
                 stored = noise.to(dtype).float().to(index.device)

@@ -232,7 +232,7 @@ def remove(entry: Path) -> None:
 
 def noise_shape(view: SecretView, config: HideConfig) -> tuple[int, int, int]:
     samples = 1 if config.layout == "ray" else view.n_samples
-    return view.n_rays, samples, view.encoded.shape[-1]
+    return view.n_rays, samples, view.noise_dims
 
 
 def hide_tile_exact(view: SecretView, pixels: torch.Tensor, shape: tuple[int, int], config: HideConfig,

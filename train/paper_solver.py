@@ -169,8 +169,8 @@ class ViewSurvey:
 def survey(view: SecretView, pass_samples: int) -> ViewSurvey:
     """Render the view without noise, pass by pass, noting dead rays (all raw densities ≤ 0)."""
     colors, alive = [], []
-    device = view.encoded.device
-    zero = torch.zeros(1, 1, view.encoded.shape[-1], device=device)
+    device = view.device
+    zero = torch.zeros(1, 1, view.noise_dims, device=device)
     with torch.no_grad():
         for part in pass_slices(view.n_rays, view.n_samples, pass_samples):
             index = torch.arange(part.start, part.stop, device=device)
@@ -202,13 +202,13 @@ def revival_noise(view: SecretView, index: torch.Tensor, targets: torch.Tensor, 
     γ(donor) − γ(ray): for dead rays (mode "dead"), or also for live rays whose donor is nearer their
     target than their own clean colour (mode "all"); zero elsewhere. targets: (m, 3) in [0, 1]
     -> (m, n_samples, dims)."""
-    noise = torch.zeros(index.numel(), view.n_samples, view.encoded.shape[-1], device=view.encoded.device)
+    noise = torch.zeros(index.numel(), view.n_samples, view.noise_dims, device=view.device)
     if mode == "off":
         return noise
     donors, distances = nearest_donors(targets, clean)
     own = torch.linalg.vector_norm(targets - clean.colors[index], dim=-1)
     revive = (donors >= 0) & (~clean.alive[index] | ((mode == "all") & (distances < own)))
-    noise[revive] = view.encoded[donors[revive]] - view.encoded[index[revive]]
+    noise[revive] = view.encodings(donors[revive]) - view.encodings(index[revive])
     return noise
 
 
@@ -270,7 +270,8 @@ def solve_block(view: SecretView, index: torch.Tensor, pixels: torch.Tensor, noi
     target = pixels.float() / 255.0
     noise = noise.clone()
     # the encoded input the authors' weight decay shrinks: γ + δ, with γ broadcast to the noise's shape
-    encoded = view.encoded[index] if noise.shape[1] == view.n_samples else view.encoded[index].mean(1, keepdim=True)
+    encoded = view.encodings(index)
+    encoded = encoded if noise.shape[1] == view.n_samples else encoded.mean(1, keepdim=True)
     with matmul_precision(settings.tf32 and noise.is_cuda):
         return optimise(problem, target, noise, clean, encoded, settings, record)
 

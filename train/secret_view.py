@@ -18,34 +18,53 @@ from noisenerf.train.field import NeRFField
 from noisenerf.train.rendering import composite, render_weights
 
 
+ENCODING_CACHE_BYTES = 1 << 30  # a view's encodings up to this size are computed once and kept
+
+
 class SecretView:
-    """Precomputed encodings and intervals of a tile's rays; renders any subset of them with noise."""
+    """A tile's rays and sample intervals; renders any subset of them with noise. Encodings are kept when
+    they are small (every exact view, paper views up to ~180k pixels); beyond that (the paper's 64
+    samples at 800²: 14.7 GB) each batch of rays is encoded as it is rendered, so device memory follows
+    the batch, not the view."""
 
     def __init__(self, field: NeRFField, tile: Tile, render: RenderConfig, device: torch.device):
         rays = tile_rays(tile, render)
         points, deltas = sample_along(rays, sample_positions(tile.sampling))
-        n_rays, n_samples = deltas.shape
-        viewdirs = np.broadcast_to(rays.viewdirs[:, None, :], points.shape)
-        self.field = field
-        with torch.no_grad():
-            self.encoded = field.encode(torch.from_numpy(points.reshape(-1, 3)).to(device),
-                                        torch.from_numpy(viewdirs.reshape(-1, 3).copy()).to(device)
-                                        ).reshape(n_rays, n_samples, -1)
+        self.field, self.device = field, device
+        self.points = torch.from_numpy(np.ascontiguousarray(points)).to(device)  # (n_rays, n_samples, 3)
+        self.viewdirs = torch.from_numpy(np.ascontiguousarray(rays.viewdirs)).to(device)  # (n_rays, 3)
         self.deltas = torch.from_numpy(deltas).to(device)
         self.background = torch.tensor(render.background, dtype=torch.float32, device=device)
+        size = self.n_rays * self.n_samples * self.noise_dims * 4
+        self.cached = self.encode(torch.arange(self.n_rays, device=device)) if size <= ENCODING_CACHE_BYTES else None
 
     @property
     def n_rays(self) -> int:
-        return self.encoded.shape[0]
+        return self.points.shape[0]
 
     @property
     def n_samples(self) -> int:
-        return self.encoded.shape[1]
+        return self.points.shape[1]
+
+    @property
+    def noise_dims(self) -> int:
+        return self.field.config.noise_dims
+
+    def encode(self, index: torch.Tensor) -> torch.Tensor:
+        """[γ(x) ‖ γ(d)] of rays `index` (m,) at every sample -> (m, n_samples, noise_dims)."""
+        points = self.points[index]
+        viewdirs = self.viewdirs[index, None, :].expand_as(points)
+        with torch.no_grad():
+            return self.field.encode(points.reshape(-1, 3), viewdirs.reshape(-1, 3)).reshape(*points.shape[:2], -1)
+
+    def encodings(self, index: torch.Tensor) -> torch.Tensor:
+        """The clean encodings of rays `index` (m,), kept or computed. -> (m, n_samples, noise_dims)."""
+        return self.cached[index] if self.cached is not None else self.encode(index)
 
     def raw(self, index: torch.Tensor, noise: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Pre-activation colour (m, n_samples, 3) and density (m, n_samples) of rays `index` (m,) with
         noise (m, 1 or n_samples, dims)."""
-        encoded = self.encoded[index] + noise
+        encoded = self.encodings(index) + noise
         raw_rgb, raw_density = self.field.raw_outputs(encoded.reshape(-1, encoded.shape[-1]))
         m = index.shape[0]
         return raw_rgb.reshape(m, self.n_samples, 3), raw_density.reshape(m, self.n_samples)

@@ -81,7 +81,7 @@ def sample_outputs(view: SecretView, index: torch.Tensor, noise: torch.Tensor) -
 def output_jacobian(view: SecretView, index: torch.Tensor, noise: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """Outputs (m, 4) and their exact Jacobian ∂outputs/∂noise (m, 4, dims) for single-sample rays: the
     noise adds to the encoded input, so this is the field's own input Jacobian."""
-    return view.field.outputs_and_jacobian(view.encoded[index, 0] + noise[:, 0])
+    return view.field.outputs_and_jacobian(view.encodings(index)[:, 0] + noise[:, 0])
 
 
 def residuals(outputs: torch.Tensor, goal: torch.Tensor, density_floor: float) -> torch.Tensor:
@@ -263,7 +263,7 @@ def solve_exact(view: SecretView, index: torch.Tensor, pixels: torch.Tensor, sto
         return refine(view, index[group], group_criteria.goal, store(converged), group_criteria.rounds_right,
                       store, settings, generator, counts, observe)[0]
 
-    noise = torch.zeros(m, 1, view.encoded.shape[-1], device=pixels.device)
+    noise = torch.zeros(m, 1, view.noise_dims, device=pixels.device)
     is_seed = torch.arange(m, device=pixels.device) % settings.seed_stride == 0
     seeds, rest = is_seed.nonzero()[:, 0], (~is_seed).nonzero()[:, 0]
     noise[seeds] = both_phases(seeds, noise[seeds])
