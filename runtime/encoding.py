@@ -1,4 +1,4 @@
-"""Positional encoding γ (paper eq. 3), in nerf-pytorch's layout, as the numpy reference."""
+"""Positional encoding γ (paper eq. 4), in nerf-pytorch's layout, as the numpy reference."""
 
 import numpy as np
 
