@@ -157,9 +157,11 @@ def cmd_bench(args) -> None:
     from noisenerf.train.bench import EXPERIMENTS, BenchConfig, run_bench
 
     experiments = tuple(args.only.split(",")) if args.only else EXPERIMENTS
+    if args.payload_bytes < 0:
+        raise UserError("--payload-bytes must be 0 or more")
     config = BenchConfig(scene=args.scene, secret=args.secret, data=args.data, photos=tuple(args.photos),
                          view=args.view, small_width=args.small_width, twok_rows=args.twok_rows,
-                         paper_width=args.paper_width, paper_iters=args.paper_iters,
+                         paper_width=args.paper_width, paper_iters=args.paper_iters, payload_bytes=args.payload_bytes,
                          device=str(resolve_device(args.device)), experiments=experiments)
     command = "noisenerf " + " ".join(sys.argv[1:]) if sys.argv[0].endswith("noisenerf") else "noisenerf bench ..."
     sections = run_bench(config, Path(args.output), args.stress, command,
@@ -249,6 +251,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--paper-width", type=int, help="paper-quality secret width (default: 400 on CUDA, --small-width on CPU)")
     p.add_argument("--paper-iters", type=int, default=300, help="paper-mode iterations (the paper's 300)")
     p.add_argument("--twok-rows", type=int, default=1, help="tile rows of the 2048² secret actually hidden (1-4)")
+    p.add_argument("--payload-bytes", type=int, default=1 << 20, help="size of the payload experiment's file")
     p.add_argument("--only", help="comma-separated experiments (default: all)")
     add_device(p)
     p.add_argument("--stress", action="store_true", help="also run the full numerical stress suite")
