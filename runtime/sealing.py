@@ -48,9 +48,9 @@ MAC_KEY = "noisenerf_seal_mac"
 WRONG = "wrong passphrase, or the bundle or model was altered"
 
 # Caps on the scrypt parameters a bundle may ask for, so a hostile bundle cannot demand huge memory or time:
-# at most 1 GiB (128·r·n bytes) and 16x the default's work.
-MAX_KDF_MEMORY = 1 << 30
-MAX_KDF_WORK = 1 << 25  # n·r·p
+# at most 512 MiB (128·r·n bytes, 4x the default's) and 8x the default's work (a few seconds).
+MAX_KDF_MEMORY = 1 << 29
+MAX_KDF_WORK = 1 << 24  # n·r·p
 
 
 @dataclass(frozen=True)

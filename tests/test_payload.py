@@ -98,8 +98,8 @@ def test_payload_metadata_is_checked_and_kdf_capped():
     assert checked_payload({"version": 1, "sealed": seal})["sealed"] == seal
     for bad in ({"version": 2, "sealed": None}, {"version": 1, "sealed": None, "x": 1},
                 {"version": 1, "sealed": {**seal, "salt": "AAAA"}},
-                {"version": 1, "sealed": {**seal, "kdf": {"name": "scrypt", "log2_n": 24, "r": 8, "p": 1}}},
-                {"version": 1, "sealed": {**seal, "kdf": {"name": "scrypt", "log2_n": 20, "r": 8, "p": 64}}},
+                {"version": 1, "sealed": {**seal, "kdf": {"name": "scrypt", "log2_n": 20, "r": 8, "p": 1}}},
+                {"version": 1, "sealed": {**seal, "kdf": {"name": "scrypt", "log2_n": 17, "r": 8, "p": 64}}},
                 {"version": 1, "sealed": {**seal, "cipher": "rot13"}}):
         with pytest.raises(UserError, match="bundle: "):
             checked_payload(bad)
