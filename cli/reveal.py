@@ -207,6 +207,9 @@ def main(argv: list[str] | None = None) -> int:
             report = run(args)
     except FAILURES as error:
         return failure(PROG, error)
+    except KeyboardInterrupt:  # at the passphrase prompt, or during a long reveal: nothing was written
+        print(f"{PROG}: interrupted", file=sys.stderr)
+        return 130
     print(json_text(report) if args.json else "\n".join(summary_lines(report)))
     return 0
 
