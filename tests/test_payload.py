@@ -174,8 +174,12 @@ def test_sealed_metadata_hides_length_and_name(demo, sealed, tmp_path):
     assert set(load_bundle(sealed).payload) == {"version", "sealed"}
 
 
-def test_sealed_bundle_is_deterministic_only_with_a_fixed_seal():
-    assert new_seal().salt != new_seal().salt and fixed_seal() == fixed_seal()
+def test_sealed_bundle_is_deterministic_only_with_a_fixed_seal(demo, sealed, tmp_path):
+    scene, _ = demo
+    hide_payload(scene, Record("file", b"the eagle lands at noon\n", b"note.txt"), tmp_path / "again.bundle", CONFIG,
+                 CPU, passphrase=PASSPHRASE, seal=fixed_seal(), show_progress=False)
+    assert (tmp_path / "again.bundle").read_bytes() == sealed.read_bytes()
+    assert new_seal().salt != new_seal().salt and new_seal().nonce != new_seal().nonce
 
 
 def flip_noise_byte(source: Path, target: Path) -> None:
