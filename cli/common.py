@@ -10,8 +10,11 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import getpass
+import os
 import sys
 import warnings
+from pathlib import Path
 
 import numpy as np
 
@@ -51,6 +54,39 @@ def failure(prog: str, error: BaseException) -> int:
         message = str(error)
     print(f"{prog}: error: {one_line(message)}", file=sys.stderr)
     return 2
+
+
+PASSPHRASE_ENV = "NOISENERF_PASSPHRASE"
+MAX_PASSPHRASE_BYTES = 4096
+
+
+def read_passphrase(path: str | None, confirm: bool = False) -> bytes | None:
+    """The passphrase, never from the command line (it would land in shell history): the file `path`
+    (one trailing newline dropped), else the NOISENERF_PASSPHRASE environment variable, else a hidden
+    prompt when stdin is a terminal (asked twice when `confirm`); None when there is none of these."""
+    if path is not None:
+        file = Path(path)
+        if not file.is_file() or file.stat().st_size > MAX_PASSPHRASE_BYTES:
+            raise UserError(f"--passphrase-file must be a file of at most {MAX_PASSPHRASE_BYTES} bytes: {path}")
+        passphrase = file.read_bytes().removesuffix(b"\n").removesuffix(b"\r")
+    elif PASSPHRASE_ENV in os.environ:
+        passphrase = os.environb[PASSPHRASE_ENV.encode()]
+    elif sys.stdin.isatty():
+        passphrase = getpass.getpass("passphrase: ").encode()
+        if confirm and getpass.getpass("passphrase (again): ").encode() != passphrase:
+            raise UserError("the two passphrases differ")
+    else:
+        return None
+    if not passphrase:
+        raise UserError("the passphrase is empty")
+    return passphrase
+
+
+def payload_line(payload: dict, sealed: bool) -> str:
+    """One line about a payload report (runtime.payload.Record.report): kind, name, size, digest, sealing."""
+    name = f" {payload['name']!r}" if payload.get("name") else ""
+    return (f"payload: {payload['kind']}{name}, {payload['bytes']} bytes, sha256 {payload['sha256']}"
+            f"{', sealed' if sealed else ''}")
 
 
 FAILURES = (UserError, OSError, MemoryError)  # what `failure` reports; anything else is a bug with a traceback

@@ -11,7 +11,7 @@ import re
 import sys
 from pathlib import Path
 
-from noisenerf.cli.common import FAILURES, OneLineParser, failure, quiet_warnings
+from noisenerf.cli.common import FAILURES, OneLineParser, failure, payload_line, quiet_warnings, read_passphrase
 from noisenerf.runtime.errors import UserError
 from noisenerf.runtime.files import check_output_directory, json_text
 
@@ -83,7 +83,9 @@ def cmd_hide(args) -> None:
     from noisenerf.train.solvers import chunk_pixels_for
     from noisenerf.train.scene import load_scene
 
-    device = resolve_device(args.device)
+    if (args.secret is None) == (args.file is None):
+        raise UserError("give exactly one of SECRET_IMAGE or --file PAYLOAD")
+    passphrase = sealing_passphrase(args)
     output = Path(args.output)
     device = resolve_device(args.device)
     overrides = {name: value for name, value in (("iters", args.iters), ("revival", args.revival)) if value is not None}
@@ -92,15 +94,49 @@ def cmd_hide(args) -> None:
                         n_samples=args.samples, tile_size=args.tile_size, view=args.view, seed=args.seed,
                         chunk_pixels=chunk_pixels_for(device), paper=recipe(args.recipe, pass_samples=pass_samples_for(device), **overrides))
     scene = load_scene(args.scene_dir)
-    secret, warnings = load_secret(args.secret)
-    for warning in warnings:
-        print(f"{PROG}: warning: {warning}", file=sys.stderr)
-    report = hide(scene, secret, output, config, device, force=args.force,
-                  show_progress=not args.quiet)
-    emit(report, args.json, [
-        f"bundle: {report['bundle']} ({report['bundle_bytes']} bytes, {report['bytes_per_pixel']:.1f} B/px)",
-        f"tiles: {len(report['tiles'])}, exact fraction {report['exact_fraction']:.6f}, "
-        f"exact: {str(report['exact']).lower()}", f"seconds: {report['seconds']}"])
+    if args.file is None:
+        secret, warnings = load_secret(args.secret)
+        for warning in warnings:
+            print(f"{PROG}: warning: {warning}", file=sys.stderr)
+    if args.file is not None or passphrase is not None:
+        from noisenerf.runtime.payload import image_record, read_payload_file
+
+        record = read_payload_file(args.file) if args.file is not None else image_record(secret)
+        report = hide_record(args, scene, record, output, config, device, passphrase)
+    else:
+        report = hide(scene, secret, output, config, device, force=args.force, show_progress=not args.quiet)
+    lines = [f"bundle: {report['bundle']} ({report['bundle_bytes']} bytes, {report['bytes_per_pixel']:.1f} B/px)",
+             f"tiles: {len(report['tiles'])}, exact fraction {report['exact_fraction']:.6f}, "
+             f"exact: {str(report['exact']).lower()}", f"seconds: {report['seconds']}"]
+    if "payload" in report:
+        lines.insert(1, payload_line(report["payload"], report["sealed"]))
+    emit(report, args.json, lines)
+
+
+def sealing_passphrase(args) -> bytes | None:
+    """The passphrase a sealed hide uses (--seal or --passphrase-file asks for sealing), else None."""
+    if not (args.seal or args.passphrase_file is not None):
+        return None
+    passphrase = read_passphrase(args.passphrase_file, confirm=True)
+    if passphrase is None:
+        raise UserError("--seal needs a passphrase: --passphrase-file F, NOISENERF_PASSPHRASE, or a terminal to "
+                        "prompt on")
+    return passphrase
+
+
+def hide_record(args, scene, record, output: Path, config, device, passphrase: bytes | None) -> dict:
+    """Hide a payload record (--file's bytes, or a secret image to seal) under `passphrase` if given; the
+    capacity and the time to expect go to stderr first."""
+    from noisenerf.train.payload import hide_payload
+
+    def announce(room: dict) -> None:
+        if not args.quiet:
+            print(f"{PROG}: {record.kind} payload of {len(record.body)} bytes -> {room['width']}x{room['height']} "
+                  f"secret ({room['pixels']} px, {room['tiles']} tiles of at most {config.tile_size} px); "
+                  f"expect about {room['expected_seconds']} s of hiding on 2 CPU cores", file=sys.stderr, flush=True)
+
+    return hide_payload(scene, record, output, config, device, passphrase=passphrase, force=args.force,
+                        show_progress=not args.quiet, announce=announce)
 
 
 def cmd_export(args) -> None:
@@ -121,9 +157,11 @@ def cmd_bench(args) -> None:
     from noisenerf.train.bench import EXPERIMENTS, BenchConfig, run_bench
 
     experiments = tuple(args.only.split(",")) if args.only else EXPERIMENTS
+    if args.payload_bytes < 0:
+        raise UserError("--payload-bytes must be 0 or more")
     config = BenchConfig(scene=args.scene, secret=args.secret, data=args.data, photos=tuple(args.photos),
                          view=args.view, small_width=args.small_width, twok_rows=args.twok_rows,
-                         paper_width=args.paper_width, paper_iters=args.paper_iters,
+                         paper_width=args.paper_width, paper_iters=args.paper_iters, payload_bytes=args.payload_bytes,
                          device=str(resolve_device(args.device)), experiments=experiments)
     command = "noisenerf " + " ".join(sys.argv[1:]) if sys.argv[0].endswith("noisenerf") else "noisenerf bench ..."
     sections = run_bench(config, Path(args.output), args.stress, command,
@@ -170,9 +208,13 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--data-dir", help="dataset folder (default: the config's datadir)")
     p.add_argument("-o", "--output", required=True)
 
-    p = add("hide", cmd_hide, "hide a secret image in a scene; writes the secret bundle")
+    p = add("hide", cmd_hide, "hide a secret image (or any file) in a scene; writes the secret bundle")
     p.add_argument("scene_dir")
-    p.add_argument("secret", help="PNG/JPEG/TIFF/EXR; RGBA is composited over white")
+    p.add_argument("secret", nargs="?", help="PNG/JPEG/TIFF/EXR; RGBA is composited over white")
+    p.add_argument("--file", help="hide this file's bytes instead of an image (revealed byte for byte)")
+    p.add_argument("--seal", action="store_true",
+                   help="encrypt under a passphrase from NOISENERF_PASSPHRASE or a hidden prompt")
+    p.add_argument("--passphrase-file", help="seal with the passphrase in this file (implies --seal)")
     p.add_argument("-o", "--output", required=True, help="the bundle file to write")
     p.add_argument("--view", type=int, default=0, help="scene camera of the first tile")
     p.add_argument("--tile-size", type=int, default=512, help="secrets larger than this are cut into tiles")
@@ -209,6 +251,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--paper-width", type=int, help="paper-quality secret width (default: 400 on CUDA, --small-width on CPU)")
     p.add_argument("--paper-iters", type=int, default=300, help="paper-mode iterations (the paper's 300)")
     p.add_argument("--twok-rows", type=int, default=1, help="tile rows of the 2048² secret actually hidden (1-4)")
+    p.add_argument("--payload-bytes", type=int, default=1 << 20, help="size of the payload experiment's file")
     p.add_argument("--only", help="comma-separated experiments (default: all)")
     add_device(p)
     p.add_argument("--stress", action="store_true", help="also run the full numerical stress suite")

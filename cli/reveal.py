@@ -1,6 +1,7 @@
 """`noisenerf-reveal`: the recipient's command line. Runtime only (numpy + onnxruntime), never torch.
 
     noisenerf-reveal MODEL.onnx SECRET.bundle -o OUT.png [--json]    reveal a secret, tiles stitched
+    noisenerf-reveal MODEL.onnx X.bundle -o OUT [--passphrase-file F] reveal a payload: OUT gets its bytes
     noisenerf-reveal MODEL.onnx --view I -o OUT.png [--json]         an ordinary render of dataset view I
 
 OUT's extension picks the format: .png 8-bit (the very pixels the bundle's digest is checked on), .tif
@@ -8,6 +9,14 @@ OUT's extension picks the format: .png 8-bit (the very pixels the bundle's diges
 ordinary --view render may be one. `exact` says whether the revealed 8-bit pixels hash to the bundle's
 secret digest; an inexact reveal still exits 0 (the image is written), bad input exits 2 with one line on
 stderr.
+
+A payload bundle (`noisenerf hide --file`, or sealed) is all or nothing: OUT is written, whatever its
+extension, with exactly the payload's bytes (a sealed image, known only once opened, is written as an
+image by OUT's extension), or nothing is written and the reveal exits 2: when the revealed pixels do not
+reproduce the payload's SHA-256, and for a sealed bundle without a passphrase, with a wrong one, or with
+any byte of the bundle or model changed. The payload's original file name is reported, never used as a
+path. The passphrase comes from --passphrase-file, NOISENERF_PASSPHRASE or a hidden prompt, never from
+the command line.
 """
 
 from __future__ import annotations
@@ -21,12 +30,15 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from noisenerf.cli.common import FAILURES, OneLineParser, failure, quiet_warnings
+from noisenerf.cli.common import FAILURES, OneLineParser, failure, payload_line, quiet_warnings, read_passphrase
 from noisenerf.runtime.errors import UserError
 from noisenerf.runtime.files import json_text
 
 if TYPE_CHECKING:
+    from noisenerf.runtime.bundle import Bundle
     from noisenerf.runtime.model import Model
+    from noisenerf.runtime.reveal import Revealed
+    from noisenerf.runtime.sealing import Keys
 
 PROG = "noisenerf-reveal"
 
@@ -36,7 +48,10 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("model", help="the .onnx model the secret was hidden in")
     parser.add_argument("bundle", nargs="?", help="the secret .bundle to reveal")
     parser.add_argument("--view", type=int, help="render dataset view I instead of revealing a bundle")
-    parser.add_argument("-o", "--output", required=True, help="image to write (.png, .tif or .exr)")
+    parser.add_argument("-o", "--output", required=True,
+                        help="image to write (.png, .tif or .exr); for a payload bundle, the file to write")
+    parser.add_argument("--passphrase-file", help="a sealed bundle's passphrase, in this file (else "
+                        "NOISENERF_PASSPHRASE, else a hidden prompt)")
     parser.add_argument("--json", action="store_true", help="print one JSON object on stdout")
     parser.add_argument("--no-skip", action="store_true",
                         help="with --view: no empty-space skipping or early termination inside the scene's box "
@@ -54,18 +69,16 @@ def progress_bar(total: int):
     return tqdm(total=total, unit="ray", unit_scale=True, file=sys.stderr, disable=None, leave=False)
 
 
-def reveal_secret(model: Model, bundle_path: str) -> tuple[np.ndarray, dict]:
-    """Render and stitch a bundle's tiles -> float image (h, w, 3), report."""
-    from noisenerf.runtime.bundle import load_bundle
+def reveal_secret(model: Model, bundle: Bundle) -> tuple[Revealed, dict]:
+    """Render and stitch a bundle's tiles -> the revealed image, report."""
     from noisenerf.runtime.model import check_bundle
     from noisenerf.runtime.reveal import reveal
 
-    bundle = load_bundle(bundle_path)
     check_bundle(model, bundle)
     rays = sum(tile.rect[2] * tile.rect[3] for tile in bundle.tiles)
     with progress_bar(rays) as bar:
         revealed = reveal(bundle, model.render_config, model.fields(), progress=bar)
-    return revealed.image, {"exact": revealed.exact, "width": bundle.width, "height": bundle.height,
+    return revealed, {"exact": revealed.exact, "width": bundle.width, "height": bundle.height,
                             "tiles": len(bundle.tiles), "rays": rays,
                             "samples": sum(tile.rect[2] * tile.rect[3] * tile.sampling.n_samples
                                            for tile in bundle.tiles)}
@@ -104,21 +117,66 @@ def checked_output(path: str, force: bool, reveal: bool) -> Path:
     return output
 
 
+def unseal(bundle: Bundle, bundle_path: str, passphrase_file: str | None) -> Keys | None:
+    """A sealed bundle's keys, its tag checked before anything is rendered; None for an unsealed one."""
+    from noisenerf.runtime.payload import seal_of
+    from noisenerf.runtime.sealing import unseal_keys
+
+    seal = seal_of(bundle.payload)
+    if seal is None:
+        return None
+    passphrase = read_passphrase(passphrase_file)
+    if passphrase is None:
+        raise UserError("the bundle is sealed: give its passphrase with --passphrase-file F, NOISENERF_PASSPHRASE, "
+                        "or at the prompt (stdin a terminal)")
+    return unseal_keys(Path(bundle_path), seal, passphrase)
+
+
+def write_payload(args: argparse.Namespace, revealed: Revealed, bundle: Bundle, model: Model,
+                  keys: Keys | None) -> dict:
+    """Open the payload in the revealed pixels and write it to OUT (a file's bytes; a sealed image by
+    OUT's extension); nothing is written unless every byte checks. -> the payload's report."""
+    from noisenerf.runtime.files import atomic_output
+    from noisenerf.runtime.images import write_image
+    from noisenerf.runtime.payload import INEXACT, open_payload
+
+    if not revealed.exact:
+        raise UserError(INEXACT)
+    record = open_payload(revealed.pixels, bundle.payload, model.fingerprint, keys)
+    if record.kind == "image":
+        write_image(checked_output(args.output, args.force, reveal=True), record.pixels())
+    else:
+        with atomic_output(args.output) as tmp:
+            tmp.write_bytes(record.body)
+    return record.report()
+
+
 def run(args: argparse.Namespace) -> dict:
     """Everything but argument parsing and printing; bad input raises UserError before any output."""
+    from noisenerf.runtime.bundle import load_bundle
+    from noisenerf.runtime.files import check_output_path
     from noisenerf.runtime.images import write_image
     from noisenerf.runtime.model import load_model
 
     start = time.perf_counter()
-    output = checked_output(args.output, args.force, reveal=args.bundle is not None)
+    bundle = load_bundle(args.bundle) if args.bundle is not None else None
+    payload = bundle is not None and bundle.payload is not None
+    output = (check_output_path(args.output, force=args.force) if payload
+              else checked_output(args.output, args.force, reveal=bundle is not None))
+    keys = unseal(bundle, args.bundle, args.passphrase_file) if payload else None
     model = load_model(args.model, device=args.device, threads=args.threads)
     loaded = time.perf_counter()
-    if args.bundle is not None:
-        image, report = reveal_secret(model, args.bundle)
+    if bundle is not None:
+        revealed, report = reveal_secret(model, bundle)
+        image = revealed.image
     else:
         image, report = render_dataset_view(model, args.view, skip=not args.no_skip)
     rendered = time.perf_counter()
-    write_image(output, image)
+    if payload:
+        report = {**report, "sealed": keys is not None,
+                  "payload": write_payload(args, revealed, bundle, model, keys)}
+    else:
+        write_image(output, image)
     done = time.perf_counter()
     timings = {"load": loaded - start, "render": rendered - loaded, "write": done - rendered}
     return {**report, "output": str(output), "seconds": round(done - start, 3),
@@ -130,6 +188,7 @@ def summary_lines(report: dict) -> list[str]:
     seconds = f"{report['seconds']} s (render {report['timings']['render']} s)"
     if "exact" in report:
         return [f"exact: {json.dumps(report['exact'])}",
+                *([payload_line(report["payload"], report["sealed"])] if "payload" in report else []),
                 f"revealed {size} from {report['tiles']} tiles: {report['rays']} rays, "
                 f"{report['samples']} samples in {seconds} -> {report['output']}"]
     return [f"view {report['view']} {size}: {report['rays']} rays, {report['samples']} of "
@@ -148,6 +207,9 @@ def main(argv: list[str] | None = None) -> int:
             report = run(args)
     except FAILURES as error:
         return failure(PROG, error)
+    except KeyboardInterrupt:  # at the passphrase prompt, or during a long reveal: nothing was written
+        print(f"{PROG}: interrupted", file=sys.stderr)
+        return 130
     print(json_text(report) if args.json else "\n".join(summary_lines(report)))
     return 0
 

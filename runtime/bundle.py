@@ -6,7 +6,8 @@
               of its 8-bit RGB pixels, noise layout and dtype, per tile its rectangle in the final image,
               camera, sampling and network ("coarse" or "fine": the network the noise was trained
               through; a tile without it, as bundles made before the field existed, means the scene's
-              render network, the fine one where there is one).
+              render network, the fine one where there is one), and for a payload (a file, or a sealed
+              secret) the optional "payload" object that runtime.payload defines and validates.
 
 The bundle holds noise and metadata only: without the model's exact weights it renders nothing.
 """
@@ -29,6 +30,7 @@ from noisenerf.runtime.limits import (
     MAX_CAMERAS, MAX_IMAGE_SIDE, MAX_NOISE_DIMS, MAX_RAY_LAYOUT_SAMPLES, MAX_TILES, checked_image_size, checked_int,
     checked_list,
 )
+from noisenerf.runtime.payload import checked_payload
 from noisenerf.runtime.sampling import NETWORKS, SamplingConfig
 
 BUNDLE_FORMAT_VERSION = 1
@@ -75,6 +77,7 @@ class Bundle:
     dtype: str
     tiles: tuple[Tile, ...]
     extra: dict  # how it was made (method, seed, versions): informative only
+    payload: dict | None = None  # runtime.payload's object for a file or sealed payload; None: an image
 
     def metadata(self) -> dict:
         return {
@@ -84,6 +87,7 @@ class Bundle:
             "noise": {"layout": self.layout, "dims": self.noise_dims, "dtype": self.dtype},
             "tiles": [tile.metadata(f"tile_{i:04d}") for i, tile in enumerate(self.tiles)],
             "extra": self.extra,
+            **({"payload": self.payload} if self.payload is not None else {}),
         }
 
     def noise_bytes(self) -> int:
@@ -201,7 +205,8 @@ def parse_bundle(meta, tensors: dict[str, np.ndarray], path: Path) -> Bundle:
                   noise_dims=checked_int(noise.get("dims"), "bundle: noise dims", 1, MAX_NOISE_DIMS),
                   dtype=checked_text(noise.get("dtype"), "bundle: noise dtype"),
                   tiles=tuple(parse_tile(i, tile, tensors) for i, tile in enumerate(tiles)),
-                  extra=extra if isinstance(extra, dict) else {})
+                  extra=extra if isinstance(extra, dict) else {},
+                  payload=None if meta.get("payload") is None else checked_payload(meta["payload"]))
 
 
 def load_bundle(path: str | Path) -> Bundle:

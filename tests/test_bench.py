@@ -20,7 +20,7 @@ def report(tmp_path_factory):
     write_image(folder / "secret.png", secret)
     config = BenchConfig(scene=str(folder / "scene"), secret=str(folder / "secret.png"),
                          photos=(str(folder / "secret.png"),), small_width=12, paper_samples=3, paper_iters=60, ablation_samples=2,
-                         twok_size=32, twok_tile=16, twok_rows=1, threads=(1,))
+                         twok_size=32, twok_tile=16, twok_rows=1, threads=(1,), payload_bytes=200)
     sections = run_bench(config, folder / "out", run_stress=False, command="noisenerf bench (test)",
                          progress=lambda line: None)
     return folder / "out", {section.name: section for section in sections}
@@ -47,6 +47,13 @@ def test_exact_curve_ends_exact_and_photos_reveal_exactly(report):
     assert all(row["onnx_exact"] for row in sections["photos"].rows)
     assert sections["cost"].rows[0]["exact"] and sections["twok"].rows[0]["exact"]
     assert sections["twok"].rows[0]["tiles"] == 2 and sections["twok"].rows[0]["hide_seconds_2k"] > 0
+
+
+def test_payload_rows_are_byte_exact_and_sealed_fills_its_bucket(report):
+    _, sections = report
+    plain, sealed = sections["payload"].rows
+    assert plain["exact"] and sealed["exact"] and not plain["sealed"] and sealed["sealed"]
+    assert (plain["secret"], sealed["secret"]) == ("10x9", "16x16") and sealed["kdf_seconds"] > 0
 
 
 def test_retiring_finished_pixels_does_less_work(report):

@@ -3,7 +3,8 @@
 The shipped demo scene (train/assets/demo_scene, fitted by `noisenerf fit` on the procedural dataset,
 see README) hides a generated secret; the scene is exported to ONNX; onnxruntime reveals the secret
 with the runtime alone. Writes the scene's ordinary render, the secret, the revealed image and a
-side-by-side picture of the three.
+side-by-side picture of the three; and a short text file hidden as a payload sealed under the passphrase
+DEMO_PASSPHRASE (note.txt -> note.bundle), for `noisenerf-reveal` to open.
 """
 
 from __future__ import annotations
@@ -19,9 +20,11 @@ from noisenerf.runtime.errors import UserError
 from noisenerf.runtime.images import write_image
 from noisenerf.runtime.metrics import exact_fraction, psnr, ssim
 from noisenerf.runtime.model import load_model
+from noisenerf.runtime.payload import read_payload_file
 from noisenerf.runtime.render import render_view
 from noisenerf.runtime.reveal import reveal, to_uint8
 from noisenerf.train.hide import HideConfig, hide
+from noisenerf.train.payload import hide_payload
 from noisenerf.train.procedural import procedural_secret
 from noisenerf.train.scene import load_scene
 
@@ -29,6 +32,8 @@ DEMO_SCENE = Path(__file__).parent / "assets" / "demo_scene"
 DEMO_VIEW = 2
 SECRET_SIZE = (96, 72)  # width, height: two tiles of 64 px wide, so stitching is shown too
 TILE_SIZE = 64
+DEMO_PASSPHRASE = "noisenerf demo"  # a demo's passphrase is public: choose your own
+NOTE = "Meet at the old lighthouse at dawn.\n"
 
 
 def side_by_side(images: list[np.ndarray], gap: int = 4) -> np.ndarray:
@@ -59,6 +64,13 @@ def run_demo(out_dir: Path, device: torch.device, show_progress: bool = True) ->
     timings["hide"] = time.perf_counter() - started
 
     started = time.perf_counter()
+    (out_dir / "note.txt").write_text(NOTE)
+    hide_payload(scene, read_payload_file(out_dir / "note.txt"), out_dir / "note.bundle",
+                 HideConfig(tile_size=TILE_SIZE, view=DEMO_VIEW), device, passphrase=DEMO_PASSPHRASE.encode(),
+                 force=True, show_progress=show_progress)
+    timings["seal"] = time.perf_counter() - started
+
+    started = time.perf_counter()
     export_scene(DEMO_SCENE, out_dir / "model.onnx")
     timings["export"] = time.perf_counter() - started
 
@@ -82,9 +94,11 @@ def run_demo(out_dir: Path, device: torch.device, show_progress: bool = True) ->
     report["summary"] = [
         f"exact: {str(revealed.exact).lower()}",
         f"PSNR {psnr_text} dB, SSIM {quality['ssim']:.4f}, exact 8-bit values {quality['exact_fraction']:.4%}",
-        f"hide {timings['hide']:.1f} s, export {timings['export']:.1f} s, reveal (onnxruntime) "
-        f"{timings['reveal']:.1f} s",
+        f"hide {timings['hide']:.1f} s, sealed note {timings['seal']:.1f} s, export {timings['export']:.1f} s, "
+        f"reveal (onnxruntime) {timings['reveal']:.1f} s",
         f"files in {out_dir}: model.onnx (share with anyone), secret.bundle ({hidden['bundle_bytes']} bytes, the key), "
-        "secret.png, revealed.png, ordinary.png, side_by_side.png",
+        "secret.png, revealed.png, ordinary.png, side_by_side.png, note.txt, note.bundle",
+        f"open the sealed note: NOISENERF_PASSPHRASE='{DEMO_PASSPHRASE}' noisenerf-reveal {out_dir / 'model.onnx'} "
+        f"{out_dir / 'note.bundle'} -o note.txt",
     ]
     return report

@@ -296,8 +296,9 @@ def quality(colors: np.ndarray, pixels: np.ndarray, shape: tuple[int, int]) -> d
 
 
 def hide(scene: Scene, secret: np.ndarray, output: Path, config: HideConfig, device: torch.device,
-         force: bool = False, show_progress: bool = True) -> dict:
-    """Hide `secret` (H, W, 3) uint8 in the scene; write the bundle to `output`; return the report."""
+         force: bool = False, show_progress: bool = True, payload: dict | None = None) -> dict:
+    """Hide `secret` (H, W, 3) uint8 in the scene; write the bundle to `output`; return the report.
+    payload: the bundle's payload object when the secret carries one (train.payload), else None."""
     output = check_output_path(output, force=force)
     checked_image_size(secret.shape[1], secret.shape[0], "the secret image")  # what a bundle may hold
     if config.layout == "ray" and config.n_samples > MAX_RAY_LAYOUT_SAMPLES:
@@ -332,7 +333,7 @@ def hide(scene: Scene, secret: np.ndarray, output: Path, config: HideConfig, dev
                         secret_sha256=secret_digest(secret), layout=config.layout,
                         noise_dims=field.config.noise_dims, dtype=config.dtype, tiles=tuple(tiles),
                         extra={"method": config.method, "noisenerf": noisenerf.__version__,
-                               "config": config.to_dict()})
+                               "config": config.to_dict()}, payload=payload)
         bundle.save(output)
         progress.clear()
     n_pixels = secret.shape[0] * secret.shape[1]

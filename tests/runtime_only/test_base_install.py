@@ -74,3 +74,37 @@ def test_ordinary_render_skips_and_matches_the_demo_render(demo_dir, tmp_path):
     report = json.loads(result.stdout)
     assert report["samples"] < report["samples_dense"]
     assert (read_image(tmp_path / "v.png") == read_image(demo_dir / "ordinary.png")).all()
+
+
+DEMO_PASSPHRASE = "noisenerf demo"  # train.demo.DEMO_PASSPHRASE (these tests cannot import the torch side)
+
+
+def reveal_note(demo_dir: Path, out: Path, passphrase: str | None) -> subprocess.CompletedProcess:
+    env = {key: value for key, value in os.environ.items() if key != "NOISENERF_PASSPHRASE"}
+    if passphrase is not None:
+        env["NOISENERF_PASSPHRASE"] = passphrase
+    return subprocess.run([sys.executable, "-m", "noisenerf.cli.reveal", str(demo_dir / "model.onnx"),
+                           str(demo_dir / "note.bundle"), "-o", str(out), "--json"],
+                          capture_output=True, text=True, env=env, stdin=subprocess.DEVNULL)
+
+
+def test_base_install_opens_the_sealed_note_byte_for_byte(demo_dir, tmp_path):
+    result = reveal_note(demo_dir, tmp_path / "note.txt", DEMO_PASSPHRASE)
+    assert result.returncode == 0, result.stderr
+    note = (demo_dir / "note.txt").read_bytes()
+    assert (tmp_path / "note.txt").read_bytes() == note
+    report = json.loads(result.stdout)
+    assert report["sealed"] is True and report["payload"]["bytes"] == len(note)
+    assert report["payload"]["name"] == "note.txt"
+
+
+@pytest.mark.parametrize("passphrase, message", [
+    ("not the passphrase", "wrong passphrase, or the bundle or model was altered"),
+    (None, "the bundle is sealed: give its passphrase with --passphrase-file F, NOISENERF_PASSPHRASE, "
+           "or at the prompt (stdin a terminal)"),
+])
+def test_base_install_refuses_the_note_without_its_passphrase(demo_dir, tmp_path, passphrase, message):
+    result = reveal_note(demo_dir, tmp_path / "note.txt", passphrase)
+    assert result.returncode == 2 and result.stdout == ""
+    assert result.stderr.splitlines() == [f"noisenerf-reveal: error: {message}"]
+    assert not (tmp_path / "note.txt").exists()

@@ -1,0 +1,67 @@
+"""Hiding a payload: a file's bytes, or a sealed image, become an ordinary secret that the exact method hides.
+
+The record (runtime.payload) is turned into pixels, sealed first when there is a passphrase
+(runtime.sealing), hidden by `hide` like any secret, and a sealed bundle is then tagged. Only the exact
+method reproduces every byte, so payloads are refused with --method paper; a hide that is not exact
+leaves no bundle.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+import torch
+
+from noisenerf.runtime.errors import UserError
+from noisenerf.runtime.files import check_output_path
+from noisenerf.runtime.payload import Record, payload_secret
+from noisenerf.runtime.sealing import Seal, add_bundle_tag, derive_keys, new_seal
+from noisenerf.train.hide import HideConfig, hide
+from noisenerf.train.scene import Scene
+from noisenerf.train.tiling import tile_rects
+
+# The exact hide's rate for payload pixels on 2 CPU cores (docs/bench/BENCHMARKS.md, "File payloads": a
+# random 1 MiB file, plain and sealed, on a shared machine): the basis of the time a hide announces.
+# Payload pixels look random, so they hide slower than photos (~11,000 px/s), whose neighbours warm-start.
+PAYLOAD_PIXELS_PER_SECOND = 1_600
+
+
+def capacity(secret: np.ndarray, tile_size: int) -> dict:
+    """What a payload's secret costs: its size, pixels, tiles, and the hide time to expect on 2 cores."""
+    height, width = secret.shape[:2]
+    return {"width": width, "height": height, "pixels": width * height,
+            "tiles": len(tile_rects(width, height, tile_size)),
+            "expected_seconds": round(width * height / PAYLOAD_PIXELS_PER_SECOND, 1)}
+
+
+def hide_payload(scene: Scene, record: Record, output: Path, config: HideConfig, device: torch.device,
+                 passphrase: bytes | None = None, seal: Seal | None = None, force: bool = False,
+                 show_progress: bool = True, announce: Callable[[dict], None] | None = None) -> dict:
+    """Hide a record; sealed under `passphrase` when one is given, with `seal` (default: a fresh one,
+    random salt and nonce; tests pass a fixed one). announce(capacity) is called before the hide starts."""
+    if config.method != "exact":
+        raise UserError("a file or sealed payload needs --method exact (the paper's method does not reproduce "
+                        "every byte)")
+    output = check_output_path(output, force=force)
+    sealing = None
+    if passphrase is not None:
+        seal = seal or new_seal()
+        sealing = (seal, derive_keys(passphrase, seal))
+    secret, payload = payload_secret(record, config.tile_size, scene.fingerprint(), sealing)
+    room = capacity(secret, config.tile_size)
+    if announce is not None:
+        announce(room)
+    report = hide(scene, secret, output, config, device, force=force, show_progress=show_progress, payload=payload)
+    try:
+        if not report["exact"]:
+            raise UserError(f"the hide reproduced {report['exact_fraction']:.6%} of the secret's values, not all of "
+                            "them; no bundle written")
+        if sealing is not None:
+            add_bundle_tag(output, sealing[1])
+    except BaseException:
+        output.unlink(missing_ok=True)
+        raise
+    return {**report, "bundle_bytes": output.stat().st_size, "payload": record.report(),
+            "sealed": sealing is not None, "capacity": room}
