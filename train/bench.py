@@ -46,7 +46,7 @@ from noisenerf.train.scene import Scene, load_scene
 from noisenerf.train.secret_view import SecretView
 from noisenerf.train.paper_solver import (PaperSettings, pass_samples_for, recipe, recorded_points,
                                           solve_blocks, survey)
-from noisenerf.train.solvers import ExactSettings, solve_exact
+from noisenerf.train.solvers import ExactSettings, NoiseSpace, solve_exact
 from noisenerf.train.tiling import MIN_TILE_SIZE
 
 EXPERIMENTS = ("paper_quality", "error_vs_time", "ablation", "cost", "throughput", "skipping", "bundle_size", "photos", "twok")
@@ -170,7 +170,8 @@ def exact_curve(scene: Scene, secret: np.ndarray, view: int, settings: ExactSett
             rows.append({"method": "exact", "iteration": len(rows) + 1, "seconds": watch.elapsed(),
                          "jacobians_per_pixel": counts.jacobians / len(index), **tile_quality(colors, secret)})
 
-    result = solve_exact(tile_view, index, pixels, torch.float16, settings, torch.Generator().manual_seed(0), observe)
+    result = solve_exact(tile_view, index, pixels, NoiseSpace(torch.float16), settings, torch.Generator().manual_seed(0),
+                         observe)
     return rows, {"seconds": watch.elapsed(), **dataclasses.asdict(result.counts)}
 
 
