@@ -264,7 +264,7 @@ def exact_space(view: SecretView, config: HideConfig, k: int, pixels: torch.Tens
 
 def stored_noise(space: NoiseSpace, params: torch.Tensor, escaped: torch.Tensor, escape_noise: torch.Tensor,
                  shape: tuple[int, int]) -> dict:
-    """What a tile's bundle entry holds for solved params (n, P): the noise (h, w, P) in the storage dtype
+    """What a tile's bundle entry holds for solved params (n, P): the noise (*shape, P) in the storage dtype
     (integer coefficients for a compact space, 0 where a pixel escaped) and the compact frame, with the
     escaped pixels (n,) bool and their float16 noise (n, dims) (zero elsewhere)."""
     if space.basis is None:
@@ -327,7 +327,8 @@ def hide_tile_exact(view: SecretView, pixels: torch.Tensor, shape: tuple[int, in
                   for name, value in totals.items()}
         bar.update(len(index))
     noise = torch.where(escaped[:, None, None], escape_noise[:, None, :], space.expand(params))
-    return noise, {**totals, "escaped": int(escaped.sum())}, stored_noise(space, params, escaped, escape_noise, shape)
+    prefix = (*shape, 1) if config.layout == "sample" else shape  # the sample layout of a one-sample view
+    return noise, {**totals, "escaped": int(escaped.sum())}, stored_noise(space, params, escaped, escape_noise, prefix)
 
 
 def hide_tile_paper(view: SecretView, pixels: torch.Tensor, shape: tuple[int, int], config: HideConfig,
