@@ -34,7 +34,7 @@ def weights_digest(scene):
     return digest.hexdigest()
 
 
-@pytest.mark.parametrize("layout, dtype, stored", [("compact", "int16", 5), ("ray", "float16", 90),
+@pytest.mark.parametrize("layout, dtype, stored", [("compact", "int16", 6), ("ray", "float16", 90),
                                                   ("ray", "float32", 90)])
 def test_exact_hide_recovers_every_value_and_leaves_weights_unchanged(scene, tmp_path, layout, dtype, stored):
     secret = random_secret(20, 30)

@@ -9,13 +9,17 @@ varies in few directions. Per tile, from a seeded sample of its pixels solved fi
 
 Each pixel's noise is o + (q · scale) Bᵀ with q (k,) int16 (or int8); the exact solver works in that
 space (train/solvers.NoiseSpace) and judges only lattice points, as the ray layout judges only float16
-noise. A basis cannot reach every colour from every start (on lego about 0.1 % of a photo's pixels stay
-stuck in the 5-dimensional slice); those pixels escape: they are solved again in the full 90 values and
+noise. A basis cannot reach every colour from every start (on lego 0.05–1 % of a photo's pixels stay
+stuck in the 6-dimensional slice); those pixels escape: they are solved again in the full 90 values and
 stored as float16 noise beside the coefficients, so every pixel is still exact.
 
-Measured on a lego fit (128 × 85 photo, 1 thread; see the README): k = 4 left ~0.3 % of pixels to
-escape and took 4× the ray layout's time; k = 5 with a 1/32 step escapes ~0.1 % and costs ~6.1 bytes a
-pixel after xz; k = 6 or a coarser step costs more bytes (k) or more escapes (each 184 bytes).
+Why k = 6 with steps of 1/32 (measured on a lego fit, README "Formats"): each coefficient costs ~1.2
+bytes a pixel after xz, each escape 184 bytes. k = 4 left 0.3–6 % of pixels to escape and hid 4× slower
+than the ray layout; k = 5 cost 6.2–6.6 bytes on most photos but let a fifth of one photo's pixels
+(a near-white background) escape, 42 bytes a pixel; k = 6 costs ~0.8 byte more on easy photos, brings
+that photo to 8.7 and hides faster (fewer restarts); k = 7–8 cost more than their fewer escapes save.
+A coarser step (1/16) saves ~0.4 byte but escapes several times more pixels; int8 coefficients leave
+most pixels unreachable on their lattice.
 """
 
 from __future__ import annotations
@@ -35,7 +39,7 @@ INTEGER_DTYPES = {"int16": torch.int16, "int8": torch.int8}
 
 @dataclass(frozen=True)
 class CompactSettings:
-    coefficients: int = 5  # k per pixel
+    coefficients: int = 6  # k per pixel
     coefficient_range: float = 1024.0  # largest storable |coefficient|: int16 steps of 1/32
     basis_pixels: int = 256  # seeded sample of a tile's pixels whose solved noise chooses its offset and basis
     max_iters: int = 50  # per phase in the basis; a pixel still unfinished escapes to full float16 noise

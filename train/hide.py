@@ -321,7 +321,8 @@ def hide_tile_exact(view: SecretView, pixels: torch.Tensor, shape: tuple[int, in
             progress.save(k, c, saved)
         params[index] = saved["noise"].to(params.device)
         if "escaped" in saved:
-            escaped[index], escape_noise[index] = saved["escaped"].bool().to(escaped.device), saved["escape_noise"].to(escape_noise.device)
+            escaped[index] = saved["escaped"].bool().to(escaped.device)
+            escape_noise[index] = saved["escape_noise"].to(escape_noise.device)
         counts = dict(zip(totals, saved["counts"].tolist()))
         totals = {name: max(value, counts[name]) if name == "iterations" else value + counts[name]
                   for name, value in totals.items()}
