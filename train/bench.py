@@ -158,7 +158,8 @@ def tile_quality(colors: torch.Tensor, secret: np.ndarray) -> dict:
 
 def exact_curve(scene: Scene, secret: np.ndarray, view: int, settings: ExactSettings = ExactSettings(),
                 device: torch.device = torch.device("cpu")) -> tuple[list[dict], dict]:
-    """Quality of the whole secret after every LM iteration of the exact solver (observation excluded)."""
+    """Quality of the whole secret after every LM iteration of the exact solver in the full noise (the ray
+    layout, float16), observation excluded."""
     scene.to(device)
     tile_view = secret_view(scene, secret, view, 1, device)
     pixels = torch.from_numpy(secret.reshape(-1, 3).copy()).to(device)
