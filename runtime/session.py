@@ -55,7 +55,7 @@ def session_options(threads: int | None) -> ort.SessionOptions:
     """Intra-op threads (default, and at most: the cores there are; more only oversubscribes and, in
     the thousands, hangs onnxruntime); one inter-op thread, the graph being a single chain. Idle pool
     threads sleep instead of spinning, so a reveal on a shared machine leaves its cores to whoever needs
-    them (as train/__init__.py does for torch's OpenMP pool). onnxruntime's own logging is silenced, so
+    them (the exact hide's cause of slowness there, see train/hide.solver_threads). onnxruntime's own logging is silenced, so
     a failure is our one line on stderr."""
     cores = available_cores()
     threads = cores if threads is None else threads

@@ -640,7 +640,7 @@ def contention(config: BenchConfig, scene: Scene, secret: np.ndarray, state: dic
     busy = np.median([r["hide_seconds"] for r in rows if r["busy_processes"] == 1])
     lines = [f"`{Path(config.secret).name}` at {small.shape[1]}×{small.shape[0]}, view {config.view}, hidden twice "
              f"alone and twice beside one `python -c 'while True: pass'` on {available_cores()} cores "
-             f"(OMP_WAIT_POLICY={os.environ.get('OMP_WAIT_POLICY', 'unset')}).", "",
+             "(the exact solve runs on one torch thread there, train/hide.solver_threads).", "",
              f"- hide alone {alone:.2f} s, beside a busy process {busy:.2f} s: **{busy / alone:.1f}×** (goal ≤ 3).",
              "", "| busy processes | hide s | exact |", "|---|---|---|"]
     lines += [f"| {r['busy_processes']} | {r['hide_seconds']:.2f} | {str(r['exact']).lower()} |" for r in rows]

@@ -7,6 +7,7 @@ run again with the same arguments resumes where it stopped and writes a byte-ide
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import fcntl
 import hashlib
@@ -40,6 +41,7 @@ from noisenerf.train.tiling import tile_camera, tile_rects
 
 TORCH_DTYPES = {"float16": torch.float16, "float32": torch.float32, **INTEGER_DTYPES}
 DEFAULT_LAYOUTS = {"exact": "compact", "paper": "sample"}
+EXACT_CPU_THREADS = 1  # see solver_threads
 ESCAPE_DTYPE = torch.float16  # a compact tile's escaped pixels store full noise as the ray layout does
 
 
@@ -372,6 +374,25 @@ def quality(colors: np.ndarray, pixels: np.ndarray, shape: tuple[int, int]) -> d
     }
 
 
+@contextlib.contextmanager
+def solver_threads(config: HideConfig, device: torch.device):
+    """The exact method solves with one torch thread on a CPU. Its Levenberg–Marquardt loop is thousands
+    of small ops; with torch's OpenMP pool of one thread per core, every op is a parallel region whose
+    idle threads spin, and on a machine whose cores are shared that spinning took the solver's own CPU
+    (README, "Predictable speed": a 64×64 hide 25–54 s instead of ~2 s beside other busy processes).
+    One thread measured 1.35 s quiet against 1.1 s for two, ~2 s beside two busy loops against 4.6–6.7
+    s, and makes the bundle's bytes independent of the machine's core count."""
+    if config.method != "exact" or device.type != "cpu":
+        yield
+        return
+    before = torch.get_num_threads()
+    torch.set_num_threads(EXACT_CPU_THREADS)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(before)
+
+
 def hide(scene: Scene, secret: np.ndarray, output: Path, config: HideConfig, device: torch.device,
          force: bool = False, show_progress: bool = True) -> dict:
     """Hide `secret` (H, W, 3) uint8 in the scene; write the bundle to `output`; return the report."""
@@ -383,7 +404,7 @@ def hide(scene: Scene, secret: np.ndarray, output: Path, config: HideConfig, dev
     hide_plan = plan(scene, secret, config)
     scene.to(device)
     field = scene.render_field
-    with Progress(output, run_key(scene, secret, config)) as progress:
+    with Progress(output, run_key(scene, secret, config)) as progress, solver_threads(config, device):
         solve = hide_tile_exact if config.method == "exact" else hide_tile_paper
         tiles, reports = [], []
         started = time.perf_counter()
