@@ -89,8 +89,7 @@ def cmd_hide(args) -> None:
     output = Path(args.output)
     device = resolve_device(args.device)
     overrides = {name: value for name, value in (("iters", args.iters), ("revival", args.revival)) if value is not None}
-    config = HideConfig(method=args.method, layout=args.layout or ("ray" if args.method == "exact" else "sample"),
-                        dtype=args.dtype or ("float16" if args.method == "exact" else "float32"),
+    config = HideConfig(method=args.method, layout=args.layout, dtype=args.dtype,
                         n_samples=args.samples, tile_size=args.tile_size, view=args.view, seed=args.seed,
                         chunk_pixels=chunk_pixels_for(device), paper=recipe(args.recipe, pass_samples=pass_samples_for(device), **overrides))
     scene = load_scene(args.scene_dir)
@@ -219,8 +218,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--view", type=int, default=0, help="scene camera of the first tile")
     p.add_argument("--tile-size", type=int, default=512, help="secrets larger than this are cut into tiles")
     p.add_argument("--method", choices=("exact", "paper"), default="exact")
-    p.add_argument("--layout", choices=("ray", "sample"), help="noise per ray (exact default) or per sample (paper)")
-    p.add_argument("--dtype", choices=("float16", "float32"), help="noise storage (exact: float16, paper: float32)")
+    p.add_argument("--layout", choices=("compact", "ray", "sample"),
+                   help="compact coefficients per pixel (exact default), noise per ray, or per sample (paper default)")
+    p.add_argument("--dtype", choices=("int16", "int8", "float16", "float32"),
+                   help="storage: compact int16 (default) or int8; ray float16 (default) or float32; sample float32")
     p.add_argument("--samples", type=int, help="samples per ray of the secret view (exact: 1, paper: 64)")
     p.add_argument("--recipe", choices=("authors", "paper"), default="authors",
                    help="paper method: the authors' public code (default) or the paper's text")

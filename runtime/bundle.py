@@ -1,13 +1,27 @@
 """The secret bundle: the key a recipient gets. safetensors (never pickle): noise tensors + JSON metadata.
 
-    tensors   tile_0000, tile_0001, …   noise per tile, (h, w, dims) for the "ray" layout (one vector per
-              pixel shared by all its samples) or (h, w, n_samples, dims) for the paper's "sample" layout
+    tensors   tile_0000, tile_0001, …   noise per tile, in one of three layouts:
+              "compact" (format 2, the exact method's default): per pixel k integer coefficients
+                  (int16 or int8) of a per-tile basis; tile_NNNN is uint8, the xz stream of the
+                  coefficients as byte planes (coefficient-major, then byte, then row-major pixels,
+                  little-endian: planes of like bytes compress best), tile_NNNN_basis (dims, k) and
+                  tile_NNNN_offset (dims,) float32, and the tile's "scale" in the metadata:
+                  noise = offset + (coefficients · scale) basisᵀ, computed in float32; pixels the
+                  basis could not reach "escape": tile_NNNN_escapes (e,) int32, their row-major
+                  indices in the tile, strictly increasing, and tile_NNNN_escape_noise (e, dims)
+                  float16, their full noise (their coefficients are stored as 0);
+              "ray": (h, w, dims) float noise, one vector per pixel shared by all its samples;
+              "sample": (h, w, n_samples, dims) float noise, the paper's per-sample layout.
     metadata  {"noisenerf_bundle": JSON}: format version, model fingerprint, secret size and the SHA-256
               of its 8-bit RGB pixels, noise layout and dtype, per tile its rectangle in the final image,
               camera, sampling and network ("coarse" or "fine": the network the noise was trained
               through; a tile without it, as bundles made before the field existed, means the scene's
               render network, the fine one where there is one), and for a payload (a file, or a sealed
               secret) the optional "payload" object that runtime.payload defines and validates.
+
+Versions: noisenerf writes format 2 and reads formats 1 and 2. Format 1 (every bundle written before the
+compact layout) holds only the ray and sample layouts, which format 2 keeps unchanged, so it reveals as
+it always did. A format this version does not know (a newer writer's) is refused in one line naming it.
 
 The bundle holds noise and metadata only: without the model's exact weights it renders nothing.
 """
@@ -16,6 +30,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import lzma
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -23,21 +38,25 @@ import numpy as np
 from safetensors import SafetensorError, safe_open
 from safetensors.numpy import save_file
 
+from noisenerf import __version__
 from noisenerf.runtime.camera import Camera
 from noisenerf.runtime.errors import UserError
 from noisenerf.runtime.files import atomic_output, parse_json
 from noisenerf.runtime.limits import (
-    MAX_CAMERAS, MAX_IMAGE_SIDE, MAX_NOISE_DIMS, MAX_RAY_LAYOUT_SAMPLES, MAX_TILES, checked_image_size, checked_int,
-    checked_list,
+    MAX_CAMERAS, MAX_COMPACT_COEFFICIENTS, MAX_IMAGE_SIDE, MAX_NOISE_DIMS, MAX_RAY_LAYOUT_SAMPLES, MAX_TILES,
+    MAX_XZ_MEMORY, checked_float, checked_image_size, checked_int, checked_list,
 )
 from noisenerf.runtime.payload import checked_payload
 from noisenerf.runtime.sampling import NETWORKS, SamplingConfig
 
-BUNDLE_FORMAT_VERSION = 1
+BUNDLE_FORMAT_VERSION = 2
 METADATA_KEY = "noisenerf_bundle"
-LAYOUTS = ("ray", "sample")
-DTYPES = {"float16": np.float16, "float32": np.float32}
-SAFETENSORS_DTYPES = ("F16", "F32")  # the same two, as safetensors names them
+READABLE_FORMATS = {1: ("ray", "sample"), 2: ("ray", "sample", "compact")}  # format -> the layouts it may hold
+LAYOUTS = READABLE_FORMATS[BUNDLE_FORMAT_VERSION]
+DTYPES = {"float16": np.float16, "float32": np.float32, "int8": np.int8, "int16": np.int16}
+LAYOUT_DTYPES = {"ray": ("float16", "float32"), "sample": ("float32", "float16"), "compact": ("int16", "int8")}  # default first
+SAFETENSORS_DTYPES = ("F16", "F32", "U8", "I32")  # float noise, bases and offsets, compressed coefficients, escapes
+XZ_PRESET = 6  # xz level of the coefficient planes (9 saved under 1 % more on photos, at twice the time)
 
 
 def secret_digest(pixels: np.ndarray) -> str:
@@ -49,21 +68,84 @@ def secret_digest(pixels: np.ndarray) -> str:
 
 
 @dataclass(frozen=True)
+class Frame:
+    """A compact tile's basis: a pixel's noise is offset + (coefficients · scale) basisᵀ."""
+
+    basis: np.ndarray  # (dims, k) float32
+    offset: np.ndarray  # (dims,) float32
+    scale: float  # one integer step of a coefficient (a float32 value)
+    escapes: np.ndarray  # (e,) int32, strictly increasing row-major pixel indices with full noise
+    escape_noise: np.ndarray  # (e, dims) float16
+
+
+def expand_coefficients(coefficients: np.ndarray, frame: Frame, start: int = 0) -> np.ndarray:
+    """Noise of compact pixels start.. start+m in float32, as the solver computed it
+    (train/solvers.NoiseSpace.expand: one float32 multiply by the scale, then the matmul), with the
+    escaped pixels' stored noise. coefficients: (m, k) int -> (m, dims) float32."""
+    params = coefficients.astype(np.float32) * np.float32(frame.scale)
+    noise = frame.offset + params @ frame.basis.T
+    first, last = np.searchsorted(frame.escapes, [start, start + len(coefficients)])
+    noise[frame.escapes[first:last] - start] = frame.escape_noise[first:last]
+    return noise
+
+
+def pack_coefficients(coefficients: np.ndarray) -> np.ndarray:
+    """The xz stream of (h, w, k) integer coefficients as byte planes (see the module docstring). -> (n,) uint8."""
+    planes = np.ascontiguousarray(coefficients.astype(coefficients.dtype.newbyteorder("<")).transpose(2, 0, 1))
+    split = planes.view(np.uint8).reshape(*planes.shape, -1).transpose(0, 3, 1, 2)
+    return np.frombuffer(lzma.compress(np.ascontiguousarray(split).tobytes(), preset=XZ_PRESET), dtype=np.uint8)
+
+
+def unpack_coefficients(packed: np.ndarray, shape: tuple[int, int, int], dtype: str, what: str) -> np.ndarray:
+    """pack_coefficients undone, refusing a stream that is corrupt or does not hold exactly shape's bytes
+    (at most that many are ever decompressed, within MAX_XZ_MEMORY). -> (h, w, k) of dtype."""
+    kind = np.dtype(DTYPES[dtype]).newbyteorder("<")
+    expected = int(np.prod(shape)) * kind.itemsize
+    decompressor = lzma.LZMADecompressor(format=lzma.FORMAT_XZ, memlimit=MAX_XZ_MEMORY)
+    try:
+        data = decompressor.decompress(packed.tobytes(), max_length=expected + 1)
+    except lzma.LZMAError as error:
+        raise UserError(f"{what}: compressed coefficients are corrupt ({error})") from None
+    if len(data) != expected or not decompressor.eof or decompressor.unused_data:
+        raise UserError(f"{what}: compressed coefficients do not hold exactly {shape} {dtype} values")
+    height, width, k = shape
+    split = np.frombuffer(data, dtype=np.uint8).reshape(k, kind.itemsize, height, width)
+    planes = np.ascontiguousarray(split.transpose(0, 2, 3, 1)).view(kind)[..., 0]
+    return planes.transpose(1, 2, 0).astype(DTYPES[dtype])
+
+
+@dataclass(frozen=True)
 class Tile:
     """One piece of the secret: where it goes, the view it is hidden in, and its noise."""
 
     rect: tuple[int, int, int, int]  # x0, y0, width, height in the final image
     camera: Camera  # width × height equal to the rect's
     sampling: SamplingConfig
-    noise: np.ndarray
+    noise: np.ndarray  # (h, w, dims) ray, (h, w, n_samples, dims) sample, (h, w, k) compact coefficients
     view: int | None = None  # the scene camera it was derived from, if any
     network: str | None = None  # coarse | fine; None: the scene's render network
+    frame: Frame | None = None  # the compact layout's basis
 
     def metadata(self, tensor_name: str) -> dict:
         return {"rect": list(self.rect), "camera": self.camera.to_dict(), "view": self.view,
                 "sampling": {"near": self.sampling.near, "far": self.sampling.far,
                              "n_samples": self.sampling.n_samples}, "tensor": tensor_name,
-                **({"network": self.network} if self.network is not None else {})}
+                **({"network": self.network} if self.network is not None else {}),
+                **({"scale": self.frame.scale} if self.frame is not None else {})}
+
+    def tensors(self, name: str) -> dict[str, np.ndarray]:
+        """What the file stores for this tile under `name`."""
+        if self.frame is None:
+            return {name: np.ascontiguousarray(self.noise)}
+        return {name: pack_coefficients(self.noise), f"{name}_basis": np.ascontiguousarray(self.frame.basis),
+                f"{name}_offset": np.ascontiguousarray(self.frame.offset),
+                f"{name}_escapes": np.ascontiguousarray(self.frame.escapes),
+                f"{name}_escape_noise": np.ascontiguousarray(self.frame.escape_noise)}
+
+    def noise_rows(self, start: int, stop: int) -> np.ndarray:
+        """Float32 noise of the tile's pixels start..stop (row-major): (m, dims) or (m, n_samples, dims)."""
+        flat = self.noise.reshape(-1, *self.noise.shape[2:])[start:stop]
+        return flat.astype(np.float32) if self.frame is None else expand_coefficients(flat, self.frame, start)
 
 
 @dataclass(frozen=True)
@@ -78,32 +160,57 @@ class Bundle:
     tiles: tuple[Tile, ...]
     extra: dict  # how it was made (method, seed, versions): informative only
     payload: dict | None = None  # runtime.payload's object for a file or sealed payload; None: an image
+    coefficients: int | None = None  # compact layout: k per pixel
 
     def metadata(self) -> dict:
+        compact = {"coefficients": self.coefficients, "codec": "xz-byte-planes"} if self.layout == "compact" else {}
         return {
             "format_version": BUNDLE_FORMAT_VERSION,
             "model_fingerprint": self.model_fingerprint,
             "secret": {"width": self.width, "height": self.height, "sha256": self.secret_sha256},
-            "noise": {"layout": self.layout, "dims": self.noise_dims, "dtype": self.dtype},
+            "noise": {"layout": self.layout, "dims": self.noise_dims, "dtype": self.dtype, **compact},
             "tiles": [tile.metadata(f"tile_{i:04d}") for i, tile in enumerate(self.tiles)],
             "extra": self.extra,
             **({"payload": self.payload} if self.payload is not None else {}),
         }
 
-    def noise_bytes(self) -> int:
-        return sum(tile.noise.nbytes for tile in self.tiles)
-
     def save(self, path: str | Path) -> None:
         """Validate, then write atomically."""
         validate(self)
-        tensors = {f"tile_{i:04d}": np.ascontiguousarray(tile.noise) for i, tile in enumerate(self.tiles)}
+        tensors = {name: value for i, tile in enumerate(self.tiles) for name, value in tile.tensors(f"tile_{i:04d}").items()}
         with atomic_output(path) as tmp:
             save_file(tensors, str(tmp), metadata={METADATA_KEY: json.dumps(self.metadata(), sort_keys=True)})
 
 
-def expected_noise_shape(tile: Tile, layout: str, dims: int) -> tuple[int, ...]:
+def expected_noise_shape(tile: Tile, bundle: "Bundle") -> tuple[int, ...]:
     width, height = tile.rect[2], tile.rect[3]
-    return (height, width, dims) if layout == "ray" else (height, width, tile.sampling.n_samples, dims)
+    if bundle.layout == "compact":
+        return height, width, bundle.coefficients
+    dims = bundle.noise_dims
+    return (height, width, dims) if bundle.layout == "ray" else (height, width, tile.sampling.n_samples, dims)
+
+
+def validate_frame(i: int, tile: Tile, bundle: "Bundle") -> None:
+    """A compact tile's basis (dims, k), offset (dims,) float32 and escape noise (e, dims) float16, all
+    finite; its scale > 0; its escapes (e,) int32 strictly increasing inside the tile."""
+    frame, dims, k = tile.frame, bundle.noise_dims, bundle.coefficients
+    if frame is None:
+        raise UserError(f"bundle: tile {i} of the compact layout has no basis")
+    escapes = frame.escapes
+    if escapes.ndim != 1 or escapes.dtype != np.int32:
+        raise UserError(f"bundle: tile {i} escapes are {escapes.dtype} {escapes.shape}, expected int32 (e,)")
+    if len(escapes) and (escapes[0] < 0 or escapes[-1] >= tile.rect[2] * tile.rect[3] or (np.diff(escapes) <= 0).any()):
+        raise UserError(f"bundle: tile {i} escapes must be strictly increasing pixel indices inside the tile")
+    for what, value, shape, dtype in (("basis", frame.basis, (dims, k), np.float32),
+                                      ("offset", frame.offset, (dims,), np.float32),
+                                      ("escape noise", frame.escape_noise, (len(escapes), dims), np.float16)):
+        if value.shape != shape or value.dtype != dtype:
+            raise UserError(f"bundle: tile {i} {what} is {value.dtype} {value.shape}, expected "
+                            f"{np.dtype(dtype)} {shape}")
+        if not np.isfinite(value).all():
+            raise UserError(f"bundle: tile {i} {what} holds NaN or Inf")
+    checked_float(frame.scale, f"bundle: tile {i} scale", low=np.finfo(np.float32).tiny,
+                  high=float(np.finfo(np.float32).max))
 
 
 def validate_tile(i: int, tile: Tile, bundle: Bundle) -> None:
@@ -119,25 +226,41 @@ def validate_tile(i: int, tile: Tile, bundle: Bundle) -> None:
     if (tile.camera.width, tile.camera.height) != (w, h):
         raise UserError(f"bundle: tile {i} camera is {tile.camera.width}x{tile.camera.height}, "
                         f"its rectangle {w}x{h}")
-    if bundle.layout == "ray" and tile.sampling.n_samples > MAX_RAY_LAYOUT_SAMPLES:
-        raise UserError(f"bundle: tile {i} asks for {tile.sampling.n_samples} samples per ray; the ray layout "
-                        f"allows at most {MAX_RAY_LAYOUT_SAMPLES}")
-    shape = expected_noise_shape(tile, bundle.layout, bundle.noise_dims)
+    if bundle.layout != "sample" and tile.sampling.n_samples > MAX_RAY_LAYOUT_SAMPLES:
+        raise UserError(f"bundle: tile {i} asks for {tile.sampling.n_samples} samples per ray; the {bundle.layout} "
+                        f"layout allows at most {MAX_RAY_LAYOUT_SAMPLES}")
+    shape = expected_noise_shape(tile, bundle)
     if tile.noise.shape != shape or tile.noise.dtype != DTYPES[bundle.dtype]:
         raise UserError(f"bundle: tile {i} noise is {tile.noise.dtype} {tile.noise.shape}, "
                         f"expected {bundle.dtype} {shape}")
+    if bundle.layout == "compact":
+        validate_frame(i, tile, bundle)
+    elif tile.frame is not None:
+        raise UserError(f"bundle: tile {i} has a basis, which only the compact layout uses")
     if not np.isfinite(tile.noise).all():
         raise UserError(f"bundle: tile {i} noise holds NaN or Inf")
+
+
+def validate_noise_header(layout: str, dtype: str, dims: int, coefficients: int | None,
+                          layouts: tuple[str, ...] = LAYOUTS) -> None:
+    """The noise description alone (checked before any tile's coefficients are decompressed)."""
+    if layout not in layouts:
+        raise UserError(f"bundle: unknown noise layout {layout!r:.40} (expected one of {layouts})")
+    if dtype not in LAYOUT_DTYPES[layout]:
+        raise UserError(f"bundle: unknown noise dtype {dtype!r:.40} for the {layout} layout (expected one of "
+                        f"{LAYOUT_DTYPES[layout]})")
+    if (coefficients is not None) != (layout == "compact"):
+        raise UserError("bundle: coefficients per pixel are given for, and only for, the compact layout")
+    if layout == "compact" and not 1 <= coefficients <= min(dims, MAX_COMPACT_COEFFICIENTS):
+        raise UserError(f"bundle: {coefficients} coefficients per pixel, expected 1 to "
+                        f"{min(dims, MAX_COMPACT_COEFFICIENTS)}")
 
 
 def validate(bundle: Bundle) -> None:
     """Refuse anything a reveal could not render faithfully, with one clear message. Sizes are checked
     against the tiles' noise before the coverage mask is built, so the mask is never larger than the
     noise the bundle holds."""
-    if bundle.layout not in LAYOUTS:
-        raise UserError(f"bundle: unknown noise layout {bundle.layout!r} (expected one of {LAYOUTS})")
-    if bundle.dtype not in DTYPES:
-        raise UserError(f"bundle: unknown noise dtype {bundle.dtype!r} (expected one of {tuple(DTYPES)})")
+    validate_noise_header(bundle.layout, bundle.dtype, bundle.noise_dims, bundle.coefficients)
     if bundle.width < 1 or bundle.height < 1 or not bundle.tiles:
         raise UserError(f"bundle: empty secret ({bundle.width}x{bundle.height}, {len(bundle.tiles)} tiles)")
     if len(bundle.tiles) > MAX_TILES:
@@ -154,7 +277,7 @@ def validate(bundle: Bundle) -> None:
 
 
 def read_tensors(handle, path: Path) -> dict[str, np.ndarray]:
-    """Every noise tensor, refusing any dtype but float16/float32 (bfloat16 has no numpy type) before reading."""
+    """Every tensor, refusing any dtype but SAFETENSORS_DTYPES (bfloat16 has no numpy type) before reading."""
     tensors = {}
     for name in handle.keys():
         dtype = handle.get_slice(name).get_dtype()
@@ -165,21 +288,48 @@ def read_tensors(handle, path: Path) -> dict[str, np.ndarray]:
     return tensors
 
 
-def parse_tile(i: int, data, tensors: dict[str, np.ndarray]) -> Tile:
-    """One tile's metadata, every number type- and range-checked, joined to its tensor."""
-    if not isinstance(data, dict):
-        raise UserError(f"bundle: tile {i} must be a JSON object")
-    rect = checked_list(data.get("rect"), f"bundle: tile {i} rect", length=4)
-    x0, y0 = (checked_int(v, f"bundle: tile {i} rect origin", 0, MAX_IMAGE_SIDE) for v in rect[:2])
-    width, height = checked_image_size(rect[2], rect[3], f"bundle: tile {i} rect")
+def tile_tensor(tensors: dict[str, np.ndarray], name: str, what: str, dtype=None, ndim: int | None = None) -> np.ndarray:
+    """A named tensor that must exist (with this dtype and rank, when given)."""
+    if name not in tensors:
+        raise UserError(f"{what} tensor {name!r:.60} is missing")
+    value = tensors[name]
+    if (dtype is not None and value.dtype != dtype) or (ndim is not None and value.ndim != ndim):
+        raise UserError(f"{what} tensor {name!r:.60} is {value.dtype} {value.shape}")
+    return value
+
+
+def compact_tile(name: str, data: dict, tensors: dict[str, np.ndarray], shape: tuple[int, int, int], dtype: str,
+                 what: str) -> tuple[np.ndarray, Frame]:
+    """A compact tile's coefficients (h, w, k), decompressed only once the header and rect are known
+    good (so at most h·w·k values), and its frame."""
+    frame = Frame(basis=tile_tensor(tensors, f"{name}_basis", what), offset=tile_tensor(tensors, f"{name}_offset", what),
+                  scale=checked_float(data.get("scale"), f"{what} scale", low=float(np.finfo(np.float32).tiny),
+                                      high=float(np.finfo(np.float32).max)),
+                  escapes=tile_tensor(tensors, f"{name}_escapes", what),
+                  escape_noise=tile_tensor(tensors, f"{name}_escape_noise", what))
+    packed = tile_tensor(tensors, name, what, dtype=np.uint8, ndim=1)
+    return unpack_coefficients(packed, shape, dtype, what), frame
+
+
+def parse_tile(i: int, data, tensors: dict[str, np.ndarray], header: dict) -> Tile:
+    """One tile's metadata, every number type- and range-checked, joined to its tensors. header: the
+    bundle's checked layout, dtype and coefficients."""
+    x0, y0, width, height = checked_rect(i, data)
     name = data.get("tensor")
-    if not isinstance(name, str) or name not in tensors:
+    if not isinstance(name, str):
         raise UserError(f"bundle: tile {i} tensor {name!r:.40} is missing")
+    frame = None
+    if header["layout"] == "compact":
+        noise, frame = compact_tile(name, data, tensors, (height, width, header["coefficients"]), header["dtype"],
+                                    f"bundle: tile {i}")
+    else:
+        noise = tile_tensor(tensors, name, f"bundle: tile {i}")
     view = data.get("view")
     return Tile(rect=(x0, y0, width, height), camera=Camera.from_dict(data.get("camera")),
-                sampling=SamplingConfig.from_dict(data.get("sampling")), noise=tensors[name],
+                sampling=SamplingConfig.from_dict(data.get("sampling")), noise=noise,
                 view=None if view is None else checked_int(view, f"bundle: tile {i} view", 0, MAX_CAMERAS),
-                network=None if data.get("network") is None else checked_text(data["network"], f"bundle: tile {i} network"))
+                network=None if data.get("network") is None else checked_text(data["network"], f"bundle: tile {i} network"),
+                frame=frame)
 
 
 def checked_text(value, what: str) -> str:
@@ -189,24 +339,61 @@ def checked_text(value, what: str) -> str:
     return value
 
 
+def checked_format(meta: dict, path: Path) -> int:
+    """The bundle's format version, refusing one this noisenerf cannot read in a line that says which."""
+    version = meta.get("format_version")
+    if isinstance(version, bool) or version not in READABLE_FORMATS:
+        newest = max(READABLE_FORMATS)
+        raise UserError(f"{path} is bundle format {version!r:.20}; noisenerf {__version__} reads formats "
+                        f"{min(READABLE_FORMATS)} to {newest}"
+                        + ("; a newer noisenerf is needed" if isinstance(version, int) and version > newest else ""))
+    return version
+
+
+def noise_header(noise: dict, layouts: tuple[str, ...]) -> dict:
+    """The bundle's noise description, type- and range-checked. -> {layout, dims, dtype, coefficients}."""
+    layout = checked_text(noise.get("layout"), "bundle: noise layout")
+    header = {"layout": layout, "dims": checked_int(noise.get("dims"), "bundle: noise dims", 1, MAX_NOISE_DIMS),
+              "dtype": checked_text(noise.get("dtype"), "bundle: noise dtype"), "coefficients": None}
+    if layout == "compact":
+        header["coefficients"] = checked_int(noise.get("coefficients"), "bundle: coefficients per pixel", 1,
+                                             MAX_COMPACT_COEFFICIENTS)
+        if noise.get("codec") != "xz-byte-planes":
+            raise UserError(f"bundle: unknown coefficient codec {noise.get('codec')!r:.40} (expected 'xz-byte-planes')")
+    validate_noise_header(header["layout"], header["dtype"], header["dims"], header["coefficients"], layouts)
+    return header
+
+
 def parse_bundle(meta, tensors: dict[str, np.ndarray], path: Path) -> Bundle:
     """The metadata as a Bundle; nothing is converted by truncation (16.9 is not a size)."""
-    if not isinstance(meta, dict) or meta.get("format_version") != BUNDLE_FORMAT_VERSION:
-        raise UserError(f"unsupported bundle format version in {path}")
+    if not isinstance(meta, dict):
+        raise UserError(f"bundle metadata must be a JSON object: {path}")
+    version = checked_format(meta, path)
     secret, noise = meta.get("secret"), meta.get("noise")
     if not isinstance(secret, dict) or not isinstance(noise, dict):
         raise UserError("bundle: metadata needs 'secret' and 'noise' objects")
     width, height = checked_image_size(secret.get("width"), secret.get("height"), "bundle: secret")
+    header = noise_header(noise, READABLE_FORMATS[version])
     tiles = checked_list(meta.get("tiles"), "bundle: tiles", most=MAX_TILES)
+    tile_pixels = (w * h for _, _, w, h in (checked_rect(i, tile) for i, tile in enumerate(tiles)))
+    if header["layout"] == "compact" and sum(tile_pixels) != width * height:  # before inflating any stream
+        raise UserError(f"bundle: the tiles' areas do not add up to the {width}x{height} secret")
     extra = meta.get("extra", {})
     return Bundle(model_fingerprint=checked_text(meta.get("model_fingerprint"), "bundle: model_fingerprint"),
                   width=width, height=height, secret_sha256=checked_text(secret.get("sha256"), "bundle: sha256"),
-                  layout=checked_text(noise.get("layout"), "bundle: noise layout"),
-                  noise_dims=checked_int(noise.get("dims"), "bundle: noise dims", 1, MAX_NOISE_DIMS),
-                  dtype=checked_text(noise.get("dtype"), "bundle: noise dtype"),
-                  tiles=tuple(parse_tile(i, tile, tensors) for i, tile in enumerate(tiles)),
-                  extra=extra if isinstance(extra, dict) else {},
+                  layout=header["layout"], noise_dims=header["dims"], dtype=header["dtype"],
+                  tiles=tuple(parse_tile(i, tile, tensors, header) for i, tile in enumerate(tiles)),
+                  extra=extra if isinstance(extra, dict) else {}, coefficients=header["coefficients"],
                   payload=None if meta.get("payload") is None else checked_payload(meta["payload"]))
+
+
+def checked_rect(i: int, data) -> tuple[int, int, int, int]:
+    """A tile's rectangle (x0, y0, width, height) from its metadata object."""
+    if not isinstance(data, dict):
+        raise UserError(f"bundle: tile {i} must be a JSON object")
+    rect = checked_list(data.get("rect"), f"bundle: tile {i} rect", length=4)
+    x0, y0 = (checked_int(v, f"bundle: tile {i} rect origin", 0, MAX_IMAGE_SIDE) for v in rect[:2])
+    return (x0, y0, *checked_image_size(rect[2], rect[3], f"bundle: tile {i} rect"))
 
 
 def load_bundle(path: str | Path) -> Bundle:

@@ -37,7 +37,7 @@ def tile_rays(tile: Tile, config: RenderConfig) -> RayBatch:
 
 
 def per_sample_noise(noise: np.ndarray, n_samples: int) -> np.ndarray:
-    """(n_rays, dims) ray layout or (n_rays, n_samples, dims) sample layout -> (n_rays·n_samples, dims)."""
+    """(n_rays, dims) ray and compact layouts or (n_rays, n_samples, dims) sample layout -> (n_rays·n_samples, dims)."""
     if noise.ndim == 2:
         noise = np.broadcast_to(noise[:, None, :], (noise.shape[0], n_samples, noise.shape[1]))
     return np.ascontiguousarray(noise, dtype=np.float32).reshape(-1, noise.shape[-1])
@@ -59,13 +59,12 @@ def render_tile(tile: Tile, config: RenderConfig, field: NoisyFieldFn, chunk_ray
     """A tile's secret view: (height, width, 3) float32."""
     rays = tile_rays(tile, config)
     t_vals = sample_positions(tile.sampling)
-    noise = tile.noise.reshape(len(rays), *tile.noise.shape[2:])
     chunk_rays = rays_per_chunk(chunk_rays, tile.sampling.n_samples, REVEAL_CHUNK_SAMPLES)
     colors = []
     for start in range(0, len(rays), chunk_rays):
         stop = min(start + chunk_rays, len(rays))
         chunk = RayBatch(rays.origins[start:stop], rays.directions[start:stop], rays.viewdirs[start:stop])
-        colors.append(render_noisy_rays(chunk, t_vals, noise[start:stop], config, field))
+        colors.append(render_noisy_rays(chunk, t_vals, tile.noise_rows(start, stop), config, field))
         if progress is not None:
             progress.update(stop - start)
     return np.concatenate(colors).reshape(tile.camera.height, tile.camera.width, 3)

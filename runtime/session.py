@@ -53,8 +53,10 @@ def providers_for(device: str) -> list[str]:
 
 def session_options(threads: int | None) -> ort.SessionOptions:
     """Intra-op threads (default, and at most: the cores there are; more only oversubscribes and, in
-    the thousands, hangs onnxruntime); one inter-op thread, the graph being a single chain. onnxruntime's
-    own logging is silenced, so a failure is our one line on stderr."""
+    the thousands, hangs onnxruntime); one inter-op thread, the graph being a single chain. Idle pool
+    threads sleep instead of spinning, so a reveal on a shared machine leaves its cores to whoever needs
+    them (the exact hide's cause of slowness there, see train/hide.solver_threads). onnxruntime's own logging is silenced, so
+    a failure is our one line on stderr."""
     cores = available_cores()
     threads = cores if threads is None else threads
     if threads < 1:
@@ -63,6 +65,7 @@ def session_options(threads: int | None) -> ort.SessionOptions:
     options = ort.SessionOptions()
     options.intra_op_num_threads = min(threads, cores)
     options.inter_op_num_threads = 1
+    options.add_session_config_entry("session.intra_op.allow_spinning", "0")
     options.log_severity_level = QUIET
     return options
 

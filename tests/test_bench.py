@@ -20,7 +20,7 @@ def report(tmp_path_factory):
     write_image(folder / "secret.png", secret)
     config = BenchConfig(scene=str(folder / "scene"), secret=str(folder / "secret.png"),
                          photos=(str(folder / "secret.png"),), small_width=12, paper_samples=3, paper_iters=60, ablation_samples=2,
-                         twok_size=32, twok_tile=16, twok_rows=1, threads=(1,), payload_bytes=200)
+                         twok_size=32, twok_tile=16, twok_rows=1, threads=(1,), payload_bytes=200, view_width=12)
     sections = run_bench(config, folder / "out", run_stress=False, command="noisenerf bench (test)",
                          progress=lambda line: None)
     return folder / "out", {section.name: section for section in sections}
@@ -37,6 +37,18 @@ def test_every_experiment_writes_csv_and_report(report):
     assert (out / "error_vs_time.png").read_bytes()[:4] == b"\x89PNG"
     assert (out / "ablation.png").read_bytes()[:4] == b"\x89PNG"
     assert (out / "paper_quality.png").read_bytes()[:4] == b"\x89PNG"
+    assert (out / "views.png").read_bytes()[:4] == b"\x89PNG"
+
+
+def test_views_spread_around_the_scene_and_contention_is_measured(report):
+    _, sections = report
+    views = sections["views"].rows
+    assert sorted({r["view"] for r in views}) == [0, 1, 2, 3, 4, 5]  # the tiny scene's 6 cameras, for 8 asked
+    assert all(r["onnx_exact"] and r["bytes_per_pixel"] > 0 for r in views)
+    assert [r["busy_processes"] for r in sections["contention"].rows] == [0, 1, 0, 1]
+    assert all(r["exact"] for r in sections["contention"].rows)
+    layouts = {r["layout"]: r["file_bytes_per_pixel"] for r in sections["bundle_size"].rows}
+    assert layouts["compact"] < layouts["ray"] < layouts["sample"]
 
 
 def test_exact_curve_ends_exact_and_photos_reveal_exactly(report):

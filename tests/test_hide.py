@@ -34,17 +34,18 @@ def weights_digest(scene):
     return digest.hexdigest()
 
 
-@pytest.mark.parametrize("dtype", ["float16", "float32"])
-def test_exact_hide_recovers_every_value_and_leaves_weights_unchanged(scene, tmp_path, dtype):
+@pytest.mark.parametrize("layout, dtype, stored", [("compact", "int16", 6), ("ray", "float16", 90),
+                                                  ("ray", "float32", 90)])
+def test_exact_hide_recovers_every_value_and_leaves_weights_unchanged(scene, tmp_path, layout, dtype, stored):
     secret = random_secret(20, 30)
     before = weights_digest(scene)
-    report = hide(scene, secret, tmp_path / "s.bundle", HideConfig(dtype=dtype, tile_size=16), CPU,
+    report = hide(scene, secret, tmp_path / "s.bundle", HideConfig(layout=layout, dtype=dtype, tile_size=16), CPU,
                   show_progress=False)
     assert weights_digest(scene) == before
     assert report["exact"] and report["exact_fraction"] == 1.0
     assert [t["rect"] for t in report["tiles"]] == [list(r) for r in tile_rects(30, 20, 16)]
     bundle = load_bundle(tmp_path / "s.bundle")
-    assert bundle.dtype == dtype and bundle.tiles[0].noise.shape == (16, 16, 90)
+    assert bundle.layout == layout and bundle.dtype == dtype and bundle.tiles[0].noise.shape == (16, 16, stored)
     revealed = reveal(bundle, scene.config.render, numpy_fields(scene.fields()))
     np.testing.assert_array_equal(revealed.pixels, secret)
     assert revealed.exact

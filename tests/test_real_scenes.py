@@ -57,7 +57,7 @@ def test_ordinary_render_parity_on_fitted_lego(lego):
     assert ours_stats.n_samples_evaluated == theirs_stats.n_samples_evaluated
 
 
-@pytest.mark.parametrize("layout, dtype", [("ray", "float16"), ("sample", "float32")])
+@pytest.mark.parametrize("layout, dtype", [("compact", "int16"), ("ray", "float16"), ("sample", "float32")])
 def test_real_photo_hides_exactly_and_reveals_in_onnxruntime(lego, shared_data, layout, dtype):
     scene, model, folder = lego
     secret = small_photo(shared_data)

@@ -122,11 +122,11 @@ def test_denormal_noise_renders_like_no_noise(exported, tiny):
 @pytest.mark.parametrize("height, width, tile", cases([(1, 1, 16), (20, 300, 16)],
                                                       [(1, 1, 16), (1, 700, 16), (700, 1, 16), (20, 300, 16),
                                                        (64, 64, 64)]))
-@pytest.mark.parametrize("dtype", ["float16", "float32"])
-def test_tiny_and_many_tile_secrets_hide_and_reveal_exactly(exported, tmp_path, height, width, tile, dtype):
+@pytest.mark.parametrize("layout, dtype", [("compact", "int16"), ("ray", "float16"), ("ray", "float32")])
+def test_tiny_and_many_tile_secrets_hide_and_reveal_exactly(exported, tmp_path, height, width, tile, layout, dtype):
     scene, _, model, _ = exported
     secret = np.random.default_rng(height * width).integers(0, 256, (height, width, 3), dtype=np.uint8)
-    report = hide(scene, secret, tmp_path / "s.bundle", HideConfig(tile_size=tile, dtype=dtype), CPU,
+    report = hide(scene, secret, tmp_path / "s.bundle", HideConfig(tile_size=tile, layout=layout, dtype=dtype), CPU,
                   show_progress=False)
     assert report["exact"]
     bundle = load_bundle(tmp_path / "s.bundle")
@@ -136,15 +136,14 @@ def test_tiny_and_many_tile_secrets_hide_and_reveal_exactly(exported, tmp_path, 
     np.testing.assert_array_equal(revealed.pixels, secret)
 
 
-@pytest.mark.parametrize("method", ["exact", "paper"])
-def test_same_seed_same_bundle_bytes(exported, tmp_path, method):
+@pytest.mark.parametrize("method, layout", [("exact", "compact"), ("exact", "ray"), ("paper", "sample")])
+def test_same_seed_same_bundle_bytes(exported, tmp_path, method, layout):
     from noisenerf.train.paper_solver import PaperSettings
 
     scene = exported[0]
     secret = np.random.default_rng(5).integers(0, 256, (12, 20, 3), dtype=np.uint8)
     config = HideConfig(method=method, tile_size=16, seed=3, n_samples=None if method == "exact" else 4,
-                        layout="ray" if method == "exact" else "sample",
-                        paper=PaperSettings(iters=5, record_at=()))
+                        layout=layout, paper=PaperSettings(iters=5, record_at=()))
     for name in ("a", "b"):
         hide(scene, secret, tmp_path / f"{name}.bundle", config, CPU, show_progress=False)
     assert (tmp_path / "a.bundle").read_bytes() == (tmp_path / "b.bundle").read_bytes()

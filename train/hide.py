@@ -7,6 +7,7 @@ run again with the same arguments resumes where it stopped and writes a byte-ide
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import fcntl
 import hashlib
@@ -24,7 +25,7 @@ from safetensors.torch import save_file
 from tqdm import tqdm
 
 import noisenerf
-from noisenerf.runtime.bundle import DTYPES, Bundle, Tile, secret_digest
+from noisenerf.runtime.bundle import LAYOUT_DTYPES, LAYOUTS, Bundle, Frame, Tile, secret_digest
 from noisenerf.runtime.errors import UserError
 from noisenerf.runtime.files import atomic_output, check_output_path, existing_kind
 from noisenerf.runtime.limits import MAX_RAY_LAYOUT_SAMPLES, checked_image_size
@@ -34,10 +35,14 @@ from noisenerf.runtime.sampling import NETWORKS, SamplingConfig, render_network
 from noisenerf.train.scene import Scene
 from noisenerf.train.secret_view import SecretView
 from noisenerf.train.paper_solver import PaperSettings, pass_slices, recorded_points, solve_blocks, survey
-from noisenerf.train.solvers import ExactSettings, solve_exact
+from noisenerf.train.compact import INTEGER_DTYPES, CompactSettings, tile_space
+from noisenerf.train.solvers import ExactSettings, NoiseSpace, solve_exact
 from noisenerf.train.tiling import tile_camera, tile_rects
 
-TORCH_DTYPES = {"float16": torch.float16, "float32": torch.float32}
+TORCH_DTYPES = {"float16": torch.float16, "float32": torch.float32, **INTEGER_DTYPES}
+DEFAULT_LAYOUTS = {"exact": "compact", "paper": "sample"}
+EXACT_CPU_THREADS = 1  # see solver_threads
+ESCAPE_DTYPE = torch.float16  # a compact tile's escaped pixels store full noise as the ray layout does
 
 
 PAPER_SAMPLES = 64  # nerf-pytorch's N_samples, the coarse sampling the paper's code renders with
@@ -49,13 +54,16 @@ class HideConfig:
 
     The exact method's secret view has one sample per ray (see solvers.py: it makes every pixel a
     piecewise-linear problem); the paper's method samples PAPER_SAMPLES points per ray by default.
+    Layouts (runtime/bundle.py): exact stores `compact` by default (int16 coefficients of a per-tile
+    basis, see compact.py) or `ray` (float noise per pixel); paper stores `sample` (or `ray`). The dtype
+    defaults to the layout's first (int16, float16, float32).
     `network` is the one the secret view renders through, recorded per tile: by default the coarse
     network for the paper's method (as its authors render), the scene's render network for exact.
     """
 
     method: str = "exact"  # exact | paper
-    layout: str = "ray"  # ray: one noise vector per pixel; sample: one per sample (the paper's)
-    dtype: str = "float16"
+    layout: str | None = None  # compact | ray | sample; None: the method's default
+    dtype: str | None = None  # None: the layout's default
     n_samples: int | None = None  # samples per ray of the secret view; None: the method's default
     tile_size: int = 512
     view: int = 0
@@ -64,14 +72,22 @@ class HideConfig:
     network: str | None = None  # coarse | fine; None: the scene's render network
     exact: ExactSettings = ExactSettings()
     paper: PaperSettings = PaperSettings()
+    compact: CompactSettings = CompactSettings()
 
     def __post_init__(self):
-        if self.method not in ("exact", "paper"):
+        if self.method not in DEFAULT_LAYOUTS:
             raise UserError(f"unknown method {self.method!r} (exact or paper)")
-        if self.layout not in ("ray", "sample"):
-            raise UserError(f"unknown noise layout {self.layout!r} (ray or sample)")
-        if self.dtype not in DTYPES:
-            raise UserError(f"unknown noise dtype {self.dtype!r} (float16 or float32)")
+        if self.layout is None:
+            object.__setattr__(self, "layout", DEFAULT_LAYOUTS[self.method])
+        if self.layout not in LAYOUTS:
+            raise UserError(f"unknown noise layout {self.layout!r} (one of {', '.join(LAYOUTS)})")
+        if self.layout == "compact" and self.method != "exact":
+            raise UserError("the compact layout is the exact method's (the paper's method stores sample or ray)")
+        if self.dtype is None:
+            object.__setattr__(self, "dtype", LAYOUT_DTYPES[self.layout][0])
+        if self.dtype not in LAYOUT_DTYPES[self.layout]:
+            raise UserError(f"the {self.layout} layout stores {' or '.join(LAYOUT_DTYPES[self.layout])}, "
+                            f"not {self.dtype!r}")
         if self.n_samples is None:
             object.__setattr__(self, "n_samples", 1 if self.method == "exact" else PAPER_SAMPLES)
         if self.network is None and self.method == "paper":
@@ -231,36 +247,98 @@ def remove(entry: Path) -> None:
 
 
 def noise_shape(view: SecretView, config: HideConfig) -> tuple[int, int, int]:
-    samples = 1 if config.layout == "ray" else view.n_samples
+    samples = view.n_samples if config.layout == "sample" else 1
     return view.n_rays, samples, view.noise_dims
 
 
+def chunk_seed(config: HideConfig, tile: int, chunk: int) -> int:
+    """The seed of one chunk's solve; chunk −1 seeds the tile's compact basis."""
+    return config.seed * 1_000_003 + tile * 10_007 + chunk
+
+
+def exact_space(view: SecretView, config: HideConfig, k: int, pixels: torch.Tensor) -> NoiseSpace:
+    """Where tile k's exact solve looks for noise: the tile's compact basis, or the full float noise."""
+    if config.layout == "compact":
+        return tile_space(view, pixels, config.compact, config.exact, TORCH_DTYPES[config.dtype],
+                          chunk_seed(config, k, -1))
+    return NoiseSpace(TORCH_DTYPES[config.dtype])
+
+
+def stored_noise(space: NoiseSpace, params: torch.Tensor, escaped: torch.Tensor, escape_noise: torch.Tensor,
+                 shape: tuple[int, int]) -> dict:
+    """What a tile's bundle entry holds for solved params (n, P): the noise (*shape, P) in the storage dtype
+    (integer coefficients for a compact space, 0 where a pixel escaped) and the compact frame, with the
+    escaped pixels (n,) bool and their float16 noise (n, dims) (zero elsewhere)."""
+    if space.basis is None:
+        return {"noise": params.reshape(*shape, -1).to(space.storage).cpu().numpy(), "frame": None}
+    escapes = escaped.nonzero()[:, 0]
+    frame = Frame(basis=space.basis.cpu().numpy(), offset=space.offset.cpu().numpy(), scale=space.scale,
+                  escapes=escapes.to(torch.int32).cpu().numpy(),
+                  escape_noise=escape_noise[escapes].to(torch.float16).cpu().numpy())
+    coefficients = torch.where(escaped[:, None], 0, space.integers(params))
+    return {"noise": coefficients.reshape(*shape, -1).cpu().numpy(), "frame": frame}
+
+
+def solve_chunk(view: SecretView, index: torch.Tensor, pixels: torch.Tensor, space: NoiseSpace, config: HideConfig,
+                seed: int) -> dict[str, torch.Tensor]:
+    """One chunk's solve, as saved for resume: params (m, P), counts, and for a compact space the pixels it
+    could not finish, `escaped` (m,) uint8, solved again in full float16 noise, `escape_noise` (m, dims)
+    (zero where not escaped). Compact solves run at most config.compact.max_iters per phase: the few
+    pixels its basis cannot reach escape sooner."""
+    generator = torch.Generator().manual_seed(seed)
+    if space.basis is None:
+        result = solve_exact(view, index, pixels, space, config.exact, generator)
+        return {"noise": result.params, "counts": torch.tensor(dataclasses.astuple(result.counts))}
+    settings = dataclasses.replace(config.exact, max_iters=config.compact.max_iters)
+    result = solve_exact(view, index, pixels, space, settings, generator)
+    left = (~result.done).nonzero()[:, 0]
+    escape_noise = torch.zeros(len(index), view.noise_dims, device=index.device)
+    counts = torch.tensor(dataclasses.astuple(result.counts))
+    if left.numel():
+        full = solve_exact(view, index[left], pixels[left], NoiseSpace(ESCAPE_DTYPE), config.exact, generator)
+        escape_noise[left] = full.params
+        counts += torch.tensor(dataclasses.astuple(full.counts))
+    return {"noise": result.params, "counts": counts, "escaped": (~result.done).to(torch.uint8),
+            "escape_noise": escape_noise}
+
+
 def hide_tile_exact(view: SecretView, pixels: torch.Tensor, shape: tuple[int, int], config: HideConfig,
-                    progress: Progress, k: int, bar) -> tuple[torch.Tensor, dict]:
-    """Solve a tile chunk by chunk (resuming saved chunks). pixels: (n, 3) uint8 -> noise (n, 1, dims)."""
-    noise = torch.zeros(noise_shape(view, config), device=pixels.device)
+                    progress: Progress, k: int, bar) -> tuple[torch.Tensor, dict, dict]:
+    """Solve a tile chunk by chunk (resuming saved chunks). pixels: (n, 3) uint8 -> noise (n, 1, dims)
+    float32 as a reveal expands it, counts, and the tile's stored noise (stored_noise)."""
+    space = exact_space(view, config, k, pixels)
+    n, dims = view.n_rays, view.noise_dims
+    params = space.zeros(n, dims, pixels.device)
+    escaped = torch.zeros(n, dtype=torch.bool, device=pixels.device)
+    escape_noise = torch.zeros(n, dims, device=pixels.device)
     totals = {"iterations": 0, "jacobians": 0, "renders": 0, "restarts": 0}
-    for c, start in enumerate(range(0, view.n_rays, config.chunk_pixels)):
-        index = torch.arange(start, min(start + config.chunk_pixels, view.n_rays), device=pixels.device)
-        saved = progress.load(k, c, {"noise": (len(index), *noise.shape[1:]), "counts": (len(totals),)})
+    for c, start in enumerate(range(0, n, config.chunk_pixels)):
+        index = torch.arange(start, min(start + config.chunk_pixels, n), device=pixels.device)
+        shapes = {"noise": (len(index), params.shape[1]), "counts": (len(totals),)}
+        if space.basis is not None:
+            shapes.update(escaped=(len(index),), escape_noise=(len(index), dims))
+        saved = progress.load(k, c, shapes)
         if saved is None:
-            generator = torch.Generator().manual_seed(config.seed * 1_000_003 + k * 10_007 + c)
-            result = solve_exact(view, index, pixels[index], TORCH_DTYPES[config.dtype], config.exact, generator)
-            saved = {"noise": result.noise, "counts": torch.tensor([getattr(result.counts, name) for name in totals])}
+            saved = solve_chunk(view, index, pixels[index], space, config, chunk_seed(config, k, c))
             progress.save(k, c, saved)
-        noise[index] = saved["noise"].to(noise.device)
+        params[index] = saved["noise"].to(params.device)
+        if "escaped" in saved:
+            escaped[index] = saved["escaped"].bool().to(escaped.device)
+            escape_noise[index] = saved["escape_noise"].to(escape_noise.device)
         counts = dict(zip(totals, saved["counts"].tolist()))
         totals = {name: max(value, counts[name]) if name == "iterations" else value + counts[name]
                   for name, value in totals.items()}
         bar.update(len(index))
-    return noise, totals
+    noise = torch.where(escaped[:, None, None], escape_noise[:, None, :], space.expand(params))
+    prefix = (*shape, 1) if config.layout == "sample" else shape  # the sample layout of a one-sample view
+    return noise, {**totals, "escaped": int(escaped.sum())}, stored_noise(space, params, escaped, escape_noise, prefix)
 
 
 def hide_tile_paper(view: SecretView, pixels: torch.Tensor, shape: tuple[int, int], config: HideConfig,
-                    progress: Progress, k: int, bar) -> tuple[torch.Tensor, dict]:
+                    progress: Progress, k: int, bar) -> tuple[torch.Tensor, dict, dict]:
     """The paper's optimisation, block after block (each saved, so a hide resumes per block). The tile's
     noise waits on the CPU in the storage dtype, so device memory holds one block. pixels: (n, 3) uint8
-    -> noise (n, k, dims), {records: tile quality at each recorded iteration, dead_rays}."""
+    -> noise (n, k, dims), {records: tile quality at each recorded iteration, dead_rays}, stored noise."""
     settings = config.paper
     points = recorded_points(settings)
     clean = survey(view, settings.pass_samples)
@@ -280,7 +358,8 @@ def hide_tile_paper(view: SecretView, pixels: torch.Tensor, shape: tuple[int, in
     target = pixels.cpu().float() / 255.0
     records = [{"iteration": t, "loss": float(((colors[i] - target) ** 2).sum(-1).mean()),
                 **quality(colors[i].numpy(), pixels.cpu().numpy(), shape)} for i, t in enumerate(points)]
-    return noise, {"records": records, "dead_rays": int((~clean.alive).sum())}
+    stored = noise.reshape(*shape, *noise.shape[1:]) if config.layout == "sample" else noise.reshape(*shape, -1)
+    return noise, {"records": records, "dead_rays": int((~clean.alive).sum())}, {"noise": stored.numpy(), "frame": None}
 
 
 def quality(colors: np.ndarray, pixels: np.ndarray, shape: tuple[int, int]) -> dict:
@@ -295,6 +374,25 @@ def quality(colors: np.ndarray, pixels: np.ndarray, shape: tuple[int, int]) -> d
     }
 
 
+@contextlib.contextmanager
+def solver_threads(config: HideConfig, device: torch.device):
+    """The exact method solves with one torch thread on a CPU. Its Levenberg–Marquardt loop is thousands
+    of small ops; with torch's OpenMP pool of one thread per core, every op is a parallel region whose
+    idle threads spin, and on a machine whose cores are shared that spinning took the solver's own CPU
+    (README, "Predictable speed": a 64×64 hide 25–54 s instead of ~2 s beside other busy processes).
+    One thread measured 1.35 s quiet against 1.1 s for two, ~2 s beside two busy loops against 4.6–6.7
+    s, and makes the bundle's bytes independent of the machine's core count."""
+    if config.method != "exact" or device.type != "cpu":
+        yield
+        return
+    before = torch.get_num_threads()
+    torch.set_num_threads(EXACT_CPU_THREADS)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(before)
+
+
 def hide(scene: Scene, secret: np.ndarray, output: Path, config: HideConfig, device: torch.device,
          force: bool = False, show_progress: bool = True, payload: dict | None = None) -> dict:
     """Hide `secret` (H, W, 3) uint8 in the scene; write the bundle to `output`; return the report.
@@ -307,7 +405,7 @@ def hide(scene: Scene, secret: np.ndarray, output: Path, config: HideConfig, dev
     hide_plan = plan(scene, secret, config)
     scene.to(device)
     field = scene.render_field
-    with Progress(output, run_key(scene, secret, config)) as progress:
+    with Progress(output, run_key(scene, secret, config)) as progress, solver_threads(config, device):
         solve = hide_tile_exact if config.method == "exact" else hide_tile_paper
         tiles, reports = [], []
         started = time.perf_counter()
@@ -318,13 +416,12 @@ def hide(scene: Scene, secret: np.ndarray, output: Path, config: HideConfig, dev
             x0, y0, w, h = tile.rect
             view = SecretView(scene.fields()[tile.network], tile, scene.config.render, device)
             pixels = torch.tensor(secret[y0:y0 + h, x0:x0 + w].reshape(-1, 3), device=device)
-            noise, counts = solve(view, pixels, (h, w), config, progress, k, bar)
+            noise, counts, stored = solve(view, pixels, (h, w), config, progress, k, bar)
             with torch.no_grad():
                 colors = torch.cat([view.render(torch.arange(part.start, part.stop, device=device),
                                                 noise[part].to(device, torch.float32))
                                     for part in pass_slices(view.n_rays, view.n_samples, config.paper.pass_samples)])
-            stored = noise.reshape(h, w, *noise.shape[1:]) if config.layout == "sample" else noise.reshape(h, w, -1)
-            tiles.append(dataclasses.replace(tile, noise=stored.to(TORCH_DTYPES[config.dtype]).cpu().numpy()))
+            tiles.append(dataclasses.replace(tile, **stored))
             reports.append({"rect": list(tile.rect), "view": tile.view,
                             **quality(colors.cpu().numpy(), pixels.cpu().numpy(), (h, w)),
                             **counts, "seconds": round(time.perf_counter() - tile_start, 2)})
@@ -333,7 +430,8 @@ def hide(scene: Scene, secret: np.ndarray, output: Path, config: HideConfig, dev
                         secret_sha256=secret_digest(secret), layout=config.layout,
                         noise_dims=field.config.noise_dims, dtype=config.dtype, tiles=tuple(tiles),
                         extra={"method": config.method, "noisenerf": noisenerf.__version__,
-                               "config": config.to_dict()}, payload=payload)
+                               "config": config.to_dict()}, payload=payload,
+                        coefficients=config.compact.coefficients if config.layout == "compact" else None)
         bundle.save(output)
         progress.clear()
     n_pixels = secret.shape[0] * secret.shape[1]
@@ -342,6 +440,6 @@ def hide(scene: Scene, secret: np.ndarray, output: Path, config: HideConfig, dev
         "bundle": str(output), "method": config.method, "layout": config.layout, "dtype": config.dtype,
         "width": secret.shape[1], "height": secret.shape[0], "tiles": reports,
         "exact_fraction": exact_pixels / n_pixels, "exact": all(r["exact_fraction"] == 1.0 for r in reports),
-        "bundle_bytes": output.stat().st_size, "bytes_per_pixel": bundle.noise_bytes() / n_pixels,
+        "bundle_bytes": output.stat().st_size, "bytes_per_pixel": output.stat().st_size / n_pixels,
         "seconds": round(time.perf_counter() - started, 2),
     }

@@ -72,6 +72,51 @@ def quantize(noise: torch.Tensor, dtype: torch.dtype) -> torch.Tensor:
     return noise.to(dtype).to(noise.dtype)
 
 
+INTEGER_LIMITS = {torch.int8: 127, torch.int16: 32767}  # symmetric ranges (−128 / −32768 never written)
+
+
+@dataclass(frozen=True)
+class NoiseSpace:
+    """The unknowns of a chunk's pixels, `params` (m, P), and how they become noise (m, 1, dims).
+
+    Full space (basis None): the params are the noise itself, stored in a float dtype (P = dims).
+    Compact space: noise = offset + (q · scale) Bᵀ with B (dims, k) orthonormal columns, q integers of the
+    storage dtype; the params are q · scale (float32), so `store` rounds them to the integer lattice.
+    Expanding exactly as the reveal does (runtime.bundle.expand_coefficients: one float32 multiply, then
+    the matmul) keeps what the solver judges what the recipient renders, to float32 summation order.
+    """
+
+    storage: torch.dtype
+    basis: torch.Tensor | None = None  # (dims, k) float32
+    offset: torch.Tensor | None = None  # (dims,) float32
+    scale: float = 1.0  # compact: one integer step of a coefficient
+
+    def expand(self, params: torch.Tensor) -> torch.Tensor:
+        """(m, P) -> noise (m, 1, dims) float32."""
+        if self.basis is None:
+            return params[:, None, :]
+        return (self.offset + params @ self.basis.T)[:, None, :]
+
+    def chain(self, jacobian: torch.Tensor) -> torch.Tensor:
+        """∂outputs/∂noise (m, 4, dims) -> ∂outputs/∂params (m, 4, P)."""
+        return jacobian if self.basis is None else jacobian @ self.basis
+
+    def store(self, params: torch.Tensor) -> torch.Tensor:
+        """The nearest storable params: float rounding, or the clamped integer lattice. (m, P) -> (m, P)."""
+        if self.basis is None:
+            return quantize(params, self.storage)
+        return self.integers(params).float() * torch.tensor(self.scale, dtype=torch.float32)
+
+    def integers(self, params: torch.Tensor) -> torch.Tensor:
+        """Compact params as their stored integers. (m, k) float32 -> (m, k) int8/int16."""
+        limit = INTEGER_LIMITS[self.storage]
+        return torch.clamp(torch.round(params / self.scale), -limit, limit).to(self.storage)
+
+    def zeros(self, m: int, dims: int, device: torch.device) -> torch.Tensor:
+        """Params of zero noise offset: (m, P)."""
+        return torch.zeros(m, dims if self.basis is None else self.basis.shape[1], device=device)
+
+
 def sample_outputs(view: SecretView, index: torch.Tensor, noise: torch.Tensor) -> torch.Tensor:
     """Raw colour and raw density of each ray's single sample. index: (m,), noise: (m, 1, dims) -> (m, 4)."""
     raw_rgb, raw_density = view.raw(index, noise)
@@ -107,8 +152,8 @@ def colour_distance_bins(outputs: torch.Tensor, reference: torch.Tensor) -> torc
 
 def donor_noise(stuck: torch.Tensor, finished: torch.Tensor, goal: torch.Tensor, noise: torch.Tensor,
                 generator: torch.Generator, pool: torch.Tensor) -> torch.Tensor:
-    """Restart points for stuck pixels: the noise of a finished pixel picked at random among the pool[i]
-    nearest in target logits. stuck (s,), finished: index tensors into goal (m, 3) / noise (m, 1, dims);
+    """Restart points for stuck pixels: the params of a finished pixel picked at random among the pool[i]
+    nearest in target logits. stuck (s,), finished: index tensors into goal (m, 3) / params (m, P);
     pool: (s,) int64 ≥ 1."""
     k = min(int(pool.max()), finished.numel())
     nearest = torch.cdist(goal[stuck], goal[finished]).topk(k, largest=False).indices
@@ -124,19 +169,22 @@ class SolveCounts:
     restarts: int = 0
 
 
-def evaluate(view: SecretView, index: torch.Tensor, noise: torch.Tensor, counts: SolveCounts) -> torch.Tensor:
-    """sample_outputs without gradients, counted. -> (m, 4)."""
+def evaluate(view: SecretView, index: torch.Tensor, space: NoiseSpace, params: torch.Tensor,
+             counts: SolveCounts) -> torch.Tensor:
+    """sample_outputs of params (m, P) without gradients, counted. -> (m, 4)."""
     counts.renders += index.numel()
     with torch.no_grad():
-        return sample_outputs(view, index, noise)
+        return sample_outputs(view, index, space.expand(params))
 
 
-def line_search(view: SecretView, index: torch.Tensor, noise: torch.Tensor, outputs: torch.Tensor,
-                step: torch.Tensor, goal: torch.Tensor, settings: ExactSettings,
-                store: Callable[[torch.Tensor], torch.Tensor], counts: SolveCounts
+Store = Callable[[torch.Tensor], torch.Tensor]  # params (m, P) -> the params a phase may judge
+
+
+def line_search(view: SecretView, index: torch.Tensor, space: NoiseSpace, noise: torch.Tensor, outputs: torch.Tensor,
+                step: torch.Tensor, goal: torch.Tensor, settings: ExactSettings, store: Store, counts: SolveCounts
                 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """The first of settings.step_scales that lowers each pixel's ‖r‖², else the old noise.
-    noise: (m, 1, dims), outputs: (m, 4), step: (m, dims) -> noise, outputs, improved (m,) bool."""
+    """The first of settings.step_scales that lowers each pixel's ‖r‖², else the old params.
+    noise: params (m, P), outputs: (m, 4), step: (m, P) -> params, outputs, improved (m,) bool."""
     before = (residuals(outputs, goal, settings.density_floor) ** 2).sum(-1)
     noise, outputs = noise.clone(), outputs.clone()
     improved = torch.zeros(noise.shape[0], dtype=torch.bool, device=noise.device)
@@ -144,8 +192,8 @@ def line_search(view: SecretView, index: torch.Tensor, noise: torch.Tensor, outp
         trying = (~improved).nonzero()[:, 0]
         if trying.numel() == 0:
             break
-        candidate = store(noise[trying] + scale * step[trying, None, :])
-        after = evaluate(view, index[trying], candidate, counts)
+        candidate = store(noise[trying] + scale * step[trying])
+        after = evaluate(view, index[trying], space, candidate, counts)
         better = (residuals(after, goal[trying], settings.density_floor) ** 2).sum(-1) < before[trying]
         chosen = trying[better]
         noise[chosen], outputs[chosen], improved[chosen] = candidate[better], after[better], True
@@ -155,14 +203,14 @@ def line_search(view: SecretView, index: torch.Tensor, noise: torch.Tensor, outp
 Observer = Callable[[torch.Tensor, torch.Tensor, SolveCounts], None]  # (index (m,), noise (m, 1, dims), counts)
 
 
-def refine(view: SecretView, index: torch.Tensor, goal: torch.Tensor, noise: torch.Tensor,
-           finished: Callable[[torch.Tensor, torch.Tensor], torch.Tensor], store: Callable[[torch.Tensor], torch.Tensor],
+def refine(view: SecretView, index: torch.Tensor, goal: torch.Tensor, space: NoiseSpace, noise: torch.Tensor,
+           finished: Callable[[torch.Tensor, torch.Tensor], torch.Tensor], store: Store,
            settings: ExactSettings, generator: torch.Generator, counts: SolveCounts,
            observe: Observer | None = None) -> tuple[torch.Tensor, torch.Tensor]:
     """Levenberg–Marquardt on every pixel until `finished(outputs (a, 4), which (a,)) -> (a,) bool` holds.
     Finished pixels retire (unless settings.retire is off, for comparison); Jacobians are computed only
     for pixels that still need a step; `observe` sees the noise after every iteration (benchmarks).
-    noise: (m, 1, dims) -> noise, done (m,) bool."""
+    noise: params (m, P) -> params, done (m,) bool."""
     m = index.shape[0]
     device = noise.device
     noise = noise.clone()
@@ -170,7 +218,7 @@ def refine(view: SecretView, index: torch.Tensor, goal: torch.Tensor, noise: tor
     damping = torch.full((m,), settings.damping, device=device)
     age = torch.zeros(m, dtype=torch.int64, device=device)
     restarts = torch.zeros(m, dtype=torch.int64, device=device)
-    outputs = evaluate(view, index, noise, counts)
+    outputs = evaluate(view, index, space, noise, counts)
     active = torch.arange(m, device=device)
     for iteration in range(1, settings.max_iters + 1):
         done[active] = finished(outputs[active], active)
@@ -187,33 +235,36 @@ def refine(view: SecretView, index: torch.Tensor, goal: torch.Tensor, noise: tor
             # the k-th restart of a pixel jitters its start by k·jitter and draws from more donors, so
             # repeated restarts explore further; every other one starts afresh at random, in case the
             # donors' noise all lies in a basin this pixel's colour cannot be reached from
-            spread = settings.jitter * (restarts[stuck] - 1).float()[:, None, None]
+            spread = settings.jitter * (restarts[stuck] - 1).float()[:, None]
             start = torch.zeros_like(noise[stuck])
             from_donor = (restarts[stuck] % 2 == 1) & bool(finished_pixels.numel())
             if from_donor.any():
                 start[from_donor] = donor_noise(stuck[from_donor], finished_pixels, goal, noise, generator,
                                                 settings.donors * restarts[stuck[from_donor]])
-            spread = torch.where(from_donor[:, None, None], spread, spread + settings.kick)
+            spread = torch.where(from_donor[:, None], spread, spread + settings.kick)
             noise[stuck] = store(start + spread * torch.randn(start.shape, generator=generator).to(device))
-            outputs[stuck] = evaluate(view, index[stuck], noise[stuck], counts)
+            outputs[stuck] = evaluate(view, index[stuck], space, noise[stuck], counts)
             age[stuck], damping[stuck] = 0, settings.damping
             counts.restarts += stuck.numel()
-        _, jac = output_jacobian(view, index[active], noise[active])
+        _, jac = output_jacobian(view, index[active], space.expand(noise[active]))
+        jac = space.chain(jac)
         counts.jacobians += active.numel()
         age[active[jac.flatten(1).abs().amax(-1) < 1e-12]] = settings.restart_after + 1  # all ReLUs off: restart
         step = damped_step(jac, residuals(outputs[active], goal[active], settings.density_floor), damping[active])
-        noise[active], outputs[active], improved = line_search(view, index[active], noise[active], outputs[active],
-                                                               step, goal[active], settings, store, counts)
+        noise[active], outputs[active], improved = line_search(view, index[active], space, noise[active],
+                                                               outputs[active], step, goal[active], settings, store,
+                                                               counts)
         damping[active] = torch.where(improved, torch.clamp(damping[active] / 3, min=1e-7),
                                       torch.clamp(damping[active] * 10, max=1e6))
         if observe is not None:
-            observe(index, noise, counts)
+            observe(index, space.expand(noise), counts)
     return noise, done
 
 
 @dataclass(frozen=True)
 class ChunkResult:
-    noise: torch.Tensor  # (m, 1, dims) float32, representable in the storage dtype
+    params: torch.Tensor  # (m, P) float32, storable (NoiseSpace.store leaves them unchanged)
+    done: torch.Tensor  # (m,) bool: the pixel rounds to its 8-bit value (a compact space may leave a few)
     counts: SolveCounts
 
 
@@ -239,12 +290,13 @@ class Criteria:
         return inside & self.lifted(outputs)
 
 
-def solve_exact(view: SecretView, index: torch.Tensor, pixels: torch.Tensor, storage: torch.dtype,
+def solve_exact(view: SecretView, index: torch.Tensor, pixels: torch.Tensor, space: NoiseSpace,
                 settings: ExactSettings, generator: torch.Generator, observe: Observer | None = None) -> ChunkResult:
-    """Bring pixels `index` (m,) of a single-sample view to their 8-bit values `pixels` (m, 3) uint8.
+    """Bring pixels `index` (m,) of a single-sample view to their 8-bit values `pixels` (m, 3) uint8, with
+    each pixel's noise in `space` (the full 90 values, or a tile's compact basis).
 
-    Every seed_stride-th pixel is solved first from zero noise; every other pixel then starts from the
-    noise of the solved seed nearest in target colour, which is most of the way there (it measured
+    Every seed_stride-th pixel is solved first from zero params; every other pixel then starts from the
+    params of the solved seed nearest in target colour, which is most of the way there (it measured
     ~40 % fewer Jacobians than starting all pixels from zero). Each group runs both phases; a last
     storage-phase pass over the whole chunk gives any pixel still left every finished pixel as a donor."""
     if view.n_samples != 1:
@@ -253,23 +305,20 @@ def solve_exact(view: SecretView, index: torch.Tensor, pixels: torch.Tensor, sto
     counts = SolveCounts()
     criteria = Criteria(pixels, settings)
 
-    def store(n):
-        return quantize(n, storage)
-
     def both_phases(group: torch.Tensor, start: torch.Tensor) -> torch.Tensor:
         group_criteria = Criteria(pixels[group], settings)
-        converged, _ = refine(view, index[group], group_criteria.goal, start, group_criteria.converged,
+        converged, _ = refine(view, index[group], group_criteria.goal, space, start, group_criteria.converged,
                               lambda n: n, settings, generator, counts, observe)
-        return refine(view, index[group], group_criteria.goal, store(converged), group_criteria.rounds_right,
-                      store, settings, generator, counts, observe)[0]
+        return refine(view, index[group], group_criteria.goal, space, space.store(converged),
+                      group_criteria.rounds_right, space.store, settings, generator, counts, observe)[0]
 
-    noise = torch.zeros(m, 1, view.noise_dims, device=pixels.device)
+    params = space.zeros(m, view.noise_dims, pixels.device)
     is_seed = torch.arange(m, device=pixels.device) % settings.seed_stride == 0
     seeds, rest = is_seed.nonzero()[:, 0], (~is_seed).nonzero()[:, 0]
-    noise[seeds] = both_phases(seeds, noise[seeds])
+    params[seeds] = both_phases(seeds, params[seeds])
     if rest.numel():
         nearest = seeds[torch.cdist(criteria.goal[rest], criteria.goal[seeds]).argmin(dim=1)]
-        noise[rest] = both_phases(rest, noise[nearest])
-        noise, _ = refine(view, index, criteria.goal, noise, criteria.rounds_right, store, settings, generator,
-                          counts, observe)
-    return ChunkResult(noise, counts)
+        params[rest] = both_phases(rest, params[nearest])
+    params, done = refine(view, index, criteria.goal, space, params, criteria.rounds_right, space.store, settings,
+                          generator, counts, observe)
+    return ChunkResult(params, done, counts)
