@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import os
 from pathlib import Path
 
@@ -67,3 +68,21 @@ def make_tiny_scene(seed: int = 0, **kwargs):
 @pytest.fixture
 def tiny_scene():
     return make_tiny_scene()
+
+
+@contextlib.contextmanager
+def interrupted_after_saves(n: int):
+    """Inside, a hide is interrupted (KeyboardInterrupt) right after its n-th saved chunk or block."""
+    from noisenerf.train import hide as hide_module
+
+    original, saved = hide_module.Progress.save, []
+
+    def save_then_die(self, *args):
+        original(self, *args)
+        saved.append(args[:2])
+        if len(saved) == n:
+            raise KeyboardInterrupt
+
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(hide_module.Progress, "save", save_then_die)
+        yield

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import torch
 
-from conftest import make_tiny_scene
+from conftest import interrupted_after_saves, make_tiny_scene
 from noisenerf.runtime.bundle import load_bundle
 from noisenerf.runtime.errors import UserError
 from noisenerf.runtime.reveal import reveal, to_uint8
@@ -77,20 +77,10 @@ def test_interrupted_hide_resumes_to_a_byte_identical_bundle(scene, tmp_path, mo
     hide(scene, secret, tmp_path / "whole.bundle", config, CPU, show_progress=False)
 
     from noisenerf.train import hide as hide_module
-    original, saved = hide_module.Progress.save, []
-
-    def save_then_die(self, *args):
-        original(self, *args)
-        saved.append(args[:2])
-        if len(saved) == 5:
-            raise KeyboardInterrupt
-
-    monkeypatch.setattr(hide_module.Progress, "save", save_then_die)
-    with pytest.raises(KeyboardInterrupt):
+    with pytest.raises(KeyboardInterrupt), interrupted_after_saves(5):
         hide(scene, secret, tmp_path / "resumed.bundle", config, CPU, show_progress=False)
     assert not (tmp_path / "resumed.bundle").exists()
     assert len(list((tmp_path / "resumed.bundle.partial").glob("*.safetensors"))) == 5
-    monkeypatch.setattr(hide_module.Progress, "save", original)
     solved, solve_exact = [], hide_module.solve_exact
     monkeypatch.setattr(hide_module, "solve_exact", lambda *a, **k: solved.append(1) or solve_exact(*a, **k))
     hide(scene, secret, tmp_path / "resumed.bundle", config, CPU, show_progress=False)

@@ -4,6 +4,7 @@ import numpy as np
 import pytest
 import torch
 
+from conftest import interrupted_after_saves
 from noisenerf.runtime.metrics import ssim
 from noisenerf.runtime.reveal import to_uint8
 from noisenerf.train.hide import HideConfig, plan
@@ -118,18 +119,8 @@ def test_interrupted_paper_hide_resumes_per_block_to_a_byte_identical_bundle(dem
     config = HideConfig(method="paper", layout="sample", dtype="float32", n_samples=8,
                         paper=recipe("authors", iters=4, block_pixels=40, record_at=(2, 4)))
     hide_module.hide(demo, secret, tmp_path / "whole.bundle", config, CPU, show_progress=False)
-    original, saved = hide_module.Progress.save, []
-
-    def save_then_die(self, *args):
-        original(self, *args)
-        saved.append(args[:2])
-        if len(saved) == 2:
-            raise KeyboardInterrupt
-
-    monkeypatch.setattr(hide_module.Progress, "save", save_then_die)
-    with pytest.raises(KeyboardInterrupt):
+    with pytest.raises(KeyboardInterrupt), interrupted_after_saves(2):
         hide_module.hide(demo, secret, tmp_path / "resumed.bundle", config, CPU, show_progress=False)
-    monkeypatch.setattr(hide_module.Progress, "save", original)
     solved, solve_block = [], paper_solver.solve_block
     monkeypatch.setattr(paper_solver, "solve_block", lambda *a, **k: solved.append(1) or solve_block(*a, **k))
     report = hide_module.hide(demo, secret, tmp_path / "resumed.bundle", config, CPU, show_progress=False)
