@@ -1,6 +1,5 @@
 """The paper's method: dead-ray revival, block streaming, the recipes, and quality on a small secret."""
 
-import numpy as np
 import pytest
 import torch
 

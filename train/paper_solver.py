@@ -174,9 +174,9 @@ def survey(view: SecretView, pass_samples: int) -> ViewSurvey:
     with torch.no_grad():
         for part in pass_slices(view.n_rays, view.n_samples, pass_samples):
             index = torch.arange(part.start, part.stop, device=device)
-            _, raw_density = view.raw(index, zero)
+            raw_rgb, raw_density = view.raw(index, zero)
             alive.append(raw_density.amax(-1) > 0)
-            colors.append(view.render(index, zero))
+            colors.append(view.shade(index, raw_rgb, raw_density))
     return ViewSurvey(torch.cat(colors), torch.cat(alive))
 
 
