@@ -678,6 +678,8 @@ ARGUMENTS = {  # case: (which main, args(world, folder), message)
                             "invalid int"),
     "hide: device bogus": (noisenerf_main, lambda w, d: hide_args(w, d / "s.bundle", "--device", "bogus"),
                            "unknown --device"),
+    "hide: paper iters 0": (noisenerf_main, lambda w, d: hide_args(w, d / "s.bundle", "--method", "paper",
+                                                                   "--iters", 0), "must be positive"),
     "hide: samples 10**6": (noisenerf_main, lambda w, d: hide_args(w, d / "s.bundle", "--method", "paper",
                                                                    "--samples", 10 ** 6), "1 to 1024 samples"),
     "hide: ray layout 300 samples": (noisenerf_main, lambda w, d: hide_args(

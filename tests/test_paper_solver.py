@@ -4,6 +4,7 @@ import pytest
 import torch
 
 from conftest import interrupted_after_saves
+from noisenerf.runtime.errors import UserError
 from noisenerf.runtime.metrics import ssim
 from noisenerf.runtime.reveal import to_uint8
 from noisenerf.train.hide import HideConfig, plan
@@ -93,8 +94,10 @@ def test_recipes_follow_their_schedules():
     assert learning_rate(paper, 300) == pytest.approx(1e-2 * 0.3)
     assert paper.pixel_perturbation and paper.adaptive_selection and paper.weight_decay == 0
     assert not authors.pixel_perturbation and not authors.adaptive_selection and authors.weight_decay == 0.8
-    with pytest.raises(ValueError, match="revival"):
+    with pytest.raises(UserError, match="revival"):
         recipe("authors", revival="some")
+    with pytest.raises(UserError, match="--iters"):
+        recipe("authors", iters=0)
 
 
 def test_paper_mode_reaches_an_ssim_the_old_solver_missed(demo, secret, view):

@@ -46,6 +46,7 @@ from typing import Callable, Iterator
 
 import torch
 
+from noisenerf.runtime.errors import UserError
 from noisenerf.train.secret_view import SecretView
 
 
@@ -78,11 +79,11 @@ class PaperSettings:
 
     def __post_init__(self):
         if self.lr_schedule not in ("step", "exponential"):
-            raise ValueError(f"unknown lr schedule {self.lr_schedule!r}")
+            raise UserError(f"unknown lr schedule {self.lr_schedule!r}")
         if self.revival not in ("off", "dead", "all"):
-            raise ValueError(f"unknown revival {self.revival!r} (off, dead or all)")
+            raise UserError(f"unknown revival {self.revival!r} (off, dead or all)")
         if self.iters < 1 or self.block_pixels < 1 or self.pass_samples < 1:
-            raise ValueError("iters, block_pixels and pass_samples must be positive")
+            raise UserError("--iters, block_pixels and pass_samples must be positive")
 
 
 RECIPES = {
