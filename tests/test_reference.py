@@ -1,0 +1,136 @@
+"""Same seed, same inputs → the same bytes as the code wrote before the restructuring (issue 9).
+
+The references in tests/reference/ were written by main at e98c111 (before train/ was split into
+layers and the solvers moved behind one interface) with `python tests/test_reference.py`:
+`exact_compact.bundle` is the small exact bundle itself, and `digests.json` holds the SHA-256 of every
+artifact below (bundles of each method and layout, a plain and a sealed payload, a fitted scene's files
+and an exported ONNX file). Each artifact is rebuilt here from seeds alone and must match byte for byte.
+Torch runs one thread, so the bytes do not depend on the machine's core count; the ONNX file also
+depends on torch's exporter, so that comparison skips under another torch than the reference's.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+import hashlib
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from conftest import make_tiny_scene  # noqa: E402
+
+REFERENCE = Path(__file__).resolve().parent / "reference"
+CPU = torch.device("cpu")
+
+
+@contextlib.contextmanager
+def one_thread():
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(before)
+
+
+def build_artifacts(folder: Path) -> dict[str, Path]:
+    """Every artifact the comparison covers, written into `folder` from fixed seeds."""
+    from noisenerf.export.onnx_export import export_scene
+    from noisenerf.runtime.payload import Record
+    from noisenerf.runtime.sealing import ScryptParams, new_seal
+    from noisenerf.train.datasets import load_dataset
+    from noisenerf.train.fit import PRESETS, Budget, fit
+    from noisenerf.train.hide import HideConfig, hide
+    from noisenerf.train.occupancy import OccupancyConfig
+    from noisenerf.train.paper_solver import PaperSettings, recipe
+    from noisenerf.train.payload import hide_payload
+    from noisenerf.train.procedural import write_procedural_dataset
+
+    artifacts = {}
+    secret = np.random.default_rng(0).integers(0, 256, (20, 30, 3), dtype=np.uint8)
+    with one_thread():
+        scene = make_tiny_scene(seed=0, width=64, depth=4)
+        for name, config in {
+            "exact_compact.bundle": HideConfig(tile_size=16),
+            "exact_ray.bundle": HideConfig(layout="ray", tile_size=16, view=2, seed=5),
+            "paper_sample.bundle": HideConfig(method="paper", tile_size=16, n_samples=8,
+                                              paper=PaperSettings(iters=6, record_at=(3, 6))),
+            "paper_text_ray.bundle": HideConfig(method="paper", layout="ray", tile_size=16, n_samples=8,
+                                                paper=recipe("paper", iters=6,
+                                                                mu=3, record_at=(6,))),
+        }.items():
+            part = secret[:18, :20] if config.method == "paper" else secret
+            hide(scene, part, folder / name, config, CPU, show_progress=False)
+            artifacts[name] = folder / name
+        payload_config = HideConfig(tile_size=16)
+        hide_payload(scene, Record("file", b"the eagle lands at noon\n", b"note.txt"), folder / "payload.bundle",
+                     payload_config, CPU, show_progress=False)
+        hide_payload(scene, Record("file", b"the eagle lands at noon\n", b"note.txt"), folder / "sealed.bundle",
+                     payload_config, CPU, passphrase=b"reference",
+                     seal=new_seal(ScryptParams(log2_n=10, r=8, p=1), salt=bytes(range(16)), nonce=bytes(range(12))),
+                     show_progress=False)
+        artifacts["payload.bundle"] = folder / "payload.bundle"
+        artifacts["sealed.bundle"] = folder / "sealed.bundle"
+
+        data = write_procedural_dataset(folder / "data", size=24, n_train=8, n_val=1, n_test=1)
+        tiny = dataclasses.replace(PRESETS["small"], batch_rays=128, n_samples=16, warmup_rays=64, warmup_samples=8,
+                                   empty_points=64, precrop_steps=4,
+                                   occupancy=OccupancyConfig(resolution=16, warmup_steps=8, update_every=4))
+        fit(load_dataset(data), folder / "scene", tiny, Budget(iters=12), CPU, curve_seconds=0, progress=False)
+        for name in ("weights.safetensors", "scene.json", "occupancy.safetensors"):
+            artifacts[f"scene/{name}"] = folder / "scene" / name
+
+        fine = make_tiny_scene(seed=3, fine=True)
+        fine.save(folder / "fine_scene")
+        export_scene(folder / "fine_scene", folder / "model.onnx")
+        artifacts["model.onnx"] = folder / "model.onnx"
+    return artifacts
+
+
+def sha256(path: Path) -> str:
+    return hashlib.sha256(path.read_bytes()).hexdigest()
+
+
+@pytest.fixture(scope="module")
+def artifacts(tmp_path_factory):
+    return build_artifacts(tmp_path_factory.mktemp("reference"))
+
+
+@pytest.fixture(scope="module")
+def digests():
+    return json.loads((REFERENCE / "digests.json").read_text())
+
+
+def test_the_small_exact_bundle_is_byte_identical_to_the_reference_file(artifacts):
+    assert artifacts["exact_compact.bundle"].read_bytes() == (REFERENCE / "exact_compact.bundle").read_bytes()
+
+
+@pytest.mark.parametrize("name", ["exact_compact.bundle", "exact_ray.bundle", "paper_sample.bundle",
+                                  "paper_text_ray.bundle", "payload.bundle", "sealed.bundle",
+                                  "scene/weights.safetensors", "scene/scene.json", "scene/occupancy.safetensors"])
+def test_artifact_matches_the_reference_digest(artifacts, digests, name):
+    assert sha256(artifacts[name]) == digests["sha256"][name]
+
+
+def test_onnx_file_matches_the_reference_digest(artifacts, digests):
+    if torch.__version__ != digests["torch"]:
+        pytest.skip(f"the ONNX reference was exported by torch {digests['torch']}, this is {torch.__version__}")
+    assert sha256(artifacts["model.onnx"]) == digests["sha256"]["model.onnx"]
+
+
+if __name__ == "__main__":  # writes the references (only ever from the code before a behaviour-neutral change)
+    import tempfile
+
+    with tempfile.TemporaryDirectory() as tmp:
+        built = build_artifacts(Path(tmp))
+        REFERENCE.mkdir(exist_ok=True)
+        (REFERENCE / "exact_compact.bundle").write_bytes(built["exact_compact.bundle"].read_bytes())
+        (REFERENCE / "digests.json").write_text(json.dumps(
+            {"torch": torch.__version__, "sha256": {name: sha256(path) for name, path in built.items()}},
+            indent=1) + "\n")
