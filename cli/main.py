@@ -44,8 +44,8 @@ def emit(report: dict, as_json: bool, lines: list[str]) -> None:
 
 
 def cmd_fit(args) -> None:
-    from noisenerf.train.datasets import load_dataset
-    from noisenerf.train.fit import PRESETS, Budget, fit
+    from noisenerf.train.scene.datasets import load_dataset
+    from noisenerf.train.scene.fit import PRESETS, Budget, fit
 
     if (args.minutes is None) == (args.iters is None):
         raise UserError("give exactly one of --minutes M or --iters N")
@@ -68,7 +68,7 @@ def cmd_fit(args) -> None:
 
 
 def cmd_import(args) -> None:
-    from noisenerf.train.import_nerf_pytorch import import_nerf_pytorch
+    from noisenerf.train.scene.import_nerf_pytorch import import_nerf_pytorch
 
     scene = import_nerf_pytorch(Path(args.checkpoint), Path(args.config), Path(args.output),
                                 data_dir=Path(args.data_dir) if args.data_dir else None)
@@ -78,10 +78,10 @@ def cmd_import(args) -> None:
 
 def cmd_hide(args) -> None:
     from noisenerf.runtime.images import load_secret
-    from noisenerf.train.hide import HideConfig, hide
-    from noisenerf.train.paper_solver import pass_samples_for, recipe
-    from noisenerf.train.solvers import chunk_pixels_for
-    from noisenerf.train.scene import load_scene
+    from noisenerf.train.hide.run import HideConfig, hide
+    from noisenerf.train.hide.paper import pass_samples_for, recipe
+    from noisenerf.train.hide.exact import chunk_pixels_for
+    from noisenerf.train.scene.scene import load_scene
 
     if (args.secret is None) == (args.file is None):
         raise UserError("give exactly one of SECRET_IMAGE or --file PAYLOAD")
@@ -126,7 +126,7 @@ def sealing_passphrase(args) -> bytes | None:
 def hide_record(args, scene, record, output: Path, config, device, passphrase: bytes | None) -> dict:
     """Hide a payload record (--file's bytes, or a secret image to seal) under `passphrase` if given; the
     capacity and the time to expect go to stderr first."""
-    from noisenerf.train.payload import hide_payload
+    from noisenerf.train.hide.payload import hide_payload
 
     def announce(room: dict) -> None:
         if not args.quiet:
@@ -146,14 +146,14 @@ def cmd_export(args) -> None:
 
 
 def cmd_demo(args) -> None:
-    from noisenerf.train.demo import run_demo
+    from noisenerf.cli.demo import run_demo
 
     report = run_demo(Path(args.output), resolve_device(args.device), show_progress=not args.quiet)
     emit(report, args.json, report["summary"])
 
 
 def cmd_bench(args) -> None:
-    from noisenerf.train.bench import EXPERIMENTS, BenchConfig, run_bench
+    from noisenerf.cli.bench import EXPERIMENTS, BenchConfig, run_bench
 
     experiments = tuple(args.only.split(",")) if args.only else EXPERIMENTS
     if args.payload_bytes < 0:
@@ -170,7 +170,7 @@ def cmd_bench(args) -> None:
 
 
 def cmd_make_dataset(args) -> None:
-    from noisenerf.train.procedural import write_procedural_dataset
+    from noisenerf.train.scene.procedural import write_procedural_dataset
 
     path = write_procedural_dataset(Path(args.output), size=args.size, seed=args.seed)
     emit({"dataset": str(path)}, args.json, [f"dataset: {path}"])

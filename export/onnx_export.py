@@ -44,9 +44,9 @@ from noisenerf.runtime.fingerprint import weights_fingerprint
 from noisenerf.runtime.model import ModelMetadata
 from noisenerf.runtime.onnx_file import parse_model
 from noisenerf.runtime.session import COARSE_OUTPUT_NAMES, INPUT_NAMES, OUTPUT_NAMES, OnnxField
-from noisenerf.train.field import NeRFField
-from noisenerf.train.renderer import numpy_field
-from noisenerf.train.scene import Scene, load_scene
+from noisenerf.train.scene.field import NeRFField
+from noisenerf.train.scene.render import numpy_field
+from noisenerf.train.scene.scene import Scene, load_scene
 
 OPSET = 17
 PROBE_TOLERANCE = 1e-5  # see probe_parity

@@ -18,7 +18,6 @@ import OpenImageIO as oiio
 from noisenerf.runtime.errors import UserError
 from noisenerf.runtime.files import atomic_output
 from noisenerf.runtime.limits import checked_image_size
-from noisenerf.runtime.reveal import to_uint8
 
 # extension -> (OpenImageIO format name, pixel type written)
 WRITE_FORMATS = {
@@ -155,6 +154,11 @@ def load_secret(path: str | os.PathLike) -> tuple[np.ndarray, list[str]]:
     if channels in (2, 4):
         values = composite_over(values, 1.0)
     return to_uint8(np.broadcast_to(values, values.shape[:2] + (3,))), warnings
+
+
+def to_uint8(image: np.ndarray) -> np.ndarray:
+    """[0, 1] floats to 8-bit by rounding half up: value k covers [(k − ½)/255, (k + ½)/255)."""
+    return np.clip(np.floor(np.asarray(image, np.float32) * 255.0 + 0.5), 0, 255).astype(np.uint8)
 
 
 def encoded(image: np.ndarray, pixel_type: str) -> np.ndarray:

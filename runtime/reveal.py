@@ -17,6 +17,7 @@ from noisenerf.runtime.bundle import Bundle, Tile, secret_digest
 from noisenerf.runtime.camera import camera_rays
 from noisenerf.runtime.compositing import composite, render_weights
 from noisenerf.runtime.errors import UserError
+from noisenerf.runtime.images import to_uint8
 from noisenerf.runtime.render import RayBatch, RenderConfig, prepare_rays, rays_per_chunk, sample_along
 from noisenerf.runtime.sampling import render_network, sample_positions
 
@@ -24,11 +25,6 @@ REVEAL_CHUNK_SAMPLES = 1 << 17  # samples per chunk of a reveal (2048 rays of 64
 
 # field(points (m, 3), viewdirs (m, 3), noise (m, dims)) -> rgb (m, 3), sigma (m,)
 NoisyFieldFn = Callable[[np.ndarray, np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]]
-
-
-def to_uint8(image: np.ndarray) -> np.ndarray:
-    """[0, 1] floats to 8-bit by rounding half up: value k covers [(k − ½)/255, (k + ½)/255)."""
-    return np.clip(np.floor(np.asarray(image, np.float32) * 255.0 + 0.5), 0, 255).astype(np.uint8)
 
 
 def tile_rays(tile: Tile, config: RenderConfig) -> RayBatch:

@@ -83,7 +83,7 @@ class Hierarchy:
 def sample_pdf(bins: np.ndarray, weights: np.ndarray, n_samples: int) -> np.ndarray:
     """Deterministic inverse-CDF samples of the piecewise-constant pdf given by weights over bins:
     nerf-pytorch's sample_pdf with det=True (its 1e-5 floor and denominator guard included), the numpy
-    twin of noisenerf.train.rendering.sample_pdf.
+    twin of noisenerf.train.scene.render.sample_pdf.
 
     bins: (n_rays, n_bins + 1), weights: (n_rays, n_bins) -> (n_rays, n_samples) float32.
     """

@@ -26,8 +26,8 @@ def tiny_scene_config(ndc: bool = False, fine: bool = False, width: int = 32, de
     from noisenerf.runtime.camera import Camera, NDCSpace
     from noisenerf.runtime.render import RenderConfig
     from noisenerf.runtime.sampling import SamplingConfig
-    from noisenerf.train.field import FieldConfig
-    from noisenerf.train.scene import SceneConfig
+    from noisenerf.train.scene.field import FieldConfig
+    from noisenerf.train.scene.scene import SceneConfig
 
     cameras = []
     for angle in np.linspace(0, 2 * np.pi, 6, endpoint=False):
@@ -53,7 +53,7 @@ def make_tiny_scene(seed: int = 0, **kwargs):
     import torch
 
     from noisenerf.runtime.sampling import OccupancyGrid
-    from noisenerf.train.scene import Scene, build_fields
+    from noisenerf.train.scene.scene import Scene, build_fields
 
     config = tiny_scene_config(**kwargs)
     torch.manual_seed(seed)
@@ -73,7 +73,7 @@ def tiny_scene():
 @contextlib.contextmanager
 def interrupted_after_saves(n: int):
     """Inside, a hide is interrupted (KeyboardInterrupt) right after its n-th saved chunk or block."""
-    from noisenerf.train import hide as hide_module
+    from noisenerf.train.hide import run as hide_module
 
     original, saved = hide_module.Progress.save, []
 

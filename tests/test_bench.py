@@ -9,7 +9,7 @@ import pytest
 from conftest import make_tiny_scene
 from noisenerf.runtime.errors import UserError
 from noisenerf.runtime.images import write_image
-from noisenerf.train.bench import EXPERIMENTS, BenchConfig, field_flops, run_bench
+from noisenerf.cli.bench import EXPERIMENTS, BenchConfig, field_flops, run_bench
 
 
 @pytest.fixture(scope="module")

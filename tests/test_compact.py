@@ -18,9 +18,10 @@ from noisenerf.runtime.bundle import (METADATA_KEY, Frame, expand_coefficients, 
                                      unpack_coefficients)
 from noisenerf.runtime.errors import UserError
 from noisenerf.runtime.images import write_image
-from noisenerf.train.demo import DEMO_SCENE, DEMO_VIEW
-from noisenerf.train.hide import HideConfig, hide
-from noisenerf.train.scene import load_scene
+from noisenerf.cli.demo import DEMO_VIEW
+from noisenerf.train.scene.procedural import DEMO_SCENE
+from noisenerf.train.hide.run import HideConfig, hide
+from noisenerf.train.scene.scene import load_scene
 
 
 def run_reveal(*args) -> subprocess.CompletedProcess:
@@ -119,7 +120,7 @@ def test_coefficient_planes_round_trip_and_refuse_a_wrong_size(dtype):
 
 
 def test_expansion_matches_the_solver_and_puts_escapes_in_place():
-    from noisenerf.train.solvers import NoiseSpace
+    from noisenerf.train.hide.exact import NoiseSpace
 
     rng = np.random.default_rng(2)
     basis, offset = np.linalg.qr(rng.normal(size=(90, 5)))[0].astype(np.float32), rng.normal(size=90).astype(np.float32)

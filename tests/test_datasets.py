@@ -10,7 +10,7 @@ import OpenImageIO as oiio
 import pytest
 
 from noisenerf.runtime.errors import UserError
-from noisenerf.train.datasets import load_dataset
+from noisenerf.train.scene.datasets import load_dataset
 
 LEGO_FOV = 0.6911112070083618
 

@@ -14,10 +14,11 @@ from noisenerf.runtime.errors import UserError
 from noisenerf.runtime.fingerprint import weights_fingerprint
 from noisenerf.runtime.model import grid_from_dict, grid_to_dict, load_model
 from noisenerf.runtime.render import render_view
-from noisenerf.runtime.reveal import render_tile, to_uint8
+from noisenerf.runtime.images import to_uint8
+from noisenerf.runtime.reveal import render_tile
 from noisenerf.runtime.sampling import OccupancyGrid
 from noisenerf.runtime.session import OnnxField
-from noisenerf.train.renderer import numpy_field
+from noisenerf.train.scene.render import numpy_field
 
 KINDS = {"plain": {}, "ndc": {"ndc": True}, "fine": {"fine": True}}
 

@@ -11,11 +11,11 @@ import pytest
 import torch
 
 from noisenerf.runtime.errors import UserError
-from noisenerf.train.datasets import load_dataset
-from noisenerf.train.fit import PRESETS, Budget, Fitter, fit
-from noisenerf.train.occupancy import OccupancyConfig
-from noisenerf.train.procedural import write_procedural_dataset
-from noisenerf.train.scene import load_scene
+from noisenerf.train.scene.datasets import load_dataset
+from noisenerf.train.scene.fit import PRESETS, Budget, Fitter, fit
+from noisenerf.train.scene.occupancy import OccupancyConfig
+from noisenerf.train.scene.procedural import write_procedural_dataset
+from noisenerf.train.scene.scene import load_scene
 
 CPU = torch.device("cpu")
 TINY = dataclasses.replace(PRESETS["small"], batch_rays=256, n_samples=32, warmup_rays=128, warmup_samples=16,

@@ -9,11 +9,12 @@ import torch
 from conftest import interrupted_after_saves, make_tiny_scene
 from noisenerf.runtime.bundle import load_bundle
 from noisenerf.runtime.errors import UserError
-from noisenerf.runtime.reveal import reveal, to_uint8
-from noisenerf.train.hide import HideConfig, hide
-from noisenerf.train.renderer import numpy_fields
-from noisenerf.train.paper_solver import PaperSettings
-from noisenerf.train.tiling import tile_rects
+from noisenerf.runtime.images import to_uint8
+from noisenerf.runtime.reveal import reveal
+from noisenerf.train.hide.run import HideConfig, hide
+from noisenerf.train.scene.render import numpy_fields
+from noisenerf.train.hide.paper import PaperSettings
+from noisenerf.train.hide.tiling import tile_rects
 
 CPU = torch.device("cpu")
 
@@ -76,7 +77,7 @@ def test_interrupted_hide_resumes_to_a_byte_identical_bundle(scene, tmp_path, mo
     config = HideConfig(tile_size=16, chunk_pixels=64)
     hide(scene, secret, tmp_path / "whole.bundle", config, CPU, show_progress=False)
 
-    from noisenerf.train import hide as hide_module
+    from noisenerf.train.hide import run as hide_module
     with pytest.raises(KeyboardInterrupt), interrupted_after_saves(5):
         hide(scene, secret, tmp_path / "resumed.bundle", config, CPU, show_progress=False)
     assert not (tmp_path / "resumed.bundle").exists()

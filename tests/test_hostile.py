@@ -33,8 +33,8 @@ from noisenerf.cli.reveal import main as reveal_main
 from noisenerf.runtime.bundle import METADATA_KEY, load_bundle
 from noisenerf.runtime.images import write_image
 from noisenerf.runtime.model import METADATA_KEY as MODEL_KEY
-from noisenerf.train import hide as hide_module
-from noisenerf.train.procedural import write_procedural_dataset
+from noisenerf.train.hide import run as hide_module
+from noisenerf.train.scene.procedural import write_procedural_dataset
 from test_datasets import write_llff
 from test_reveal_cli import raw_bundle, write_reveal_inputs
 

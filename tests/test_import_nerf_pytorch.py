@@ -26,12 +26,12 @@ from noisenerf.runtime.errors import UserError
 from noisenerf.runtime.images import read_image
 from noisenerf.runtime.render import prepare_rays
 from noisenerf.runtime.sampling import SamplingConfig, sample_positions
-from noisenerf.train.import_nerf_pytorch import (
+from noisenerf.train.scene.import_nerf_pytorch import (
     import_nerf_pytorch, llff_world_bounds, load_fields, parse_config_text, read_checkpoint, read_config,
     scene_geometry,
 )
-from noisenerf.train.renderer import TorchRays, render_hierarchical
-from noisenerf.train.scene import load_scene, weights_fingerprint
+from noisenerf.train.scene.render import TorchRays, render_hierarchical
+from noisenerf.train.scene.scene import load_scene, weights_fingerprint
 from test_reveal_cli import run_reveal
 
 TOLERANCE = 1e-5

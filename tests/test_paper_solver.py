@@ -6,13 +6,13 @@ import torch
 from conftest import interrupted_after_saves
 from noisenerf.runtime.errors import UserError
 from noisenerf.runtime.metrics import ssim
-from noisenerf.runtime.reveal import to_uint8
-from noisenerf.train.hide import HideConfig, plan
-from noisenerf.train.paper_solver import (learning_rate, recipe, revival_noise, solve_block, solve_blocks,
+from noisenerf.runtime.images import to_uint8
+from noisenerf.train.hide.run import HideConfig, plan
+from noisenerf.train.hide.paper import (learning_rate, recipe, revival_noise, solve_block, solve_blocks,
                                           start_noise, survey)
-from noisenerf.train.procedural import procedural_secret
-from noisenerf.train.scene import load_scene
-from noisenerf.train.secret_view import SecretView
+from noisenerf.train.scene.procedural import procedural_secret
+from noisenerf.train.scene.scene import load_scene
+from noisenerf.train.hide.secret_view import SecretView
 
 CPU = torch.device("cpu")
 DEMO_SCENE = __import__("pathlib").Path(__file__).resolve().parents[1] / "train" / "assets" / "demo_scene"
@@ -115,8 +115,8 @@ def test_paper_mode_reaches_an_ssim_the_old_solver_missed(demo, secret, view):
 
 
 def test_interrupted_paper_hide_resumes_per_block_to_a_byte_identical_bundle(demo, secret, tmp_path, monkeypatch):
-    from noisenerf.train import hide as hide_module
-    from noisenerf.train import paper_solver
+    from noisenerf.train.hide import run as hide_module
+    from noisenerf.train.hide import paper as paper_solver
 
     config = HideConfig(method="paper", layout="sample", dtype="float32", n_samples=8,
                         paper=recipe("authors", iters=4, block_pixels=40, record_at=(2, 4)))
@@ -132,7 +132,7 @@ def test_interrupted_paper_hide_resumes_per_block_to_a_byte_identical_bundle(dem
 
 
 def test_a_view_too_large_to_cache_encodes_per_batch_with_the_same_result(demo, secret, monkeypatch):
-    from noisenerf.train import secret_view
+    from noisenerf.train.hide import secret_view
 
     cached = paper_view(demo, secret, 16)
     monkeypatch.setattr(secret_view, "ENCODING_CACHE_BYTES", 0)

@@ -26,10 +26,10 @@ from noisenerf.runtime.payload import (
     INEXACT, MIN_BUCKET, Record, checked_payload, image_record, near_square, sealed_shape, unpack_record,
 )
 from noisenerf.runtime.sealing import MAC_KEY, WRONG, ScryptParams, Seal, new_seal
-from noisenerf.train.demo import DEMO_SCENE
-from noisenerf.train.hide import HideConfig
-from noisenerf.train.payload import hide_payload
-from noisenerf.train.scene import load_scene
+from noisenerf.train.scene.procedural import DEMO_SCENE
+from noisenerf.train.hide.run import HideConfig
+from noisenerf.train.hide.payload import hide_payload
+from noisenerf.train.scene.scene import load_scene
 
 CPU = torch.device("cpu")
 PASSPHRASE = b"correct horse battery staple"

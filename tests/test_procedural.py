@@ -9,9 +9,9 @@ import pytest
 
 from noisenerf.runtime.errors import UserError
 from noisenerf.runtime.images import read_image
-from noisenerf.train import procedural
-from noisenerf.train.datasets import load_dataset
-from noisenerf.train.procedural import procedural_secret, write_procedural_dataset
+from noisenerf.train.scene import procedural
+from noisenerf.train.scene.datasets import load_dataset
+from noisenerf.train.scene.procedural import procedural_secret, write_procedural_dataset
 
 SMALL = dict(size=16, n_train=3, n_val=1, n_test=2)
 

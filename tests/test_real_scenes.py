@@ -12,12 +12,13 @@ from noisenerf.runtime.bundle import load_bundle
 from noisenerf.runtime.images import load_secret, resize_image
 from noisenerf.runtime.model import load_model
 from noisenerf.runtime.render import render_view
-from noisenerf.runtime.reveal import render_tile, reveal, to_uint8
-from noisenerf.train.datasets import load_dataset
-from noisenerf.train.fit import PRESETS, Budget, fit
-from noisenerf.train.hide import HideConfig, hide
-from noisenerf.train.renderer import numpy_field
-from noisenerf.train.scene import load_scene
+from noisenerf.runtime.images import to_uint8
+from noisenerf.runtime.reveal import render_tile, reveal
+from noisenerf.train.scene.datasets import load_dataset
+from noisenerf.train.scene.fit import PRESETS, Budget, fit
+from noisenerf.train.hide.run import HideConfig, hide
+from noisenerf.train.scene.render import numpy_field
+from noisenerf.train.scene.scene import load_scene
 
 CPU = torch.device("cpu")
 

@@ -44,13 +44,13 @@ def build_artifacts(folder: Path) -> dict[str, Path]:
     from noisenerf.export.onnx_export import export_scene
     from noisenerf.runtime.payload import Record
     from noisenerf.runtime.sealing import ScryptParams, new_seal
-    from noisenerf.train.datasets import load_dataset
-    from noisenerf.train.fit import PRESETS, Budget, fit
-    from noisenerf.train.hide import HideConfig, hide
-    from noisenerf.train.occupancy import OccupancyConfig
-    from noisenerf.train.paper_solver import PaperSettings, recipe
-    from noisenerf.train.payload import hide_payload
-    from noisenerf.train.procedural import write_procedural_dataset
+    from noisenerf.train.scene.datasets import load_dataset
+    from noisenerf.train.scene.fit import PRESETS, Budget, fit
+    from noisenerf.train.hide.run import HideConfig, hide
+    from noisenerf.train.scene.occupancy import OccupancyConfig
+    from noisenerf.train.hide.paper import PaperSettings, recipe
+    from noisenerf.train.hide.payload import hide_payload
+    from noisenerf.train.scene.procedural import write_procedural_dataset
 
     artifacts = {}
     secret = np.random.default_rng(0).integers(0, 256, (20, 30, 3), dtype=np.uint8)

@@ -7,8 +7,8 @@ import torch
 from noisenerf.runtime import compositing as np_render
 from noisenerf.runtime.encoding import positional_encoding as np_encoding
 from noisenerf.runtime.sampling import LAST_DELTA, sample_pdf
-from noisenerf.train import rendering as torch_render
-from noisenerf.train.field import positional_encoding as torch_encoding
+from noisenerf.train.scene import render as torch_render
+from noisenerf.train.scene.field import positional_encoding as torch_encoding
 
 
 def random_rays(seed, n_rays=64, n_samples=32, scale=10.0):

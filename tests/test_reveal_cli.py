@@ -15,7 +15,7 @@ from safetensors.numpy import save_file
 
 from conftest import make_tiny_scene
 from noisenerf.export.onnx_export import export_scene
-from noisenerf.train.renderer import numpy_fields
+from noisenerf.train.scene.render import numpy_fields
 from noisenerf.runtime.bundle import METADATA_KEY, Bundle, Tile, load_bundle, secret_digest
 from noisenerf.runtime.images import read_image, read_native
 from noisenerf.runtime.model import load_model
@@ -23,7 +23,7 @@ from noisenerf.runtime.camera import camera_rays
 from noisenerf.runtime.render import prepare_rays, sample_along
 from noisenerf.runtime.reveal import reveal
 from noisenerf.runtime.sampling import sample_positions
-from noisenerf.train.scene import load_scene
+from noisenerf.train.scene.scene import load_scene
 
 
 def two_tile_bundle(scene, layout: str = "ray", seed: int = 0, network: str | None = None) -> Bundle:

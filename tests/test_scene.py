@@ -8,7 +8,7 @@ import torch
 
 from conftest import make_tiny_scene
 from noisenerf.runtime.errors import UserError
-from noisenerf.train.scene import load_scene
+from noisenerf.train.scene.scene import load_scene
 
 
 def test_save_load_roundtrip_keeps_weights_and_fingerprint(tmp_path):
@@ -71,7 +71,7 @@ def test_malformed_json_is_refused(tmp_path):
     {"depth": 4, "width": 32, "use_viewdirs": False},
 ])
 def test_hand_written_jacobian_equals_autograd(config):
-    from noisenerf.train.field import FieldConfig, NeRFField
+    from noisenerf.train.scene.field import FieldConfig, NeRFField
 
     torch.manual_seed(0)
     field = NeRFField(FieldConfig(**config)).double().requires_grad_(False)

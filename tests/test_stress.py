@@ -25,9 +25,9 @@ from noisenerf.runtime.model import load_model
 from noisenerf.runtime.render import RayBatch, RenderConfig, render_rays
 from noisenerf.runtime.reveal import reveal
 from noisenerf.runtime.sampling import LAST_DELTA, SamplingConfig
-from noisenerf.train import rendering
-from noisenerf.train.hide import HideConfig, hide
-from noisenerf.train.renderer import numpy_field
+from noisenerf.train.scene import render as rendering
+from noisenerf.train.hide.run import HideConfig, hide
+from noisenerf.train.scene.render import numpy_field
 
 FULL = os.environ.get("NOISENERF_STRESS") == "full"
 CPU = torch.device("cpu")
@@ -138,7 +138,7 @@ def test_tiny_and_many_tile_secrets_hide_and_reveal_exactly(exported, tmp_path, 
 
 @pytest.mark.parametrize("method, layout", [("exact", "compact"), ("exact", "ray"), ("paper", "sample")])
 def test_same_seed_same_bundle_bytes(exported, tmp_path, method, layout):
-    from noisenerf.train.paper_solver import PaperSettings
+    from noisenerf.train.hide.paper import PaperSettings
 
     scene = exported[0]
     secret = np.random.default_rng(5).integers(0, 256, (12, 20, 3), dtype=np.uint8)

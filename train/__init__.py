@@ -1,1 +1,2 @@
-"""The sender's side (torch): the NeRF field, volume rendering, datasets, fitting and noise hiding."""
+"""The sender's side (torch), in two layers: train.scene (fields, rendering, fitting) below train.hide
+(noise solvers). Neither imports export or the application (cli)."""

@@ -30,14 +30,14 @@ from noisenerf.runtime.errors import UserError
 from noisenerf.runtime.files import atomic_output, check_output_path, existing_kind
 from noisenerf.runtime.limits import MAX_RAY_LAYOUT_SAMPLES, checked_image_size
 from noisenerf.runtime.metrics import exact_fraction, psnr, ssim
-from noisenerf.runtime.reveal import to_uint8
+from noisenerf.runtime.images import to_uint8
 from noisenerf.runtime.sampling import NETWORKS, SamplingConfig, render_network
-from noisenerf.train.scene import Scene
-from noisenerf.train.secret_view import SecretView
-from noisenerf.train.paper_solver import PaperSettings, pass_slices, recorded_points, solve_blocks, survey
-from noisenerf.train.compact import INTEGER_DTYPES, CompactSettings, tile_space
-from noisenerf.train.solvers import ExactSettings, NoiseSpace, solve_exact
-from noisenerf.train.tiling import tile_camera, tile_rects
+from noisenerf.train.scene.scene import Scene
+from noisenerf.train.hide.secret_view import SecretView
+from noisenerf.train.hide.paper import PaperSettings, pass_slices, recorded_points, solve_blocks, survey
+from noisenerf.train.hide.compact import INTEGER_DTYPES, CompactSettings, tile_space
+from noisenerf.train.hide.exact import ExactSettings, NoiseSpace, solve_exact
+from noisenerf.train.hide.tiling import tile_camera, tile_rects
 
 TORCH_DTYPES = {"float16": torch.float16, "float32": torch.float32, **INTEGER_DTYPES}
 DEFAULT_LAYOUTS = {"exact": "compact", "paper": "sample"}

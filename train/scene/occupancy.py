@@ -16,7 +16,7 @@ import numpy as np
 import torch
 
 from noisenerf.runtime.sampling import OccupancyGrid
-from noisenerf.train.field import NeRFField
+from noisenerf.train.scene.field import NeRFField
 
 
 @dataclass(frozen=True)

@@ -31,8 +31,8 @@ import torch
 
 from noisenerf.runtime.errors import UserError
 from noisenerf.runtime.limits import MAX_COMPACT_COEFFICIENTS
-from noisenerf.train.secret_view import SecretView
-from noisenerf.train.solvers import INTEGER_LIMITS, ExactSettings, NoiseSpace, solve_exact
+from noisenerf.train.hide.secret_view import SecretView
+from noisenerf.train.hide.exact import INTEGER_LIMITS, ExactSettings, NoiseSpace, solve_exact
 
 INTEGER_DTYPES = {"int16": torch.int16, "int8": torch.int8}
 

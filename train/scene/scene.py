@@ -25,7 +25,7 @@ from noisenerf.runtime.files import atomic_output, read_json, write_json
 from noisenerf.runtime.fingerprint import weights_fingerprint
 from noisenerf.runtime.render import RenderConfig
 from noisenerf.runtime.sampling import Hierarchy, OccupancyGrid
-from noisenerf.train.field import FieldConfig, NeRFField
+from noisenerf.train.scene.field import FieldConfig, NeRFField
 
 SCENE_FORMAT_VERSION = 1
 

@@ -38,19 +38,20 @@ from noisenerf.runtime.payload import Record, open_payload, seal_of
 from noisenerf.runtime.sealing import derive_keys, new_seal, unseal_keys
 from noisenerf.runtime.session import available_cores
 from noisenerf.runtime.render import render_view
-from noisenerf.runtime.reveal import reveal, to_uint8
+from noisenerf.runtime.images import to_uint8
+from noisenerf.runtime.reveal import reveal
 from noisenerf.runtime.sampling import render_network
-from noisenerf.train.datasets import load_dataset
-from noisenerf.train.field import NeRFField
-from noisenerf.train.hide import HideConfig, hide, plan, quality
-from noisenerf.train.renderer import numpy_field
-from noisenerf.train.scene import Scene, load_scene
-from noisenerf.train.secret_view import SecretView
-from noisenerf.train.payload import hide_payload
-from noisenerf.train.paper_solver import (PaperSettings, pass_samples_for, recipe, recorded_points,
+from noisenerf.train.scene.datasets import load_dataset
+from noisenerf.train.scene.field import NeRFField
+from noisenerf.train.hide.run import HideConfig, hide, plan, quality
+from noisenerf.train.scene.render import numpy_field
+from noisenerf.train.scene.scene import Scene, load_scene
+from noisenerf.train.hide.secret_view import SecretView
+from noisenerf.train.hide.payload import hide_payload
+from noisenerf.train.hide.paper import (PaperSettings, pass_samples_for, recipe, recorded_points,
                                           solve_blocks, survey)
-from noisenerf.train.solvers import ExactSettings, NoiseSpace, solve_exact
-from noisenerf.train.tiling import MIN_TILE_SIZE
+from noisenerf.train.hide.exact import ExactSettings, NoiseSpace, solve_exact
+from noisenerf.train.hide.tiling import MIN_TILE_SIZE
 
 EXPERIMENTS = ("paper_quality", "error_vs_time", "ablation", "cost", "throughput", "skipping", "bundle_size", "photos",
                "views", "contention", "twok", "payload")

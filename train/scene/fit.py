@@ -34,14 +34,14 @@ from noisenerf.runtime.render import RenderConfig, prepare_rays, render_rays, re
 from noisenerf.runtime.sampling import (
     OccupancyGrid, SamplingConfig, grid_candidates, jitter_positions, sample_positions,
 )
-from noisenerf.train.field import FieldConfig
-from noisenerf.train.occupancy import OccupancyConfig, OccupancyTracker, build_occupancy_grid, carve, cell_points
-from noisenerf.train.renderer import TorchRays, numpy_coarse, numpy_field, render_hierarchical, render_masked
-from noisenerf.train.rendering import render_weights, sample_deltas
-from noisenerf.train.scene import Scene, SceneConfig, build_fields
+from noisenerf.train.scene.field import FieldConfig
+from noisenerf.train.scene.occupancy import OccupancyConfig, OccupancyTracker, build_occupancy_grid, carve, cell_points
+from noisenerf.train.scene.render import TorchRays, numpy_coarse, numpy_field, render_hierarchical, render_masked
+from noisenerf.train.scene.render import render_weights, sample_deltas
+from noisenerf.train.scene.scene import Scene, SceneConfig, build_fields
 
 if TYPE_CHECKING:
-    from noisenerf.train.datasets import Dataset
+    from noisenerf.train.scene.datasets import Dataset
 
 
 CURVE_RAYS = 4096  # pixels per view behind each point of the progress curve

@@ -18,9 +18,9 @@ from noisenerf.runtime.errors import UserError
 from noisenerf.runtime.files import check_output_path
 from noisenerf.runtime.payload import Record, payload_secret
 from noisenerf.runtime.sealing import Seal, add_bundle_tag, derive_keys, new_seal
-from noisenerf.train.hide import HideConfig, hide
-from noisenerf.train.scene import Scene
-from noisenerf.train.tiling import tile_rects
+from noisenerf.train.hide.run import HideConfig, hide
+from noisenerf.train.scene.scene import Scene
+from noisenerf.train.hide.tiling import tile_rects
 
 # The exact hide's rate for payload pixels on 2 CPU cores (docs/bench/BENCHMARKS.md, "File payloads": a
 # random 1 MiB file, plain and sealed, on a shared machine): the basis of the time a hide announces.

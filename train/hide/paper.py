@@ -47,7 +47,7 @@ from typing import Callable, Iterator
 import torch
 
 from noisenerf.runtime.errors import UserError
-from noisenerf.train.secret_view import SecretView
+from noisenerf.train.hide.secret_view import SecretView
 
 
 @dataclass(frozen=True)

@@ -22,7 +22,7 @@ from noisenerf.runtime.camera import Camera, pixel_rays
 from noisenerf.runtime.errors import UserError
 from noisenerf.runtime.files import write_json
 from noisenerf.runtime.images import write_image
-from noisenerf.runtime.reveal import to_uint8
+from noisenerf.runtime.images import to_uint8
 
 FOV_X = 0.6911112070083618  # lego's camera_angle_x
 CAMERA_RADIUS = 4.0
@@ -33,6 +33,8 @@ LIGHT = np.array([0.45, -0.35, 1.0]) / np.linalg.norm([0.45, -0.35, 1.0])  # tow
 EPSILON = 1e-6  # nearest accepted hit distance, and how far shadow rays start off the surface
 CHECKER_CELL = 0.25  # slab checker square size; the slab edges (±0.95) fall inside squares, not on seams
 SPLITS = ("train", "val", "test")
+# the shipped demo scene, fitted on this dataset (README, "The demo scene"); package data of noisenerf.train
+DEMO_SCENE = Path(__file__).resolve().parents[1] / "assets" / "demo_scene"
 
 
 def unit(vectors: np.ndarray) -> np.ndarray:

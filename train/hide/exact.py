@@ -29,7 +29,7 @@ from typing import Callable
 
 import torch
 
-from noisenerf.train.secret_view import SecretView
+from noisenerf.train.hide.secret_view import SecretView
 
 def chunk_pixels_for(device: torch.device) -> int:
     """Pixels solved together: a GPU needs large batches to be busy (its Jacobians of 4 × 90 per pixel

@@ -14,8 +14,8 @@ from noisenerf.runtime.bundle import Tile
 from noisenerf.runtime.render import RenderConfig, sample_along
 from noisenerf.runtime.reveal import tile_rays
 from noisenerf.runtime.sampling import sample_positions
-from noisenerf.train.field import NeRFField
-from noisenerf.train.rendering import composite, render_weights
+from noisenerf.train.scene.field import NeRFField
+from noisenerf.train.scene.render import composite, render_weights
 
 
 ENCODING_CACHE_BYTES = 1 << 30  # a view's encodings up to this size are computed once and kept

@@ -34,10 +34,10 @@ from noisenerf.runtime.camera import Camera, NDCSpace, pixel_rays
 from noisenerf.runtime.errors import UserError
 from noisenerf.runtime.render import RenderConfig
 from noisenerf.runtime.sampling import SamplingConfig
-from noisenerf.train.datasets import LLFF_BD_FACTOR, load_dataset, read_poses_bounds
-from noisenerf.train.field import FieldConfig, NeRFField
-from noisenerf.train.occupancy import build_occupancy_grid
-from noisenerf.train.scene import Scene, SceneConfig
+from noisenerf.train.scene.datasets import LLFF_BD_FACTOR, load_dataset, read_poses_bounds
+from noisenerf.train.scene.field import FieldConfig, NeRFField
+from noisenerf.train.scene.occupancy import build_occupancy_grid
+from noisenerf.train.scene.scene import Scene, SceneConfig
 
 # nerf-pytorch's run_nerf.config_parser: every option it knows, with its type and default (bool: a flag).
 OPTIONS: dict[str, tuple[type, object]] = {

@@ -22,13 +22,13 @@ from noisenerf.runtime.metrics import exact_fraction, psnr, ssim
 from noisenerf.runtime.model import load_model
 from noisenerf.runtime.payload import read_payload_file
 from noisenerf.runtime.render import render_view
-from noisenerf.runtime.reveal import reveal, to_uint8
-from noisenerf.train.hide import HideConfig, hide
-from noisenerf.train.payload import hide_payload
-from noisenerf.train.procedural import procedural_secret
-from noisenerf.train.scene import load_scene
+from noisenerf.runtime.images import to_uint8
+from noisenerf.runtime.reveal import reveal
+from noisenerf.train.hide.run import HideConfig, hide
+from noisenerf.train.hide.payload import hide_payload
+from noisenerf.train.scene.procedural import DEMO_SCENE, procedural_secret
+from noisenerf.train.scene.scene import load_scene
 
-DEMO_SCENE = Path(__file__).parent / "assets" / "demo_scene"
 DEMO_VIEW = 2
 SECRET_SIZE = (96, 72)  # width, height: two tiles of 64 px wide, so stitching is shown too
 TILE_SIZE = 64
