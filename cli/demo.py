@@ -16,15 +16,15 @@ import numpy as np
 import torch
 
 from noisenerf.runtime.bundle import load_bundle
-from noisenerf.runtime.errors import UserError
-from noisenerf.runtime.images import write_image
+from noisenerf.runtime.files import check_output_directory
+from noisenerf.runtime.images import to_uint8, write_image
 from noisenerf.runtime.metrics import exact_fraction, psnr, ssim
 from noisenerf.runtime.model import load_model
 from noisenerf.runtime.payload import read_payload_file
 from noisenerf.runtime.render import render_view
-from noisenerf.runtime.images import to_uint8
 from noisenerf.runtime.reveal import reveal
-from noisenerf.train.hide.run import HideConfig, hide
+from noisenerf.train.hide.plan import HideConfig
+from noisenerf.train.hide.run import hide
 from noisenerf.train.hide.payload import hide_payload
 from noisenerf.train.scene.procedural import DEMO_SCENE, procedural_secret
 from noisenerf.train.scene.scene import load_scene
@@ -51,9 +51,7 @@ def side_by_side(images: list[np.ndarray], gap: int = 4) -> np.ndarray:
 def run_demo(out_dir: Path, device: torch.device, show_progress: bool = True) -> dict:
     from noisenerf.export.onnx_export import export_scene
 
-    if not out_dir.parent.is_dir():
-        raise UserError(f"output folder does not exist: {out_dir.parent}")
-    out_dir.mkdir(exist_ok=True)
+    check_output_directory(out_dir).mkdir(exist_ok=True)
     timings = {}
     started = time.perf_counter()
     scene = load_scene(DEMO_SCENE)

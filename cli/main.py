@@ -14,6 +14,7 @@ from pathlib import Path
 from noisenerf.cli.common import FAILURES, OneLineParser, failure, payload_line, quiet_warnings, read_passphrase
 from noisenerf.runtime.errors import UserError
 from noisenerf.runtime.files import check_output_directory, json_text
+from noisenerf.train.hide.tiling import DEFAULT_TILE_SIZE
 
 PROG = "noisenerf"
 
@@ -78,9 +79,10 @@ def cmd_import(args) -> None:
 
 def cmd_hide(args) -> None:
     from noisenerf.runtime.images import load_secret
-    from noisenerf.train.hide.run import HideConfig, hide
-    from noisenerf.train.hide.paper import pass_samples_for, recipe
     from noisenerf.train.hide.exact import chunk_pixels_for
+    from noisenerf.train.hide.methods import METHODS
+    from noisenerf.train.hide.plan import HideConfig
+    from noisenerf.train.hide.run import hide
     from noisenerf.train.scene.scene import load_scene
 
     if (args.secret is None) == (args.file is None):
@@ -88,10 +90,11 @@ def cmd_hide(args) -> None:
     passphrase = sealing_passphrase(args)
     output = Path(args.output)
     device = resolve_device(args.device)
-    overrides = {name: value for name, value in (("iters", args.iters), ("revival", args.revival)) if value is not None}
+    # every method's settings as the flags say (a bundle records them all, whichever method ran)
+    settings = tuple(s for method in METHODS.values() for s in method.settings_from_arguments(args, device))
     config = HideConfig(method=args.method, layout=args.layout, dtype=args.dtype,
                         n_samples=args.samples, tile_size=args.tile_size, view=args.view, seed=args.seed,
-                        chunk_pixels=chunk_pixels_for(device), paper=recipe(args.recipe, pass_samples=pass_samples_for(device), **overrides))
+                        chunk_pixels=chunk_pixels_for(device), settings=settings)
     scene = load_scene(args.scene_dir)
     if args.file is None:
         secret, warnings = load_secret(args.secret)
@@ -216,7 +219,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--passphrase-file", help="seal with the passphrase in this file (implies --seal)")
     p.add_argument("-o", "--output", required=True, help="the bundle file to write")
     p.add_argument("--view", type=int, default=0, help="scene camera of the first tile")
-    p.add_argument("--tile-size", type=int, default=512, help="secrets larger than this are cut into tiles")
+    p.add_argument("--tile-size", type=int, default=DEFAULT_TILE_SIZE, help="secrets larger than this are cut into tiles")
+    # torch-free, so that --help is instant: each method turns its flags into settings (train/hide/methods.py)
     p.add_argument("--method", choices=("exact", "paper"), default="exact")
     p.add_argument("--layout", choices=("compact", "ray", "sample"),
                    help="compact coefficients per pixel (exact default), noise per ray, or per sample (paper default)")

@@ -155,7 +155,7 @@ def run(args: argparse.Namespace) -> dict:
     """Everything but argument parsing and printing; bad input raises UserError before any output."""
     from noisenerf.runtime.bundle import load_bundle
     from noisenerf.runtime.files import check_output_path
-    from noisenerf.runtime.images import write_image
+    from noisenerf.runtime.images import write_image, written_format
     from noisenerf.runtime.model import load_model
 
     start = time.perf_counter()
@@ -168,7 +168,8 @@ def run(args: argparse.Namespace) -> dict:
     loaded = time.perf_counter()
     if bundle is not None:
         revealed, report = reveal_secret(model, bundle)
-        image = revealed.image
+        # 8-bit outputs get the very pixels `exact` judged (quantised once); 16-bit and float, the render
+        image = revealed.pixels if written_format(output)[1] == "uint8" else revealed.image
     else:
         image, report = render_dataset_view(model, args.view, skip=not args.no_skip)
     rendered = time.perf_counter()

@@ -80,7 +80,7 @@ class Frame:
 
 def expand_coefficients(coefficients: np.ndarray, frame: Frame, start: int = 0) -> np.ndarray:
     """Noise of compact pixels start.. start+m in float32, as the solver computed it
-    (train/solvers.NoiseSpace.expand: one float32 multiply by the scale, then the matmul), with the
+    (train/hide/exact.NoiseSpace.expand: one float32 multiply by the scale, then the matmul), with the
     escaped pixels' stored noise. coefficients: (m, k) int -> (m, dims) float32."""
     params = coefficients.astype(np.float32) * np.float32(frame.scale)
     noise = frame.offset + params @ frame.basis.T
@@ -182,12 +182,15 @@ class Bundle:
             save_file(tensors, str(tmp), metadata={METADATA_KEY: json.dumps(self.metadata(), sort_keys=True)})
 
 
+def noise_shape(layout: str, height: int, width: int, n_samples: int, per_vector: int) -> tuple[int, ...]:
+    """A tile's stored noise array: (h, w, n_samples, per_vector) in the sample layout (a vector per sample),
+    else (h, w, per_vector) (a vector per ray: dims noise values, or k compact coefficients)."""
+    return (height, width, n_samples, per_vector) if layout == "sample" else (height, width, per_vector)
+
+
 def expected_noise_shape(tile: Tile, bundle: "Bundle") -> tuple[int, ...]:
-    width, height = tile.rect[2], tile.rect[3]
-    if bundle.layout == "compact":
-        return height, width, bundle.coefficients
-    dims = bundle.noise_dims
-    return (height, width, dims) if bundle.layout == "ray" else (height, width, tile.sampling.n_samples, dims)
+    per_vector = bundle.coefficients if bundle.layout == "compact" else bundle.noise_dims
+    return noise_shape(bundle.layout, tile.rect[3], tile.rect[2], tile.sampling.n_samples, per_vector)
 
 
 def validate_frame(i: int, tile: Tile, bundle: "Bundle") -> None:

@@ -173,6 +173,14 @@ def encoded(image: np.ndarray, pixel_type: str) -> np.ndarray:
     return values
 
 
+def written_format(path: Path) -> tuple[str, str]:
+    """(OpenImageIO format, pixel type) an image path is written in, by its extension (none: PNG)."""
+    suffix = path.suffix.lower() or ".png"
+    if suffix not in WRITE_FORMATS:
+        raise UserError(f"unknown image extension {path.suffix!r} for {path}; use one of {', '.join(WRITE_FORMATS)}")
+    return WRITE_FORMATS[suffix]
+
+
 @c_stderr_silenced()
 def write_image(path: str | os.PathLike, image: np.ndarray) -> None:
     """Write (H, W, 3) RGB or (H, W, 4) straight RGBA, uint8 or float in [0, 1], atomically.
@@ -183,13 +191,10 @@ def write_image(path: str | os.PathLike, image: np.ndarray) -> None:
     UserError.
     """
     path = Path(path)
-    suffix = path.suffix.lower() or ".png"
-    if suffix not in WRITE_FORMATS:
-        raise UserError(f"unknown image extension {path.suffix!r} for {path}; use one of {', '.join(WRITE_FORMATS)}")
+    format_name, pixel_type = written_format(path)
     image = np.asarray(image)
     if image.ndim != 3 or image.shape[-1] not in (3, 4) or not (image.dtype == np.uint8 or image.dtype.kind == "f"):
         raise ValueError(f"write_image needs (H, W, 3|4) uint8 or float pixels, got {image.shape} {image.dtype}")
-    format_name, pixel_type = WRITE_FORMATS[suffix]
     pixels = encoded(image, pixel_type)
     spec = oiio.ImageSpec(image.shape[1], image.shape[0], image.shape[2], pixel_type)
     if image.shape[-1] == 4 and format_name == "openexr":

@@ -9,6 +9,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from noisenerf.runtime.images import to_uint8
+
 SSIM_WINDOW = 11
 SSIM_SIGMA = 1.5
 AUTHORS_WINDOW = 7
@@ -67,3 +69,16 @@ def ssim_authors(a: np.ndarray, b: np.ndarray) -> float:
 def exact_fraction(pixels: np.ndarray, target: np.ndarray) -> float:
     """Share of 8-bit values recovered exactly. pixels, target: (..., 3) uint8."""
     return float(np.mean(np.asarray(pixels) == np.asarray(target)))
+
+
+def tile_quality(colors: np.ndarray, pixels: np.ndarray, shape: tuple[int, int]) -> dict:
+    """A rendered tile against its 8-bit target: exact fraction, max error, PSNR, SSIM (None under 11 px).
+    colors: (n, 3) float in [0, 1], pixels: (n, 3) uint8, shape: the tile's (height, width)."""
+    image, target = colors.reshape(*shape, 3), pixels.reshape(*shape, 3)
+    got = to_uint8(image)
+    return {
+        "exact_fraction": exact_fraction(got, target),
+        "max_error": int(np.abs(got.astype(np.int16) - target).max()),
+        "psnr": psnr(got / 255.0, target / 255.0),
+        "ssim": ssim(got / 255.0, target / 255.0) if min(shape) >= 11 else None,
+    }

@@ -18,11 +18,14 @@ from noisenerf.runtime.compositing import composite, render_weights
 from noisenerf.runtime.errors import UserError
 from noisenerf.runtime.limits import checked_float, checked_list
 from noisenerf.runtime.sampling import (
-    FieldFn, Hierarchy, OccupancyGrid, SamplingConfig, march_rays, sample_deltas, sample_pdf, sample_positions,
+    FieldFn, Hierarchy, OccupancyGrid, SampleFieldFn, SamplingConfig, march_rays, plain, sample_along, sample_pdf,
+    sample_positions,
 )
 
-
-VIEW_CHUNK_SAMPLES = 1 << 19  # samples per chunk of an ordinary render (4096 rays of 128): ~60 MB of buffers
+# the one chunking policy of a render: rays per chunk such that a chunk holds at most CHUNK_SAMPLES samples
+# (~60 MB of buffers with a reveal's 90 float32 noise values each), and at most CHUNK_RAYS rays
+CHUNK_SAMPLES = 1 << 17
+CHUNK_RAYS = 4096
 
 
 @dataclass(frozen=True)
@@ -77,15 +80,6 @@ def prepare_rays(config: RenderConfig, rays_o: np.ndarray, rays_d: np.ndarray) -
     return RayBatch(rays_o.astype(np.float32), rays_d.astype(np.float32), viewdirs)
 
 
-def sample_along(rays: RayBatch, t_vals: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Sample points and their intervals. t_vals: (n_samples,) or (n_rays, n_samples)
-    -> points (n_rays, n_samples, 3), deltas (n_rays, n_samples)."""
-    t_vals = np.broadcast_to(t_vals, (len(rays), t_vals.shape[-1])).astype(np.float32)
-    points = rays.origins[:, None, :] + t_vals[..., None] * rays.directions[:, None, :]
-    deltas = sample_deltas(t_vals, np.linalg.norm(rays.directions, axis=-1))
-    return points.astype(np.float32), deltas
-
-
 @dataclass(frozen=True)
 class RenderStats:
     n_rays: int
@@ -105,11 +99,11 @@ class CoarseNetwork:
     hierarchy: Hierarchy
 
 
-def render_samples(rays: RayBatch, t_vals: np.ndarray, field: FieldFn, grid: OccupancyGrid | None,
+def render_samples(rays: RayBatch, t_vals: np.ndarray, field: SampleFieldFn, grid: OccupancyGrid | None,
                    early_stop: float) -> tuple[np.ndarray, np.ndarray, RenderStats]:
     """Weights (n_rays, n_samples) and colours (n_rays, n_samples, 3) of samples at t_vals ((n_samples,) or
     (n_rays, n_samples)), skipping what the grid rules out and rays past `early_stop`."""
-    points, deltas = sample_along(rays, t_vals)
+    points, deltas = sample_along(rays.origins, rays.directions, t_vals)
     march = march_rays(points, rays.viewdirs, deltas, field, grid, early_stop)
     return render_weights(march.sigmas, deltas), march.rgbs, RenderStats(len(rays), deltas.size, march.n_evaluated)
 
@@ -120,7 +114,7 @@ def importance_positions(config: RenderConfig, rays: RayBatch, coarse: CoarseNet
     n_importance more (sample_pdf over the midpoints, end weights dropped); both sets, sorted.
     -> t_vals (n_rays, n_coarse + n_importance), the coarse pass's counts."""
     t_vals = sample_positions(coarse.hierarchy.coarse(config.sampling))
-    weights, _, stats = render_samples(rays, t_vals, coarse.field, None, 0.0)
+    weights, _, stats = render_samples(rays, t_vals, plain(coarse.field), None, 0.0)
     mids = np.broadcast_to(0.5 * (t_vals[1:] + t_vals[:-1]), (len(rays), t_vals.shape[0] - 1))
     fine = sample_pdf(mids, weights[:, 1:-1], coarse.hierarchy.n_importance)
     both = np.concatenate([np.broadcast_to(t_vals, (len(rays), t_vals.shape[0])), fine], axis=-1)
@@ -143,16 +137,16 @@ def render_rays(config: RenderConfig, rays: RayBatch, field: FieldFn, grid: Occu
         early_stop = config.early_stop if early_stop is None else early_stop
     else:
         (t_vals, before), grid, early_stop = importance_positions(config, rays, coarse), None, 0.0
-    weights, rgbs, stats = render_samples(rays, t_vals, field, grid, early_stop)
+    weights, rgbs, stats = render_samples(rays, t_vals, plain(field), grid, early_stop)
     return composite(weights, rgbs, np.asarray(config.background)), RenderStats(
         len(rays), before.n_samples_dense + stats.n_samples_dense,
         before.n_samples_evaluated + stats.n_samples_evaluated)
 
 
-def rays_per_chunk(most_rays: int, n_samples: int, most_samples: int) -> int:
-    """Rays per chunk: at most `most_rays`, and few enough that a chunk holds at most `most_samples` samples,
+def rays_per_chunk(n_samples: int, most_rays: int = CHUNK_RAYS) -> int:
+    """Rays per chunk: at most `most_rays`, and few enough that a chunk holds at most CHUNK_SAMPLES samples,
     so a render's buffers stay bounded whatever n_samples a file asks for."""
-    return max(1, min(most_rays, most_samples // n_samples))
+    return max(1, min(most_rays, CHUNK_SAMPLES // n_samples))
 
 
 def view_rays(camera: Camera, config: RenderConfig, start: int, stop: int) -> RayBatch:
@@ -165,14 +159,14 @@ def view_rays(camera: Camera, config: RenderConfig, start: int, stop: int) -> Ra
 
 
 def render_view(camera: Camera, config: RenderConfig, field: FieldFn, grid: OccupancyGrid | None,
-                chunk_rays: int = 4096, early_stop: float | None = None, progress=None,
+                chunk_rays: int = CHUNK_RAYS, early_stop: float | None = None, progress=None,
                 coarse: CoarseNetwork | None = None) -> tuple[np.ndarray, RenderStats]:
     """An ordinary (noise-free) render of a camera: image (height, width, 3) float32 and counts. With the
     `coarse` network, hierarchical (see render_rays)."""
     n_rays = camera.width * camera.height
     per_ray = (config.sampling.n_samples if coarse is None
                else coarse.hierarchy.n_coarse + coarse.hierarchy.n_importance)
-    chunk = rays_per_chunk(chunk_rays, per_ray, VIEW_CHUNK_SAMPLES)
+    chunk = rays_per_chunk(per_ray, chunk_rays)
     image = np.empty((n_rays, 3), dtype=np.float32)
     stats = RenderStats(0, 0, 0)
     for start in range(0, n_rays, chunk):

@@ -9,22 +9,17 @@ samples, never hierarchical, since the noise was trained on exactly those sample
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Callable, Mapping
+from typing import Mapping
 
 import numpy as np
 
 from noisenerf.runtime.bundle import Bundle, Tile, secret_digest
 from noisenerf.runtime.camera import camera_rays
-from noisenerf.runtime.compositing import composite, render_weights
+from noisenerf.runtime.compositing import composite
 from noisenerf.runtime.errors import UserError
 from noisenerf.runtime.images import to_uint8
-from noisenerf.runtime.render import RayBatch, RenderConfig, prepare_rays, rays_per_chunk, sample_along
-from noisenerf.runtime.sampling import render_network, sample_positions
-
-REVEAL_CHUNK_SAMPLES = 1 << 17  # samples per chunk of a reveal (2048 rays of 64): ~50 MB of float32 noise
-
-# field(points (m, 3), viewdirs (m, 3), noise (m, dims)) -> rgb (m, 3), sigma (m,)
-NoisyFieldFn = Callable[[np.ndarray, np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]]
+from noisenerf.runtime.render import RayBatch, RenderConfig, prepare_rays, rays_per_chunk, render_samples
+from noisenerf.runtime.sampling import NoisyFieldFn, noisy, render_network, sample_positions
 
 
 def tile_rays(tile: Tile, config: RenderConfig) -> RayBatch:
@@ -32,35 +27,21 @@ def tile_rays(tile: Tile, config: RenderConfig) -> RayBatch:
     return prepare_rays(config, *camera_rays(tile.camera, config.pixel_center))
 
 
-def per_sample_noise(noise: np.ndarray, n_samples: int) -> np.ndarray:
-    """(n_rays, dims) ray and compact layouts or (n_rays, n_samples, dims) sample layout -> (n_rays·n_samples, dims)."""
-    if noise.ndim == 2:
-        noise = np.broadcast_to(noise[:, None, :], (noise.shape[0], n_samples, noise.shape[1]))
-    return np.ascontiguousarray(noise, dtype=np.float32).reshape(-1, noise.shape[-1])
-
-
-def render_noisy_rays(rays: RayBatch, t_vals: np.ndarray, noise: np.ndarray, config: RenderConfig,
-                      field: NoisyFieldFn) -> np.ndarray:
-    """Dense render with noise. noise: (n_rays, dims) or (n_rays, n_samples, dims) -> colors (n_rays, 3)."""
-    points, deltas = sample_along(rays, t_vals)
-    n_rays, n_samples = deltas.shape
-    viewdirs = np.repeat(rays.viewdirs, n_samples, axis=0)
-    rgb, sigma = field(points.reshape(-1, 3), viewdirs, per_sample_noise(noise, n_samples))
-    weights = render_weights(sigma.reshape(n_rays, n_samples), deltas)
-    return composite(weights, rgb.reshape(n_rays, n_samples, 3), np.asarray(config.background))
-
-
-def render_tile(tile: Tile, config: RenderConfig, field: NoisyFieldFn, chunk_rays: int = 2048,
-                progress=None) -> np.ndarray:
-    """A tile's secret view: (height, width, 3) float32."""
+def render_tile(tile: Tile, config: RenderConfig, field: NoisyFieldFn, progress=None) -> np.ndarray:
+    """A tile's secret view: (height, width, 3) float32. The render pipeline's, every sample evaluated
+    (no grid; early_stop 0 passes over only what is fully behind opaque matter, where weights are 0)."""
     rays = tile_rays(tile, config)
     t_vals = sample_positions(tile.sampling)
-    chunk_rays = rays_per_chunk(chunk_rays, tile.sampling.n_samples, REVEAL_CHUNK_SAMPLES)
+    chunk_rays = rays_per_chunk(tile.sampling.n_samples)
+    background = np.asarray(config.background)
     colors = []
     for start in range(0, len(rays), chunk_rays):
         stop = min(start + chunk_rays, len(rays))
         chunk = RayBatch(rays.origins[start:stop], rays.directions[start:stop], rays.viewdirs[start:stop])
-        colors.append(render_noisy_rays(chunk, t_vals, tile.noise_rows(start, stop), config, field))
+        noise = tile.noise_rows(start, stop)
+        noise = noise[:, None, :] if noise.ndim == 2 else noise  # (m, 1 or n_samples, dims)
+        weights, rgbs, _ = render_samples(chunk, t_vals, noisy(field, noise), None, 0.0)
+        colors.append(composite(weights, rgbs, background))
         if progress is not None:
             progress.update(stop - start)
     return np.concatenate(colors).reshape(tile.camera.height, tile.camera.width, 3)

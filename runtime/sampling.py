@@ -114,6 +114,15 @@ def jitter_positions(t_vals: np.ndarray, n_rays: int, rng: np.random.Generator) 
     return (lower + (upper - lower) * u).astype(np.float32)
 
 
+def sample_along(origins: np.ndarray, directions: np.ndarray, t_vals: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Sample points o + t·d and their intervals. origins, directions: (n_rays, 3) float32; t_vals:
+    (n_samples,) or (n_rays, n_samples) -> points (n_rays, n_samples, 3), deltas (n_rays, n_samples)."""
+    t_vals = np.broadcast_to(t_vals, (origins.shape[0], t_vals.shape[-1])).astype(np.float32)
+    points = origins[:, None, :] + t_vals[..., None] * directions[:, None, :]
+    deltas = sample_deltas(t_vals, np.linalg.norm(directions, axis=-1))
+    return points.astype(np.float32), deltas
+
+
 def sample_deltas(t_vals: np.ndarray, ray_norms: np.ndarray) -> np.ndarray:
     """Δ_i = (t_{i+1} − t_i)·‖d‖, last 1e10·‖d‖. t_vals: (n_rays, n_samples), ray_norms: (n_rays,)."""
     steps = np.concatenate([np.diff(t_vals, axis=-1), np.full_like(t_vals[:, :1], LAST_DELTA)], axis=-1)
@@ -166,6 +175,24 @@ def grid_candidates(grid: OccupancyGrid, points: np.ndarray) -> np.ndarray:
 
 
 FieldFn = Callable[[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]]
+# field(points (m, 3), viewdirs (m, 3), noise (m, dims)) -> rgb (m, 3), sigma (m,)
+NoisyFieldFn = Callable[[np.ndarray, np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]]
+# the render pipeline's callback, nerfacc's rgb_sigma_fn: points (m, 3), viewdirs (m, 3), and which ray (m,)
+# and sample (m,) each point is -> rgb (m, 3), sigma (m,); what a field needs besides the point (noise) it
+# looks up by those indices
+SampleFieldFn = Callable[[np.ndarray, np.ndarray, np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]]
+
+
+def plain(field: FieldFn) -> SampleFieldFn:
+    """An ordinary field as the pipeline's callback."""
+    return lambda points, viewdirs, rays, samples: field(points, viewdirs)
+
+
+def noisy(field: NoisyFieldFn, noise: np.ndarray) -> SampleFieldFn:
+    """A field with noise at every sample: noise (n_rays, 1 or n_samples, dims) float32, one vector per ray
+    (ray and compact layouts) or per sample (the paper's layout)."""
+    per_ray = noise.shape[1] == 1
+    return lambda points, viewdirs, rays, samples: field(points, viewdirs, noise[rays, 0 if per_ray else samples])
 
 
 @dataclass(frozen=True)
@@ -181,13 +208,12 @@ class MarchResult:
         return int(self.evaluated.sum())
 
 
-def march_rays(points: np.ndarray, viewdirs: np.ndarray, deltas: np.ndarray, field: FieldFn,
+def march_rays(points: np.ndarray, viewdirs: np.ndarray, deltas: np.ndarray, field: SampleFieldFn,
                grid: OccupancyGrid | None, early_stop: float, chunk_samples: int = 16) -> MarchResult:
     """Evaluate the field front to back, skipping empty cells and rays whose transmittance fell below
-    `early_stop` (0 disables early termination).
+    `early_stop` (0 skips only rays whose transmittance is exactly 0, where nothing behind counts).
 
-    points: (n_rays, n_samples, 3), viewdirs: (n_rays, 3), deltas: (n_rays, n_samples);
-    field(points (m, 3), viewdirs (m, 3)) -> rgb (m, 3), sigma (m,).
+    points: (n_rays, n_samples, 3), viewdirs: (n_rays, 3), deltas: (n_rays, n_samples); field: SampleFieldFn.
     """
     n_rays, n_samples = deltas.shape
     candidates = grid_candidates(grid, points) if grid is not None else np.ones((n_rays, n_samples), dtype=bool)
@@ -201,7 +227,7 @@ def march_rays(points: np.ndarray, viewdirs: np.ndarray, deltas: np.ndarray, fie
         chosen = candidates[:, start:stop] & alive[:, None]
         rays, offsets = np.nonzero(chosen)
         if rays.size:
-            rgb, sigma = field(points[rays, start + offsets], viewdirs[rays])
+            rgb, sigma = field(points[rays, start + offsets], viewdirs[rays], rays, start + offsets)
             sigmas[rays, start + offsets] = sigma
             rgbs[rays, start + offsets] = rgb
             evaluated[rays, start + offsets] = True

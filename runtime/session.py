@@ -55,8 +55,8 @@ def session_options(threads: int | None) -> ort.SessionOptions:
     """Intra-op threads (default, and at most: the cores there are; more only oversubscribes and, in
     the thousands, hangs onnxruntime); one inter-op thread, the graph being a single chain. Idle pool
     threads sleep instead of spinning, so a reveal on a shared machine leaves its cores to whoever needs
-    them (the exact hide's cause of slowness there, see train/hide.solver_threads). onnxruntime's own logging is silenced, so
-    a failure is our one line on stderr."""
+    them (the exact hide's cause of slowness there, see train/hide/exact_solver.ExactSolver.threads).
+    onnxruntime's own logging is silenced, so a failure is our one line on stderr."""
     cores = available_cores()
     threads = cores if threads is None else threads
     if threads < 1:
@@ -120,7 +120,7 @@ class OnnxField:
     """field(points (n, 3), viewdirs (n, 3), noise (n, noise_dims) | None) -> rgb (n, 3), sigma (n,).
 
     The render network; `network(name)` gives either network of the same session. Satisfies both
-    runtime.sampling.FieldFn (no noise) and runtime.reveal.NoisyFieldFn; inputs are run in chunks of at
+    runtime.sampling.FieldFn (no noise) and runtime.sampling.NoisyFieldFn; inputs are run in chunks of at
     most `chunk` points so that memory stays bounded whatever the caller passes.
     """
 

@@ -73,9 +73,9 @@ def tiny_scene():
 @contextlib.contextmanager
 def interrupted_after_saves(n: int):
     """Inside, a hide is interrupted (KeyboardInterrupt) right after its n-th saved chunk or block."""
-    from noisenerf.train.hide import run as hide_module
+    from noisenerf.train.hide import progress as progress_module
 
-    original, saved = hide_module.Progress.save, []
+    original, saved = progress_module.Progress.save, []
 
     def save_then_die(self, *args):
         original(self, *args)
@@ -84,5 +84,5 @@ def interrupted_after_saves(n: int):
             raise KeyboardInterrupt
 
     with pytest.MonkeyPatch.context() as patch:
-        patch.setattr(hide_module.Progress, "save", save_then_die)
+        patch.setattr(progress_module.Progress, "save", save_then_die)
         yield

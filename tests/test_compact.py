@@ -20,7 +20,8 @@ from noisenerf.runtime.errors import UserError
 from noisenerf.runtime.images import write_image
 from noisenerf.cli.demo import DEMO_VIEW
 from noisenerf.train.scene.procedural import DEMO_SCENE
-from noisenerf.train.hide.run import HideConfig, hide
+from noisenerf.train.hide.plan import HideConfig
+from noisenerf.train.hide.run import hide
 from noisenerf.train.scene.scene import load_scene
 
 

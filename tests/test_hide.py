@@ -11,7 +11,8 @@ from noisenerf.runtime.bundle import load_bundle
 from noisenerf.runtime.errors import UserError
 from noisenerf.runtime.images import to_uint8
 from noisenerf.runtime.reveal import reveal
-from noisenerf.train.hide.run import HideConfig, hide
+from noisenerf.train.hide.plan import HideConfig
+from noisenerf.train.hide.run import hide
 from noisenerf.train.scene.render import numpy_fields
 from noisenerf.train.hide.paper import PaperSettings
 from noisenerf.train.hide.tiling import tile_rects
@@ -77,13 +78,13 @@ def test_interrupted_hide_resumes_to_a_byte_identical_bundle(scene, tmp_path, mo
     config = HideConfig(tile_size=16, chunk_pixels=64)
     hide(scene, secret, tmp_path / "whole.bundle", config, CPU, show_progress=False)
 
-    from noisenerf.train.hide import run as hide_module
+    from noisenerf.train.hide import exact_solver
     with pytest.raises(KeyboardInterrupt), interrupted_after_saves(5):
         hide(scene, secret, tmp_path / "resumed.bundle", config, CPU, show_progress=False)
     assert not (tmp_path / "resumed.bundle").exists()
     assert len(list((tmp_path / "resumed.bundle.partial").glob("*.safetensors"))) == 5
-    solved, solve_exact = [], hide_module.solve_exact
-    monkeypatch.setattr(hide_module, "solve_exact", lambda *a, **k: solved.append(1) or solve_exact(*a, **k))
+    solved, solve_exact = [], exact_solver.solve_exact
+    monkeypatch.setattr(exact_solver, "solve_exact", lambda *a, **k: solved.append(1) or solve_exact(*a, **k))
     hide(scene, secret, tmp_path / "resumed.bundle", config, CPU, show_progress=False)
     assert len(solved) == 9 - 5  # tiles of 256, 128, 128 and 64 px make 9 chunks of 64; 5 were saved
     assert (tmp_path / "resumed.bundle").read_bytes() == (tmp_path / "whole.bundle").read_bytes()
@@ -93,7 +94,7 @@ def test_interrupted_hide_resumes_to_a_byte_identical_bundle(scene, tmp_path, mo
 def test_paper_method_runs_with_sample_layout_and_records_table3_points(scene, tmp_path):
     secret = random_secret(12, 12, seed=4)
     config = HideConfig(method="paper", layout="sample", dtype="float32", n_samples=4,
-                        paper=PaperSettings(iters=6, mu=2, record_at=(2, 6)))
+                        settings=(PaperSettings(iters=6, mu=2, record_at=(2, 6)),))
     report = hide(scene, secret, tmp_path / "p.bundle", config, CPU, show_progress=False)
     records = report["tiles"][0]["records"]
     assert [r["iteration"] for r in records] == [2, 6]

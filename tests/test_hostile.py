@@ -33,7 +33,7 @@ from noisenerf.cli.reveal import main as reveal_main
 from noisenerf.runtime.bundle import METADATA_KEY, load_bundle
 from noisenerf.runtime.images import write_image
 from noisenerf.runtime.model import METADATA_KEY as MODEL_KEY
-from noisenerf.train.hide import run as hide_module
+from noisenerf.train.hide import exact_solver, progress as progress_module
 from noisenerf.train.scene.procedural import write_procedural_dataset
 from test_datasets import write_llff
 from test_reveal_cli import raw_bundle, write_reveal_inputs
@@ -69,7 +69,7 @@ def world(tmp_path_factory) -> World:
     write_image(secret, np.random.default_rng(7).integers(0, 256, (8, 24, 3), dtype=np.uint8))
     incomplete = World(directory, directory / "scene", model, bundle, secret, b"", directory / "kept.bundle.partial")
     with pytest.MonkeyPatch.context() as patch:
-        patch.setattr(hide_module.Progress, "clear", lambda self: None)
+        patch.setattr(progress_module.Progress, "clear", lambda self: None)
         assert noisenerf_main([str(a) for a in hide_args(incomplete, directory / "kept.bundle")]) == 0
     return World(**{**incomplete.__dict__, "hidden": (directory / "kept.bundle").read_bytes()})
 
@@ -460,7 +460,7 @@ def test_small_file_cannot_dictate_a_large_allocation(world, tmp_path, case):
 
 def test_a_large_ray_count_reveals_in_bounded_chunks(world, tmp_path):
     """The cap itself costs time, not memory: a ray-layout tile at 256 samples per ray still reveals
-    (inexactly) with the reveal's buffers bounded by REVEAL_CHUNK_SAMPLES."""
+    (inexactly) with the reveal's buffers bounded by render.CHUNK_SAMPLES."""
     bad = raw_bundle(tmp_path / "b.bundle", world.bundle, setter((*SAMPLING, "n_samples"), 256))
     result, peak_mb = peak_run(["noisenerf.cli.reveal", world.model, bad, "-o", tmp_path / "out.png"], tmp_path)
     assert result.code == 0 and result.err == "", result
@@ -540,13 +540,13 @@ def test_hide_output_path_is_refused_before_the_solve(world, tmp_path, capfd, mo
     out = tmp_path / name
     prepare(out)
     before = sorted(os.listdir(tmp_path))
-    monkeypatch.setattr(hide_module, "solve_exact", lambda *a, **k: pytest.fail("solved before refusing"))
+    monkeypatch.setattr(exact_solver, "solve_exact", lambda *a, **k: pytest.fail("solved before refusing"))
     assert_refused(run_main(noisenerf_main, hide_args(world, out, "--force"), capfd), None, message)
     assert sorted(os.listdir(tmp_path)) == before
 
 
 def test_hide_into_proc_is_refused_before_the_solve(world, capfd, monkeypatch):
-    monkeypatch.setattr(hide_module, "solve_exact", lambda *a, **k: pytest.fail("solved before refusing"))
+    monkeypatch.setattr(exact_solver, "solve_exact", lambda *a, **k: pytest.fail("solved before refusing"))
     assert_refused(run_main(noisenerf_main, hide_args(world, "/proc/s.bundle"), capfd), None, "/proc")
 
 
@@ -731,7 +731,7 @@ def restamped(path: Path, key: str, tensors: dict) -> None:
     """Write `tensors` as chunk `path` with a valid stamp for run `key` (what a careless or hostile writer
     that knows the key could do): only the shape and value checks stand between it and the bundle."""
     tile, chunk = (int(part[-4:] if i == 0 else part[-5:]) for i, part in enumerate(path.stem.split("_")))
-    stamp = hide_module.Progress.stamp(SimpleNamespace(key=key), tile, chunk, tensors)
+    stamp = progress_module.Progress.stamp(SimpleNamespace(key=key), tile, chunk, tensors)
     save_torch_file(tensors, str(path), metadata=stamp)
 
 
@@ -797,7 +797,7 @@ def test_bad_resume_chunk_is_recomputed(world, tmp_path, capfd, case):
 
 def test_sound_chunks_are_reused(world, tmp_path, capfd, monkeypatch):
     shutil.copytree(world.partial, tmp_path / "s.bundle.partial")
-    monkeypatch.setattr(hide_module, "solve_exact", lambda *a, **k: pytest.fail("a sound chunk was solved again"))
+    monkeypatch.setattr(exact_solver, "solve_exact", lambda *a, **k: pytest.fail("a sound chunk was solved again"))
     assert run_main(noisenerf_main, hide_args(world, tmp_path / "s.bundle"), capfd).code == 0
     assert (tmp_path / "s.bundle").read_bytes() == world.hidden
 

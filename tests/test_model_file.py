@@ -25,7 +25,7 @@ from noisenerf.runtime.model import load_model
 from noisenerf.runtime.onnx_file import parse_model
 from noisenerf.runtime.render import render_view
 from noisenerf.runtime.reveal import render_tile, reveal
-from noisenerf.train.hide.run import HideConfig, plan
+from noisenerf.train.hide.plan import HideConfig, plan
 from noisenerf.train.scene.render import numpy_coarse, numpy_field, numpy_fields
 from test_reveal_cli import assert_refused, run_reveal, two_tile_bundle
 

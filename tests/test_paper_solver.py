@@ -7,7 +7,7 @@ from conftest import interrupted_after_saves
 from noisenerf.runtime.errors import UserError
 from noisenerf.runtime.metrics import ssim
 from noisenerf.runtime.images import to_uint8
-from noisenerf.train.hide.run import HideConfig, plan
+from noisenerf.train.hide.plan import HideConfig, plan
 from noisenerf.train.hide.paper import (learning_rate, recipe, revival_noise, solve_block, solve_blocks,
                                           start_noise, survey)
 from noisenerf.train.scene.procedural import procedural_secret
@@ -115,17 +115,17 @@ def test_paper_mode_reaches_an_ssim_the_old_solver_missed(demo, secret, view):
 
 
 def test_interrupted_paper_hide_resumes_per_block_to_a_byte_identical_bundle(demo, secret, tmp_path, monkeypatch):
-    from noisenerf.train.hide import run as hide_module
+    from noisenerf.train.hide.run import hide
     from noisenerf.train.hide import paper as paper_solver
 
     config = HideConfig(method="paper", layout="sample", dtype="float32", n_samples=8,
-                        paper=recipe("authors", iters=4, block_pixels=40, record_at=(2, 4)))
-    hide_module.hide(demo, secret, tmp_path / "whole.bundle", config, CPU, show_progress=False)
+                        settings=(recipe("authors", iters=4, block_pixels=40, record_at=(2, 4)),))
+    hide(demo, secret, tmp_path / "whole.bundle", config, CPU, show_progress=False)
     with pytest.raises(KeyboardInterrupt), interrupted_after_saves(2):
-        hide_module.hide(demo, secret, tmp_path / "resumed.bundle", config, CPU, show_progress=False)
+        hide(demo, secret, tmp_path / "resumed.bundle", config, CPU, show_progress=False)
     solved, solve_block = [], paper_solver.solve_block
     monkeypatch.setattr(paper_solver, "solve_block", lambda *a, **k: solved.append(1) or solve_block(*a, **k))
-    report = hide_module.hide(demo, secret, tmp_path / "resumed.bundle", config, CPU, show_progress=False)
+    report = hide(demo, secret, tmp_path / "resumed.bundle", config, CPU, show_progress=False)
     assert len(solved) == 4 - 2  # 144 pixels in blocks of 40 make 4 blocks; 2 were saved
     assert (tmp_path / "resumed.bundle").read_bytes() == (tmp_path / "whole.bundle").read_bytes()
     assert [r["iteration"] for r in report["tiles"][0]["records"]] == [2, 4]

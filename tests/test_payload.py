@@ -27,7 +27,7 @@ from noisenerf.runtime.payload import (
 )
 from noisenerf.runtime.sealing import MAC_KEY, WRONG, ScryptParams, Seal, new_seal
 from noisenerf.train.scene.procedural import DEMO_SCENE
-from noisenerf.train.hide.run import HideConfig
+from noisenerf.train.hide.plan import HideConfig
 from noisenerf.train.hide.payload import hide_payload
 from noisenerf.train.scene.scene import load_scene
 

@@ -16,7 +16,8 @@ from noisenerf.runtime.images import to_uint8
 from noisenerf.runtime.reveal import render_tile, reveal
 from noisenerf.train.scene.datasets import load_dataset
 from noisenerf.train.scene.fit import PRESETS, Budget, fit
-from noisenerf.train.hide.run import HideConfig, hide
+from noisenerf.train.hide.plan import HideConfig
+from noisenerf.train.hide.run import hide
 from noisenerf.train.scene.render import numpy_field
 from noisenerf.train.scene.scene import load_scene
 

@@ -46,7 +46,8 @@ def build_artifacts(folder: Path) -> dict[str, Path]:
     from noisenerf.runtime.sealing import ScryptParams, new_seal
     from noisenerf.train.scene.datasets import load_dataset
     from noisenerf.train.scene.fit import PRESETS, Budget, fit
-    from noisenerf.train.hide.run import HideConfig, hide
+    from noisenerf.train.hide.plan import HideConfig
+    from noisenerf.train.hide.run import hide
     from noisenerf.train.scene.occupancy import OccupancyConfig
     from noisenerf.train.hide.paper import PaperSettings, recipe
     from noisenerf.train.hide.payload import hide_payload
@@ -60,10 +61,10 @@ def build_artifacts(folder: Path) -> dict[str, Path]:
             "exact_compact.bundle": HideConfig(tile_size=16),
             "exact_ray.bundle": HideConfig(layout="ray", tile_size=16, view=2, seed=5),
             "paper_sample.bundle": HideConfig(method="paper", tile_size=16, n_samples=8,
-                                              paper=PaperSettings(iters=6, record_at=(3, 6))),
+                                              settings=(PaperSettings(iters=6, record_at=(3, 6)),)),
             "paper_text_ray.bundle": HideConfig(method="paper", layout="ray", tile_size=16, n_samples=8,
-                                                paper=recipe("paper", iters=6,
-                                                                mu=3, record_at=(6,))),
+                                                settings=(recipe("paper", iters=6,
+                                                                mu=3, record_at=(6,)),)),
         }.items():
             part = secret[:18, :20] if config.method == "paper" else secret
             hide(scene, part, folder / name, config, CPU, show_progress=False)

@@ -20,7 +20,8 @@ from noisenerf.runtime.bundle import METADATA_KEY, Bundle, Tile, load_bundle, se
 from noisenerf.runtime.images import read_image, read_native
 from noisenerf.runtime.model import load_model
 from noisenerf.runtime.camera import camera_rays
-from noisenerf.runtime.render import prepare_rays, sample_along
+from noisenerf.runtime.render import prepare_rays
+from noisenerf.runtime.sampling import sample_along
 from noisenerf.runtime.reveal import reveal
 from noisenerf.runtime.sampling import sample_positions
 from noisenerf.train.scene.scene import load_scene
@@ -114,7 +115,7 @@ def test_view_render_skips_and_no_skip_does_not(inputs, tmp_path):
     # without skipping, every sample inside the scene's box is evaluated (outside it the scene is empty)
     loaded = load_model(model)
     rays = prepare_rays(loaded.render_config, *camera_rays(loaded.camera(3), loaded.render_config.pixel_center))
-    points, _ = sample_along(rays, sample_positions(loaded.render_config.sampling))
+    points, _ = sample_along(rays.origins, rays.directions, sample_positions(loaded.render_config.sampling))
     assert reports[True]["samples_dense"] == 16 * 12 * 24
     assert reports[True]["samples"] == int(loaded.grid.contains(points).sum()) > 0
     assert reports[False]["samples"] <= reports[True]["samples"]

@@ -26,7 +26,8 @@ from noisenerf.runtime.render import RayBatch, RenderConfig, render_rays
 from noisenerf.runtime.reveal import reveal
 from noisenerf.runtime.sampling import LAST_DELTA, SamplingConfig
 from noisenerf.train.scene import render as rendering
-from noisenerf.train.hide.run import HideConfig, hide
+from noisenerf.train.hide.plan import HideConfig
+from noisenerf.train.hide.run import hide
 from noisenerf.train.scene.render import numpy_field
 
 FULL = os.environ.get("NOISENERF_STRESS") == "full"
@@ -143,7 +144,7 @@ def test_same_seed_same_bundle_bytes(exported, tmp_path, method, layout):
     scene = exported[0]
     secret = np.random.default_rng(5).integers(0, 256, (12, 20, 3), dtype=np.uint8)
     config = HideConfig(method=method, tile_size=16, seed=3, n_samples=None if method == "exact" else 4,
-                        layout=layout, paper=PaperSettings(iters=5, record_at=()))
+                        layout=layout, settings=(PaperSettings(iters=5, record_at=()),))
     for name in ("a", "b"):
         hide(scene, secret, tmp_path / f"{name}.bundle", config, CPU, show_progress=False)
     assert (tmp_path / "a.bundle").read_bytes() == (tmp_path / "b.bundle").read_bytes()

@@ -8,7 +8,7 @@ varies in few directions. Per tile, from a seeded sample of its pixels solved fi
 - scale: one integer step of a coefficient, coefficient_range / the dtype's largest integer.
 
 Each pixel's noise is o + (q · scale) Bᵀ with q (k,) int16 (or int8); the exact solver works in that
-space (train/solvers.NoiseSpace) and judges only lattice points, as the ray layout judges only float16
+space (train/hide/exact.NoiseSpace) and judges only lattice points, as the ray layout judges only float16
 noise. A basis cannot reach every colour from every start (on lego 0.05–1 % of a photo's pixels stay
 stuck in the 6-dimensional slice); those pixels escape: they are solved again in the full 90 values and
 stored as float16 noise beside the coefficients, so every pixel is still exact.
@@ -25,6 +25,7 @@ most pixels unreachable on their lattice.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import ClassVar
 
 import numpy as np
 import torch
@@ -34,11 +35,9 @@ from noisenerf.runtime.limits import MAX_COMPACT_COEFFICIENTS
 from noisenerf.train.hide.secret_view import SecretView
 from noisenerf.train.hide.exact import INTEGER_LIMITS, ExactSettings, NoiseSpace, solve_exact
 
-INTEGER_DTYPES = {"int16": torch.int16, "int8": torch.int8}
-
-
 @dataclass(frozen=True)
 class CompactSettings:
+    key: ClassVar[str] = "compact"  # where bundles record these settings
     coefficients: int = 6  # k per pixel
     coefficient_range: float = 1024.0  # largest storable |coefficient|: int16 steps of 1/32
     basis_pixels: int = 256  # seeded sample of a tile's pixels whose solved noise chooses its offset and basis

@@ -19,13 +19,13 @@ target colour (pixels of one view map noise to colour almost alike); every other
 random start instead, and each further restart of the same pixel draws from more donors and adds a
 wider seeded jitter.
 
-The paper's own method lives in paper_solver.py.
+The paper's own method lives in paper.py; exact_solver.py runs this solver over a tile.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Callable
+from typing import Callable, ClassVar
 
 import torch
 
@@ -38,10 +38,14 @@ def chunk_pixels_for(device: torch.device) -> int:
 
 
 END_PULL_BINS = 0.2  # targets for 0 and 255 sit this far inside, where a sigmoid can arrive
+# Levenberg–Marquardt's λ schedule (÷3 after a step that improved, ×10 after one that did not, within a range):
+# fixed constants of the algorithm beside ExactSettings, which holds what bundles record and runs may vary
+DAMPING_DOWN, DAMPING_UP, DAMPING_RANGE = 3.0, 10.0, (1e-7, 1e6)
 
 
 @dataclass(frozen=True)
 class ExactSettings:
+    key: ClassVar[str] = "exact"  # where bundles record these settings
     max_iters: int = 100  # per phase; late iterations only touch the few pixels left
     tolerance_bins: float = 0.1  # float32 phase: distance from the bin centre that counts as converged
     margin_bins: float = 0.1  # storage phase: what stays between a finished value and its bin edge
@@ -126,7 +130,7 @@ def sample_outputs(view: SecretView, index: torch.Tensor, noise: torch.Tensor) -
 def output_jacobian(view: SecretView, index: torch.Tensor, noise: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """Outputs (m, 4) and their exact Jacobian ∂outputs/∂noise (m, 4, dims) for single-sample rays: the
     noise adds to the encoded input, so this is the field's own input Jacobian."""
-    return view.field.outputs_and_jacobian(view.encodings(index)[:, 0] + noise[:, 0])
+    return view.field.outputs_and_jacobian(view.noisy_encodings(index, noise)[:, 0])
 
 
 def residuals(outputs: torch.Tensor, goal: torch.Tensor, density_floor: float) -> torch.Tensor:
@@ -169,7 +173,7 @@ class SolveCounts:
     restarts: int = 0
 
 
-def evaluate(view: SecretView, index: torch.Tensor, space: NoiseSpace, params: torch.Tensor,
+def counted_outputs(view: SecretView, index: torch.Tensor, space: NoiseSpace, params: torch.Tensor,
              counts: SolveCounts) -> torch.Tensor:
     """sample_outputs of params (m, P) without gradients, counted. -> (m, 4)."""
     counts.renders += index.numel()
@@ -193,7 +197,7 @@ def line_search(view: SecretView, index: torch.Tensor, space: NoiseSpace, noise:
         if trying.numel() == 0:
             break
         candidate = store(noise[trying] + scale * step[trying])
-        after = evaluate(view, index[trying], space, candidate, counts)
+        after = counted_outputs(view, index[trying], space, candidate, counts)
         better = (residuals(after, goal[trying], settings.density_floor) ** 2).sum(-1) < before[trying]
         chosen = trying[better]
         noise[chosen], outputs[chosen], improved[chosen] = candidate[better], after[better], True
@@ -218,7 +222,7 @@ def refine(view: SecretView, index: torch.Tensor, goal: torch.Tensor, space: Noi
     damping = torch.full((m,), settings.damping, device=device)
     age = torch.zeros(m, dtype=torch.int64, device=device)
     restarts = torch.zeros(m, dtype=torch.int64, device=device)
-    outputs = evaluate(view, index, space, noise, counts)
+    outputs = counted_outputs(view, index, space, noise, counts)
     active = torch.arange(m, device=device)
     for iteration in range(1, settings.max_iters + 1):
         done[active] = finished(outputs[active], active)
@@ -243,7 +247,7 @@ def refine(view: SecretView, index: torch.Tensor, goal: torch.Tensor, space: Noi
                                                 settings.donors * restarts[stuck[from_donor]])
             spread = torch.where(from_donor[:, None], spread, spread + settings.kick)
             noise[stuck] = store(start + spread * torch.randn(start.shape, generator=generator).to(device))
-            outputs[stuck] = evaluate(view, index[stuck], space, noise[stuck], counts)
+            outputs[stuck] = counted_outputs(view, index[stuck], space, noise[stuck], counts)
             age[stuck], damping[stuck] = 0, settings.damping
             counts.restarts += stuck.numel()
         _, jac = output_jacobian(view, index[active], space.expand(noise[active]))
@@ -254,8 +258,8 @@ def refine(view: SecretView, index: torch.Tensor, goal: torch.Tensor, space: Noi
         noise[active], outputs[active], improved = line_search(view, index[active], space, noise[active],
                                                                outputs[active], step, goal[active], settings, store,
                                                                counts)
-        damping[active] = torch.where(improved, torch.clamp(damping[active] / 3, min=1e-7),
-                                      torch.clamp(damping[active] * 10, max=1e6))
+        damping[active] = torch.where(improved, torch.clamp(damping[active] / DAMPING_DOWN, min=DAMPING_RANGE[0]),
+                                      torch.clamp(damping[active] * DAMPING_UP, max=DAMPING_RANGE[1]))
         if observe is not None:
             observe(index, space.expand(noise), counts)
     return noise, done

@@ -42,17 +42,19 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 from dataclasses import dataclass
-from typing import Callable, Iterator
+from typing import Callable, ClassVar, Iterator
 
 import torch
 
 from noisenerf.runtime.errors import UserError
-from noisenerf.train.hide.secret_view import SecretView
+from noisenerf.train.hide.secret_view import SecretView, pass_slices
 
 
 @dataclass(frozen=True)
 class PaperSettings:
     """One paper-mode run; RECIPES holds the two named presets, the ablation switches the strategies."""
+
+    key: ClassVar[str] = "paper"  # where bundles record these settings
 
     recipe: str = "authors"  # the preset these settings started from (recorded in the bundle)
     iters: int = 300
@@ -147,18 +149,6 @@ def adam_direction(grad: torch.Tensor, moments: tuple[torch.Tensor, torch.Tensor
     return (first / correction1) / ((second / correction2).sqrt() + eps), first, second
 
 
-def pass_samples_for(device: torch.device) -> int:
-    """Samples per pass: what fits comfortably on a GPU (a few GiB of activations at width 256), or
-    what keeps a CPU run's memory near 1 GiB."""
-    return 1 << 18 if device.type == "cuda" else 1 << 16
-
-
-def pass_slices(n_rays: int, n_samples: int, pass_samples: int) -> list[slice]:
-    """Contiguous ray ranges of at most pass_samples samples each (at least one ray per pass)."""
-    step = max(1, pass_samples // n_samples)
-    return [slice(s, min(s + step, n_rays)) for s in range(0, n_rays, step)]
-
-
 @dataclass(frozen=True)
 class ViewSurvey:
     """The clean view: each ray's colour and whether any of its samples has positive raw density."""
@@ -214,8 +204,9 @@ def revival_noise(view: SecretView, index: torch.Tensor, targets: torch.Tensor, 
 
 
 def select_pixels(gain: torch.Tensor, grad_norms: torch.Tensor, sizes: list[int]) -> torch.Tensor:
-    """Adaptive Pixel Selection: of the prefixes (largest gradient norm first) of each size, the one with
-    the largest total L_rgb reduction per pixel. gain, grad_norms: (m,) -> chosen pixel positions (s,)."""
+    """Adaptive Pixel Selection (eq. 6, as we read it in the module docstring): of the prefixes (largest
+    gradient norm first) of each size, the one with the largest total L_rgb reduction per pixel.
+    gain, grad_norms: (m,) -> chosen pixel positions (s,)."""
     order = torch.argsort(grad_norms, descending=True)
     cumulative = gain[order].cumsum(0)
     best = max(sizes, key=lambda s: float(cumulative[s - 1]) / s)

@@ -18,7 +18,8 @@ from noisenerf.runtime.errors import UserError
 from noisenerf.runtime.files import check_output_path
 from noisenerf.runtime.payload import Record, payload_secret
 from noisenerf.runtime.sealing import Seal, add_bundle_tag, derive_keys, new_seal
-from noisenerf.train.hide.run import HideConfig, hide
+from noisenerf.train.hide.plan import HideConfig
+from noisenerf.train.hide.run import hide
 from noisenerf.train.scene.scene import Scene
 from noisenerf.train.hide.tiling import tile_rects
 

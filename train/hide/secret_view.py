@@ -11,14 +11,26 @@ import numpy as np
 import torch
 
 from noisenerf.runtime.bundle import Tile
-from noisenerf.runtime.render import RenderConfig, sample_along
+from noisenerf.runtime.render import RenderConfig
 from noisenerf.runtime.reveal import tile_rays
-from noisenerf.runtime.sampling import sample_positions
+from noisenerf.runtime.sampling import sample_along, sample_positions
 from noisenerf.train.scene.field import NeRFField
 from noisenerf.train.scene.render import composite, render_weights
 
 
 ENCODING_CACHE_BYTES = 1 << 30  # a view's encodings up to this size are computed once and kept
+
+
+def pass_samples_for(device: torch.device) -> int:
+    """Samples per pass: what fits comfortably on a GPU (a few GiB of activations at width 256), or
+    what keeps a CPU run's memory near 1 GiB."""
+    return 1 << 18 if device.type == "cuda" else 1 << 16
+
+
+def pass_slices(n_rays: int, n_samples: int, pass_samples: int) -> list[slice]:
+    """Contiguous ray ranges of at most pass_samples samples each (at least one ray per pass)."""
+    step = max(1, pass_samples // n_samples)
+    return [slice(s, min(s + step, n_rays)) for s in range(0, n_rays, step)]
 
 
 class SecretView:
@@ -29,7 +41,7 @@ class SecretView:
 
     def __init__(self, field: NeRFField, tile: Tile, render: RenderConfig, device: torch.device):
         rays = tile_rays(tile, render)
-        points, deltas = sample_along(rays, sample_positions(tile.sampling))
+        points, deltas = sample_along(rays.origins, rays.directions, sample_positions(tile.sampling))
         self.field, self.device = field, device
         self.points = torch.from_numpy(np.ascontiguousarray(points)).to(device)  # (n_rays, n_samples, 3)
         self.viewdirs = torch.from_numpy(np.ascontiguousarray(rays.viewdirs)).to(device)  # (n_rays, 3)
@@ -61,10 +73,15 @@ class SecretView:
         """The clean encodings of rays `index` (m,), kept or computed. -> (m, n_samples, noise_dims)."""
         return self.cached[index] if self.cached is not None else self.encode(index)
 
+    def noisy_encodings(self, index: torch.Tensor, noise: torch.Tensor) -> torch.Tensor:
+        """γ + δ (paper eq. 4) of rays `index` (m,) with noise (m, 1 or n_samples, dims)
+        -> (m, n_samples, dims): what the field's noise port computes, from the kept encodings."""
+        return self.encodings(index) + noise
+
     def raw(self, index: torch.Tensor, noise: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Pre-activation colour (m, n_samples, 3) and density (m, n_samples) of rays `index` (m,) with
         noise (m, 1 or n_samples, dims)."""
-        encoded = self.encodings(index) + noise
+        encoded = self.noisy_encodings(index, noise)
         raw_rgb, raw_density = self.field.raw_outputs(encoded.reshape(-1, encoded.shape[-1]))
         m = index.shape[0]
         return raw_rgb.reshape(m, self.n_samples, 3), raw_density.reshape(m, self.n_samples)
@@ -77,3 +94,11 @@ class SecretView:
     def render(self, index: torch.Tensor, noise: torch.Tensor) -> torch.Tensor:
         """Colours (m, 3) of rays `index` (m,) with noise (m, 1 or n_samples, dims)."""
         return self.shade(index, *self.raw(index, noise))
+
+    def render_all(self, noise: torch.Tensor, pass_samples: int) -> torch.Tensor:
+        """Colours (n_rays, 3) of the whole view, without gradients, in passes of at most pass_samples
+        samples; noise (n_rays, 1 or n_samples, dims) in any dtype, on any device."""
+        with torch.no_grad():
+            return torch.cat([self.render(torch.arange(part.start, part.stop, device=self.device),
+                                          noise[part].to(self.device, torch.float32))
+                              for part in pass_slices(self.n_rays, self.n_samples, pass_samples)])

@@ -17,6 +17,7 @@ from noisenerf.runtime.camera import Camera
 from noisenerf.runtime.errors import UserError
 
 MIN_TILE_SIZE = 16
+DEFAULT_TILE_SIZE = 512  # a secret larger than this is cut into tiles (hide --tile-size)
 YAW_STEP_DEGREES = 2.0
 
 

@@ -30,15 +30,17 @@ from noisenerf.runtime.camera import camera_rays
 from noisenerf.runtime.errors import UserError
 from noisenerf.runtime.files import atomic_output, check_output_directory, read_json, write_json
 from noisenerf.runtime.metrics import psnr, ssim
-from noisenerf.runtime.render import RenderConfig, prepare_rays, render_rays, render_view
+from noisenerf.runtime import render as numpy_render
+from noisenerf.runtime.render import RenderConfig, prepare_rays, render_view
 from noisenerf.runtime.sampling import (
-    OccupancyGrid, SamplingConfig, grid_candidates, jitter_positions, sample_positions,
+    OccupancyGrid, SamplingConfig, jitter_positions, sample_positions,
 )
 from noisenerf.train.scene.field import FieldConfig
 from noisenerf.train.scene.occupancy import OccupancyConfig, OccupancyTracker, build_occupancy_grid, carve, cell_points
-from noisenerf.train.scene.render import TorchRays, numpy_coarse, numpy_field, render_hierarchical, render_masked
-from noisenerf.train.scene.render import render_weights, sample_deltas
-from noisenerf.train.scene.scene import Scene, SceneConfig, build_fields
+from noisenerf.train.scene.render import (TorchRays, numpy_coarse, numpy_field, render_hierarchical, render_rays,
+                                          skip_mask)
+from noisenerf.train.scene.scene import (Scene, SceneConfig, build_fields, field_weights, named_fields, render_field,
+                                         weights_of)
 
 if TYPE_CHECKING:
     from noisenerf.train.scene.datasets import Dataset
@@ -134,21 +136,6 @@ def _central_pixels(width: int, height: int, fraction: float) -> np.ndarray:
     return (ys * width + xs).ravel().astype(np.int64)
 
 
-def skip_mask(field, rays: TorchRays, t_vals: torch.Tensor, grid, early_stop: float) -> torch.Tensor:
-    """Samples worth a gradient: in occupied cells, and (by a density-only pass without gradients)
-    before the ray's transmittance drops below early_stop. t_vals: (n_rays, n_samples) -> bool mask."""
-    points = rays.origins[:, None, :] + t_vals[..., None] * rays.directions[:, None, :]
-    mask = torch.from_numpy(grid_candidates(grid, points.cpu().numpy())).to(t_vals.device)
-    if early_stop <= 0 or not mask.any():
-        return mask
-    with torch.no_grad():
-        sigmas = torch.zeros_like(t_vals)
-        sigmas[mask] = field.density(points[mask])
-        weights_before = render_weights(sigmas, sample_deltas(t_vals, rays.directions))
-        opacity_before = torch.cumsum(weights_before, dim=1) - weights_before
-    return mask & (1.0 - opacity_before > early_stop)
-
-
 class Fitter:
     """One fit: fields, optimizer, occupancy tracker and random state, checkpointable at any step."""
 
@@ -182,7 +169,7 @@ class Fitter:
 
     @property
     def render_field(self):
-        return self.fine if self.fine is not None else self.coarse
+        return render_field(self.coarse, self.fine)
 
     def train_step(self, lr: float) -> float:
         config = self.config
@@ -212,8 +199,8 @@ class Fitter:
             t_vals = self._jittered(config.warmup_samples if warming else config.n_samples, n_rays)
             mask = (skip_mask(self.coarse, rays, t_vals, self.tracker.grid, 0.0 if warming else config.early_stop)
                     if config.skipping else torch.ones_like(t_vals, dtype=torch.bool))
-            loss = fine_loss = torch.mean((render_masked(self.coarse, rays, t_vals, mask, self.background)
-                                           - target) ** 2)
+            colors, _ = render_rays(self.coarse, rays, t_vals, self.background, mask=mask)
+            loss = fine_loss = torch.mean((colors - target) ** 2)
             if self.empty_cells.size and config.empty_points:
                 loss = loss + config.empty_weight * self._empty_opacity()
             self.samples_evaluated += int(mask.sum())
@@ -248,9 +235,7 @@ class Fitter:
 
     # checkpoints: tensors in safetensors, the rest in JSON (never pickle)
     def save_checkpoint(self, directory: Path) -> None:
-        tensors = {f"coarse.{k}": v for k, v in self.coarse.state_dict().items()}
-        if self.fine is not None:
-            tensors.update({f"fine.{k}": v for k, v in self.fine.state_dict().items()})
+        tensors = field_weights(named_fields(self.coarse, self.fine))
         optimizer = self.optimizer.state_dict()
         for pid, state in optimizer["state"].items():
             tensors.update({f"optimizer.{pid}.{k}": torch.as_tensor(v) for k, v in state.items()})
@@ -275,10 +260,8 @@ class Fitter:
             raise UserError(f"{directory} holds a checkpoint of a different fit; remove "
                             f"{directory / 'checkpoint.json'} to start over")
         tensors = load_file(str(directory / "checkpoint.safetensors"))
-        for prefix, field in (("coarse", self.coarse), ("fine", self.fine)):
-            if field is not None:
-                field.load_state_dict({k[len(prefix) + 1:]: v for k, v in tensors.items()
-                                       if k.startswith(prefix + ".")})
+        for network, field in named_fields(self.coarse, self.fine).items():
+            field.load_state_dict(weights_of(network, tensors))
         state: dict[int, dict] = {}
         for key, value in tensors.items():
             if key.startswith("optimizer."):
@@ -294,7 +277,7 @@ class Fitter:
         return True
 
 
-def evaluate(scene: Scene, dataset: Dataset, views: list[int], skipping: bool = True) -> dict:
+def held_out_quality(scene: Scene, dataset: Dataset, views: list[int], skipping: bool = True) -> dict:
     """Mean PSNR / SSIM over views rendered the way recipients render them (runtime + skipping, or
     hierarchical for scenes with a fine network)."""
     field, coarse = numpy_field(scene.render_field), numpy_coarse(scene.coarse, scene.hierarchy)
@@ -312,7 +295,7 @@ def evaluate(scene: Scene, dataset: Dataset, views: list[int], skipping: bool = 
 
 
 def curve_psnr(scene: Scene, dataset: Dataset, views: list[int], rays_per_view: int, seed: int) -> float:
-    """PSNR over a seeded random subset of the views' pixels, rendered like `evaluate` renders them: an
+    """PSNR over a seeded random subset of the views' pixels, rendered like `held_out_quality` renders them: an
     unbiased estimate of the views' PSNR at a fraction of the cost (a full LLFF render is minutes here)."""
     field, rng, errors = numpy_field(scene.render_field), np.random.default_rng(seed), []
     coarse = numpy_coarse(scene.coarse, scene.hierarchy)
@@ -322,7 +305,7 @@ def curve_psnr(scene: Scene, dataset: Dataset, views: list[int], rays_per_view: 
                             replace=False)
         rays_o, rays_d = camera_rays(camera, scene.config.render.pixel_center)
         rays = prepare_rays(scene.config.render, rays_o[chosen], rays_d[chosen])
-        colors, _ = render_rays(scene.config.render, rays, field, scene.grid, coarse=coarse)
+        colors, _ = numpy_render.render_rays(scene.config.render, rays, field, scene.grid, coarse=coarse)
         errors.append((colors - dataset.images[index].reshape(-1, 3)[chosen]) ** 2)
     return float(-10 * np.log10(max(np.mean(np.concatenate(errors)), 1e-10)))
 
@@ -374,7 +357,7 @@ def fit(dataset: Dataset, out_dir: Path, config: FitConfig, budget: Budget, devi
         "wall_seconds": round(started - wall_start, 1), "resumed": resumed,
         "samples_evaluated": fitter.samples_evaluated, "fingerprint": scene.fingerprint(),
         "occupancy": scene.grid.occupancy_fraction(), "curve": curve,
-        "test": evaluate(scene, dataset, test_views),
+        "test": held_out_quality(scene, dataset, test_views),
     }
     report["eval_seconds"] = round(time.perf_counter() - started, 1)
     write_json(out_dir / "fit_report.json", report)

@@ -32,12 +32,13 @@ import torch
 
 from noisenerf.runtime.camera import Camera, NDCSpace, pixel_rays
 from noisenerf.runtime.errors import UserError
+from noisenerf.runtime.files import check_output_directory
 from noisenerf.runtime.render import RenderConfig
 from noisenerf.runtime.sampling import SamplingConfig
 from noisenerf.train.scene.datasets import LLFF_BD_FACTOR, load_dataset, read_poses_bounds
 from noisenerf.train.scene.field import FieldConfig, NeRFField
 from noisenerf.train.scene.occupancy import build_occupancy_grid
-from noisenerf.train.scene.scene import Scene, SceneConfig
+from noisenerf.train.scene.scene import Scene, SceneConfig, render_field
 
 # nerf-pytorch's run_nerf.config_parser: every option it knows, with its type and default (bool: a flag).
 OPTIONS: dict[str, tuple[type, object]] = {
@@ -345,13 +346,6 @@ def scene_geometry(config: NerfPytorchConfig, data_dir: Path
     return cameras, *NDC_BOUNDS, dataset.ndc, dataset.aabb  # the loader's NDC space is ndc_rays' (H, W, focal)
 
 
-def check_output_dir(out_dir: Path) -> None:
-    if not out_dir.parent.is_dir():
-        raise UserError(f"output folder does not exist: {out_dir.parent}")
-    if out_dir.exists() and not out_dir.is_dir():
-        raise UserError(f"output path exists and is not a folder: {out_dir}")
-
-
 def import_nerf_pytorch(checkpoint: Path, config: Path, out_dir: Path, data_dir: Path | None = None,
                         grid_resolution: int = 64) -> Scene:
     """Convert a nerf-pytorch checkpoint (with the config it was trained with) into a scene directory.
@@ -360,7 +354,7 @@ def import_nerf_pytorch(checkpoint: Path, config: Path, out_dir: Path, data_dir:
     refused import leaves nothing behind.
     """
     checkpoint, config_path, out_dir = Path(checkpoint), Path(config), Path(out_dir)
-    check_output_dir(out_dir)
+    check_output_directory(out_dir)
     settings = read_config(config_path)
     coarse, fine = load_fields(read_checkpoint(checkpoint), settings, checkpoint)
     data_dir = Path(data_dir) if data_dir is not None else resolve_data_dir(settings.datadir, config_path)
@@ -373,8 +367,7 @@ def import_nerf_pytorch(checkpoint: Path, config: Path, out_dir: Path, data_dir:
         n_coarse=settings.n_samples if fine is not None else 0, n_importance=settings.n_importance,
         render=render, aabb=aabb, grid_resolution=grid_resolution, cameras=cameras, source="nerf-pytorch",
     )
-    render_field = fine if fine is not None else coarse
-    grid = build_occupancy_grid(render_field, aabb, grid_resolution, step_size=(far - near) / n_render)
+    grid = build_occupancy_grid(render_field(coarse, fine), aabb, grid_resolution, step_size=(far - near) / n_render)
     scene = Scene(scene_config, coarse, fine, grid)
     scene.save(out_dir)
     return scene

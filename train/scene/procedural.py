@@ -20,7 +20,7 @@ import numpy as np
 
 from noisenerf.runtime.camera import Camera, pixel_rays
 from noisenerf.runtime.errors import UserError
-from noisenerf.runtime.files import write_json
+from noisenerf.runtime.files import check_output_directory, write_json
 from noisenerf.runtime.images import write_image
 from noisenerf.runtime.images import to_uint8
 
@@ -172,9 +172,7 @@ def write_frame(folder: Path, split: str, index: int, c2w: np.ndarray, size: int
 @contextlib.contextmanager
 def staging_folder(out_dir: Path):
     """Yield a hidden sibling folder that is renamed to `out_dir` only when the block succeeds."""
-    if not out_dir.parent.is_dir():
-        raise UserError(f"output folder does not exist: {out_dir.parent}")
-    if out_dir.exists() and (not out_dir.is_dir() or any(out_dir.iterdir())):
+    if check_output_directory(out_dir).exists() and any(out_dir.iterdir()):
         raise UserError(f"output exists and is not an empty folder: {out_dir}")
     staging = out_dir.parent / f".{out_dir.name}.{secrets.token_hex(4)}.tmp"
     staging.mkdir()

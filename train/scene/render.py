@@ -15,8 +15,7 @@ import torch
 
 from noisenerf.runtime.compositing import MAX_OPTICAL_DEPTH
 from noisenerf.runtime.render import CoarseNetwork, RayBatch
-from noisenerf.runtime.reveal import NoisyFieldFn
-from noisenerf.runtime.sampling import LAST_DELTA, Hierarchy
+from noisenerf.runtime.sampling import LAST_DELTA, Hierarchy, NoisyFieldFn, OccupancyGrid, grid_candidates
 from noisenerf.train.scene.field import NeRFField
 
 
@@ -94,49 +93,64 @@ def sample_points(rays: TorchRays, t_vals: torch.Tensor) -> torch.Tensor:
     return rays.origins[:, None, :] + t_vals[..., None] * rays.directions[:, None, :]
 
 
-def render_dense(field: NeRFField, rays: TorchRays, t_vals: torch.Tensor, background: torch.Tensor,
-                 noise: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
-    """Every sample evaluated, with optional noise broadcast over samples.
+def skip_mask(field: NeRFField, rays: TorchRays, t_vals: torch.Tensor, grid: OccupancyGrid,
+              early_stop: float) -> torch.Tensor:
+    """The skipping sampler: samples worth evaluating are in occupied cells (runtime.sampling's
+    grid_candidates) and, by a density-only pass without gradients, before the ray's transmittance drops
+    below early_stop (0: no early termination). t_vals: (n_rays, n_samples) -> bool mask."""
+    points = sample_points(rays, t_vals)
+    mask = torch.from_numpy(grid_candidates(grid, points.cpu().numpy())).to(t_vals.device)
+    if early_stop <= 0 or not mask.any():
+        return mask
+    with torch.no_grad():
+        sigmas = torch.zeros_like(t_vals)
+        sigmas[mask] = field.density(points[mask])
+        weights_before = render_weights(sigmas, sample_deltas(t_vals, rays.directions))
+        opacity_before = torch.cumsum(weights_before, dim=1) - weights_before
+    return mask & (1.0 - opacity_before > early_stop)
 
-    t_vals: (n_rays, n_samples); noise: (n_rays, n_samples or 1, noise_dims) or None
-    -> colors (n_rays, 3), weights (n_rays, n_samples).
+
+def render_rays(field: NeRFField, rays: TorchRays, t_vals: torch.Tensor, background: torch.Tensor,
+                mask: torch.Tensor | None = None, noise: torch.Tensor | None = None
+                ) -> tuple[torch.Tensor, torch.Tensor]:
+    """The torch render pipeline: samples at t_vals (uniform, jittered or importance positions) and an
+    optional mask of the samples worth evaluating (skip_mask) → the field → the compositor (eq. 2).
+    Samples left out by the mask count as σ = 0. Noise (one vector per ray or per sample) is added to
+    every evaluated sample's encoded input; it needs every sample evaluated.
+
+    t_vals: (n_rays, n_samples); mask: same shape, bool, or None; noise: (n_rays, 1 or n_samples, dims)
+    or None -> colors (n_rays, 3), weights (n_rays, n_samples).
     """
     n_rays, n_samples = t_vals.shape
-    points = sample_points(rays, t_vals).reshape(-1, 3)
-    viewdirs = rays.viewdirs[:, None, :].expand(n_rays, n_samples, 3).reshape(-1, 3)
-    if noise is not None:
-        noise = noise.expand(n_rays, n_samples, noise.shape[-1]).reshape(n_rays * n_samples, -1)
-    rgb, sigma = field(points, viewdirs, noise)
-    weights = render_weights(sigma.reshape(n_rays, n_samples), sample_deltas(t_vals, rays.directions))
-    return composite(weights, rgb.reshape(n_rays, n_samples, 3), background), weights
-
-
-def render_masked(field: NeRFField, rays: TorchRays, t_vals: torch.Tensor, mask: torch.Tensor,
-                  background: torch.Tensor) -> torch.Tensor:
-    """Only samples where mask is True are evaluated; the rest count as σ = 0 (empty space skipping).
-
-    t_vals, mask: (n_rays, n_samples) -> colors (n_rays, 3).
-    """
-    n_rays, n_samples = t_vals.shape
-    rays_idx, samples_idx = torch.nonzero(mask, as_tuple=True)
-    points = rays.origins[rays_idx] + t_vals[rays_idx, samples_idx, None] * rays.directions[rays_idx]
-    rgb, sigma = field(points, rays.viewdirs[rays_idx])
-    sigmas = torch.zeros(n_rays, n_samples, dtype=sigma.dtype, device=sigma.device).index_put(
-        (rays_idx, samples_idx), sigma)
-    rgbs = torch.zeros(n_rays, n_samples, 3, dtype=rgb.dtype, device=rgb.device).index_put(
-        (rays_idx, samples_idx), rgb)
-    return composite(render_weights(sigmas, sample_deltas(t_vals, rays.directions)), rgbs, background)
+    points = sample_points(rays, t_vals)
+    if mask is None:
+        viewdirs = rays.viewdirs[:, None, :].expand(n_rays, n_samples, 3).reshape(-1, 3)
+        if noise is not None:
+            noise = noise.expand(n_rays, n_samples, noise.shape[-1]).reshape(n_rays * n_samples, -1)
+        rgb, sigma = field(points.reshape(-1, 3), viewdirs, noise)
+        sigmas, rgbs = sigma.reshape(n_rays, n_samples), rgb.reshape(n_rays, n_samples, 3)
+    else:
+        if noise is not None:
+            raise ValueError("noise needs every sample evaluated (no mask)")
+        rays_idx, samples_idx = torch.nonzero(mask, as_tuple=True)
+        rgb, sigma = field(points[rays_idx, samples_idx], rays.viewdirs[rays_idx])
+        sigmas = torch.zeros(n_rays, n_samples, dtype=sigma.dtype, device=sigma.device).index_put(
+            (rays_idx, samples_idx), sigma)
+        rgbs = torch.zeros(n_rays, n_samples, 3, dtype=rgb.dtype, device=rgb.device).index_put(
+            (rays_idx, samples_idx), rgb)
+    weights = render_weights(sigmas, sample_deltas(t_vals, rays.directions))
+    return composite(weights, rgbs, background), weights
 
 
 def render_hierarchical(coarse: NeRFField, fine: NeRFField, rays: TorchRays, t_vals: torch.Tensor,
                         n_importance: int, background: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """nerf-pytorch's two-pass render: coarse samples, then n_importance samples drawn from the coarse
     weights, the fine field evaluated on the sorted union. -> coarse colors, fine colors (n_rays, 3)."""
-    coarse_colors, weights = render_dense(coarse, rays, t_vals, background)
+    coarse_colors, weights = render_rays(coarse, rays, t_vals, background)
     mids = 0.5 * (t_vals[:, 1:] + t_vals[:, :-1])
     fine_t = sample_pdf(mids, weights[:, 1:-1].detach(), n_importance).detach()
     all_t, _ = torch.sort(torch.cat([t_vals, fine_t], dim=-1), dim=-1)
-    fine_colors, _ = render_dense(fine, rays, all_t, background)
+    fine_colors, _ = render_rays(fine, rays, all_t, background)
     return coarse_colors, fine_colors
 
 

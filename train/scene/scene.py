@@ -21,7 +21,7 @@ from safetensors.numpy import load_file, save_file
 
 from noisenerf.runtime.camera import Camera
 from noisenerf.runtime.errors import UserError
-from noisenerf.runtime.files import atomic_output, read_json, write_json
+from noisenerf.runtime.files import atomic_output, check_output_directory, read_json, write_json
 from noisenerf.runtime.fingerprint import weights_fingerprint
 from noisenerf.runtime.render import RenderConfig
 from noisenerf.runtime.sampling import Hierarchy, OccupancyGrid
@@ -94,7 +94,7 @@ class Scene:
     @property
     def render_field(self) -> NeRFField:
         """The field views, noise and exports use: the fine network when there is one."""
-        return self.fine if self.fine is not None else self.coarse
+        return render_field(self.coarse, self.fine)
 
     @property
     def hierarchy(self) -> Hierarchy | None:
@@ -102,11 +102,10 @@ class Scene:
         return Hierarchy(self.config.n_coarse, self.config.n_importance) if self.fine is not None else None
 
     def fields(self) -> dict[str, NeRFField]:
-        return {"coarse": self.coarse, **({"fine": self.fine} if self.fine is not None else {})}
+        return named_fields(self.coarse, self.fine)
 
     def weight_arrays(self) -> dict[str, np.ndarray]:
-        return {f"{prefix}.{name}": value.detach().cpu().numpy()
-                for prefix, field in self.fields().items() for name, value in field.state_dict().items()}
+        return {name: value.detach().cpu().numpy() for name, value in field_weights(self.fields()).items()}
 
     def fingerprint(self) -> str:
         return weights_fingerprint(self.weight_arrays(), self.config.architecture())
@@ -117,9 +116,7 @@ class Scene:
         return self
 
     def save(self, directory: str | Path) -> Path:
-        directory = Path(directory)
-        if not directory.parent.is_dir():
-            raise UserError(f"output folder does not exist: {directory.parent}")
+        directory = check_output_directory(directory)
         directory.mkdir(exist_ok=True)
         with atomic_output(directory / "weights.safetensors") as tmp:
             save_file(self.weight_arrays(), str(tmp))
@@ -133,9 +130,30 @@ def build_fields(config: SceneConfig) -> tuple[NeRFField, NeRFField | None]:
     return NeRFField(config.coarse), NeRFField(config.fine) if config.fine is not None else None
 
 
+def render_field(coarse: NeRFField, fine: NeRFField | None) -> NeRFField:
+    """The network a scene renders (and hides, and exports as `rgb`/`sigma`) with: the fine one where there is one."""
+    return fine if fine is not None else coarse
+
+
+def named_fields(coarse: NeRFField, fine: NeRFField | None) -> dict[str, NeRFField]:
+    """The scene's networks by name ("coarse", and "fine" where there is one)."""
+    return {"coarse": coarse, **({"fine": fine} if fine is not None else {})}
+
+
+def field_weights(fields: dict[str, NeRFField]) -> dict[str, torch.Tensor]:
+    """Every weight under the scene's names: NETWORK.MODULE (nerf-pytorch's module names), e.g.
+    `coarse.pts_linears.0.weight`, as weights.safetensors, fit checkpoints and the ONNX initializers hold them."""
+    return {f"{network}.{name}": value for network, field in fields.items() for name, value in field.state_dict().items()}
+
+
+def weights_of(network: str, tensors: dict) -> dict:
+    """One network's entries of a name -> tensor mapping written by field_weights, under module names."""
+    return {k[len(network) + 1:]: v for k, v in tensors.items() if k.startswith(network + ".")}
+
+
 def _load_field_weights(field: NeRFField, tensors: dict[str, np.ndarray], prefix: str, path: Path) -> None:
     expected = field.state_dict()
-    found = {k[len(prefix) + 1:]: v for k, v in tensors.items() if k.startswith(prefix + ".")}
+    found = weights_of(prefix, tensors)
     if set(found) != set(expected):
         missing, extra = sorted(set(expected) - set(found)), sorted(set(found) - set(expected))
         raise UserError(f"{path}: {prefix} weights do not match the config (missing {missing[:3]}, "

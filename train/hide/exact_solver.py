@@ -1,0 +1,135 @@
+"""`--method exact` (the default): every pixel's 8-bit value recovered exactly (exact.py's solver), a
+tile at a time in resumable chunks, its noise stored compactly (compact.py) or as float noise per ray."""
+
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+from typing import TYPE_CHECKING
+
+import torch
+
+from noisenerf.runtime.bundle import Frame, noise_shape
+from noisenerf.runtime.errors import UserError
+from noisenerf.train.hide.compact import CompactSettings, tile_space
+from noisenerf.train.hide.exact import ExactSettings, NoiseSpace, chunk_pixels_for, solve_exact
+from noisenerf.train.hide.secret_view import SecretView
+from noisenerf.train.hide.solver import Solver, TileSolution, chunk_seed, storage_dtype
+
+if TYPE_CHECKING:
+    from noisenerf.train.hide.plan import HideConfig
+    from noisenerf.train.hide.progress import Progress
+
+CPU_THREADS = 1  # see ExactSolver.threads
+ESCAPE_DTYPE = torch.float16  # a compact tile's escaped pixels store full noise as the ray layout does
+COUNTS = ("iterations", "jacobians", "renders", "restarts")
+
+
+def exact_space(view: SecretView, config: HideConfig, k: int, pixels: torch.Tensor) -> NoiseSpace:
+    """Where tile k's exact solve looks for noise: the tile's compact basis, or the full float noise."""
+    if config.layout == "compact":
+        return tile_space(view, pixels, config.get(CompactSettings), config.get(ExactSettings),
+                          storage_dtype(config.dtype), chunk_seed(config, k, -1))
+    return NoiseSpace(storage_dtype(config.dtype))
+
+
+def stored_noise(space: NoiseSpace, params: torch.Tensor, escaped: torch.Tensor, escape_noise: torch.Tensor,
+                 shape: tuple[int, ...]) -> tuple:
+    """What a tile's bundle entry holds for solved params (n, P): the noise (shape, its last entry −1 for P) in the storage dtype
+    (integer coefficients for a compact space, 0 where a pixel escaped) and the compact frame, with the
+    escaped pixels (n,) bool and their float16 noise (n, dims) (zero elsewhere)."""
+    if space.basis is None:
+        return params.reshape(shape).to(space.storage).cpu().numpy(), None
+    escapes = escaped.nonzero()[:, 0]
+    frame = Frame(basis=space.basis.cpu().numpy(), offset=space.offset.cpu().numpy(), scale=space.scale,
+                  escapes=escapes.to(torch.int32).cpu().numpy(),
+                  escape_noise=escape_noise[escapes].to(torch.float16).cpu().numpy())
+    coefficients = torch.where(escaped[:, None], 0, space.integers(params))
+    return coefficients.reshape(shape).cpu().numpy(), frame
+
+
+def solve_chunk(view: SecretView, index: torch.Tensor, pixels: torch.Tensor, space: NoiseSpace, config: HideConfig,
+                seed: int) -> dict[str, torch.Tensor]:
+    """One chunk's solve, as saved for resume: params (m, P), counts, and for a compact space the pixels it
+    could not finish, `escaped` (m,) uint8, solved again in full float16 noise, `escape_noise` (m, dims)
+    (zero where not escaped). Compact solves run at most CompactSettings.max_iters per phase: the few
+    pixels its basis cannot reach escape sooner."""
+    generator = torch.Generator().manual_seed(seed)
+    settings = config.get(ExactSettings)
+    if space.basis is None:
+        result = solve_exact(view, index, pixels, space, settings, generator)
+        return {"noise": result.params, "counts": torch.tensor(dataclasses.astuple(result.counts))}
+    in_basis = dataclasses.replace(settings, max_iters=config.get(CompactSettings).max_iters)
+    result = solve_exact(view, index, pixels, space, in_basis, generator)
+    left = (~result.done).nonzero()[:, 0]
+    escape_noise = torch.zeros(len(index), view.noise_dims, device=index.device)
+    counts = torch.tensor(dataclasses.astuple(result.counts))
+    if left.numel():
+        full = solve_exact(view, index[left], pixels[left], NoiseSpace(ESCAPE_DTYPE), settings, generator)
+        escape_noise[left] = full.params
+        counts += torch.tensor(dataclasses.astuple(full.counts))
+    return {"noise": result.params, "counts": counts, "escaped": (~result.done).to(torch.uint8),
+            "escape_noise": escape_noise}
+
+
+class ExactSolver(Solver):
+    name = "exact"
+    settings_types = (ExactSettings, CompactSettings)
+    layouts = ("compact", "ray", "sample")
+    default_samples = 1  # see exact.py: one sample per ray makes every pixel a piecewise-linear problem
+
+    def check(self, config: HideConfig) -> None:
+        if config.n_samples != 1:
+            raise UserError("--method exact renders its secret view with one sample per ray (--samples 1)")
+
+    def chunk_pixels(self, device: torch.device) -> int:
+        return chunk_pixels_for(device)
+
+    @contextlib.contextmanager
+    def threads(self, device: torch.device):
+        """One torch thread on a CPU. The Levenberg–Marquardt loop is thousands of small ops; with torch's
+        OpenMP pool of one thread per core, every op is a parallel region whose idle threads spin, and on
+        a machine whose cores are shared that spinning took the solver's own CPU (README, "Predictable
+        speed": a 64×64 hide 25–54 s instead of ~2 s beside other busy processes). One thread measured
+        1.35 s quiet against 1.1 s for two, ~2 s beside two busy loops against 4.6–6.7 s, and makes the
+        bundle's bytes independent of the machine's core count."""
+        if device.type != "cpu":
+            yield
+            return
+        before = torch.get_num_threads()
+        torch.set_num_threads(CPU_THREADS)
+        try:
+            yield
+        finally:
+            torch.set_num_threads(before)
+
+    def solve_tile(self, view: SecretView, pixels: torch.Tensor, shape: tuple[int, int], config: HideConfig,
+                   progress: Progress, k: int, bar) -> TileSolution:
+        """Solve a tile chunk by chunk (resuming saved chunks); the report has the solver's counts and the
+        number of escaped pixels."""
+        space = exact_space(view, config, k, pixels)
+        n, dims = view.n_rays, view.noise_dims
+        params = space.zeros(n, dims, pixels.device)
+        escaped = torch.zeros(n, dtype=torch.bool, device=pixels.device)
+        escape_noise = torch.zeros(n, dims, device=pixels.device)
+        totals = dict.fromkeys(COUNTS, 0)
+        for c, start in enumerate(range(0, n, config.chunk_pixels)):
+            index = torch.arange(start, min(start + config.chunk_pixels, n), device=pixels.device)
+            shapes = {"noise": (len(index), params.shape[1]), "counts": (len(totals),)}
+            if space.basis is not None:
+                shapes.update(escaped=(len(index),), escape_noise=(len(index), dims))
+            saved = progress.load(k, c, shapes)
+            if saved is None:
+                saved = solve_chunk(view, index, pixels[index], space, config, chunk_seed(config, k, c))
+                progress.save(k, c, saved)
+            params[index] = saved["noise"].to(params.device)
+            if "escaped" in saved:
+                escaped[index] = saved["escaped"].bool().to(escaped.device)
+                escape_noise[index] = saved["escape_noise"].to(escape_noise.device)
+            counts = dict(zip(totals, saved["counts"].tolist()))
+            totals = {name: max(value, counts[name]) if name == "iterations" else value + counts[name]
+                      for name, value in totals.items()}
+            bar.update(len(index))
+        noise = torch.where(escaped[:, None, None], escape_noise[:, None, :], space.expand(params))
+        stored, frame = stored_noise(space, params, escaped, escape_noise, noise_shape(config.layout, *shape, 1, -1))
+        return TileSolution(noise, {**totals, "escaped": int(escaped.sum())}, stored, frame)

@@ -1,0 +1,127 @@
+"""Resuming a hide: finished chunks (or blocks) of noise in OUT.partial/, for one run at a time."""
+
+from __future__ import annotations
+
+import fcntl
+import hashlib
+import os
+import shutil
+from pathlib import Path
+
+import torch
+from safetensors import safe_open
+from safetensors.torch import save_file
+
+from noisenerf.runtime.errors import UserError
+from noisenerf.runtime.files import atomic_output, existing_kind
+
+
+class Progress:
+    """Finished chunks of noise in OUT.partial/, for one run at a time.
+
+    A run holds an exclusive lock on OUT.partial/lock for its whole life, so a second hide writing to the
+    same output is refused at once instead of mixing two secrets' chunks. Each chunk is written atomically
+    (fsynced, then renamed) and carries the run key, its own position and a SHA-256 of its tensors; a
+    chunk that fails any check on load (another run's, truncated, edited, wrong shape or dtype, NaN,
+    missing fields) is deleted and solved again. The key file says which run the folder belongs to; if it
+    is anything but this run's key in a regular file, every chunk there is discarded.
+    """
+
+    def __init__(self, output: Path, key: str):
+        self.directory = output.with_name(output.name + ".partial")
+        self.key = key
+        if existing_kind(self.directory) not in (None, "a directory"):
+            raise UserError(f"the resume folder {self.directory} is {existing_kind(self.directory)}; remove it")
+        try:
+            self.directory.mkdir(exist_ok=True)
+            self.lock = os.open(self.directory / "lock", os.O_RDWR | os.O_CREAT | os.O_NOFOLLOW, 0o600)
+        except OSError as error:
+            raise UserError(f"cannot use the resume folder {self.directory}: {error.strerror or error}") from None
+        try:
+            fcntl.flock(self.lock, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            if not self.owns_folder():
+                self.discard_all()
+            with atomic_output(self.directory / "key") as tmp:
+                tmp.write_text(key)
+        except BlockingIOError:
+            os.close(self.lock)
+            raise UserError(f"another hide is writing to {self.directory}; wait for it or choose another -o") from None
+        except BaseException:
+            os.close(self.lock)  # a failed start must not keep the folder locked (in-process callers go on)
+            raise
+
+    def owns_folder(self) -> bool:
+        """Whether the folder's key file is a regular file holding this run's key."""
+        key_file = self.directory / "key"
+        if existing_kind(key_file) != "a file":
+            return False
+        with open(key_file, "rb") as handle:
+            return handle.read(len(self.key) + 1) == self.key.encode()
+
+    def discard_all(self) -> None:
+        """Remove everything in the folder but the lock we hold (another run's chunks, a stray key folder)."""
+        for entry in self.directory.iterdir():
+            if entry.name != "lock":
+                remove(entry)
+
+    def path(self, tile: int, chunk: int) -> Path:
+        return self.directory / f"tile{tile:04d}_chunk{chunk:05d}.safetensors"
+
+    def stamp(self, tile: int, chunk: int, tensors: dict[str, torch.Tensor]) -> dict[str, str]:
+        """What a chunk must carry to be reused: this run, this place, and a digest of exactly these tensors."""
+        digest = hashlib.sha256(f"{self.key}/{tile}/{chunk}".encode())
+        for name in sorted(tensors):
+            value = tensors[name].contiguous().cpu()
+            digest.update(f"{name}:{value.dtype}:{tuple(value.shape)}".encode())
+            digest.update(value.view(torch.uint8).numpy().tobytes() if value.numel() else b"")
+        return {"run_key": self.key, "tile": str(tile), "chunk": str(chunk), "sha256": digest.hexdigest()}
+
+    def load(self, tile: int, chunk: int, shapes: dict[str, tuple[int, ...]] | None = None) -> dict | None:
+        """A saved chunk that passes every check (and has exactly `shapes`, when given), else None; a chunk
+        that fails is deleted, so it is solved again and rewritten."""
+        path = self.path(tile, chunk)
+        if existing_kind(path) is None:
+            return None
+        tensors = self.verified(path, tile, chunk, shapes)
+        if tensors is None:
+            remove(path)
+        return tensors
+
+    def verified(self, path: Path, tile: int, chunk: int, shapes: dict | None) -> dict | None:
+        """The chunk's tensors if its stamp, shapes and values are sound; None for anything else."""
+        try:
+            with safe_open(str(path), framework="pt") as handle:
+                metadata = handle.metadata() or {}
+                tensors = {name: handle.get_tensor(name) for name in handle.keys()}
+        except Exception:  # safetensors raises several types for bad files; any of them means "recompute"
+            return None
+        if metadata != self.stamp(tile, chunk, tensors):
+            return None
+        if shapes is not None and {name: tuple(value.shape) for name, value in tensors.items()} != shapes:
+            return None
+        if any(value.is_floating_point() and not torch.isfinite(value).all() for value in tensors.values()):
+            return None
+        return tensors
+
+    def save(self, tile: int, chunk: int, tensors: dict) -> None:
+        tensors = {k: v.contiguous().cpu() for k, v in tensors.items()}
+        with atomic_output(self.path(tile, chunk)) as tmp:
+            save_file(tensors, str(tmp), metadata=self.stamp(tile, chunk, tensors))
+
+    def clear(self) -> None:
+        """Remove the folder once the bundle is written (the lock is released on leaving the run)."""
+        shutil.rmtree(self.directory, ignore_errors=True)
+
+    def __enter__(self) -> "Progress":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        os.close(self.lock)  # releases the flock, whether the run finished or failed
+
+
+def remove(entry: Path) -> None:
+    """Delete a file, symlink or folder in OUT.partial/ (a folder where a chunk or the key should be)."""
+    if existing_kind(entry) == "a directory":
+        shutil.rmtree(entry)
+    else:
+        entry.unlink(missing_ok=True)

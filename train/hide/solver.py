@@ -1,0 +1,74 @@
+"""The interface every hiding method implements.
+
+A method (`--method NAME`) is one Solver: it owns its settings dataclasses (each recorded in the bundle
+under its `key`), its defaults (layouts, samples per ray, network), its checks, its CLI flags and how it
+solves one tile, resumably (its flags are declared in cli/main.py, torch-free). `methods.py` registers them; `run.hide` plans tiles, renders each tile's
+secret view and hands it to the method. A new method is one module with a Solver plus one registry line.
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, ClassVar
+
+import numpy as np
+import torch
+
+from noisenerf.runtime.bundle import Frame
+from noisenerf.train.hide.secret_view import SecretView
+
+if TYPE_CHECKING:
+    from noisenerf.train.hide.plan import HideConfig
+    from noisenerf.train.hide.progress import Progress
+
+
+@dataclass(frozen=True)
+class TileSolution:
+    """One solved tile: the noise as a reveal expands it (n, 1 or n_samples, dims) float32, what the
+    method reports about it, and what the bundle stores (noise in the storage dtype, compact frame)."""
+
+    noise: torch.Tensor
+    report: dict
+    stored_noise: np.ndarray
+    frame: Frame | None = None
+
+
+def storage_dtype(name: str) -> torch.dtype:
+    """The torch dtype of a bundle dtype name (runtime/bundle.DTYPES names them as torch does)."""
+    return getattr(torch, name)
+
+
+def chunk_seed(config: HideConfig, tile: int, chunk: int) -> int:
+    """The seed of one chunk's solve (chunk −1: the tile's compact basis). The strides keep the seeds of one
+    run's chunks distinct while a tile has fewer than 10,007 chunks (a 512² tile has 16 on a CPU); primes,
+    so that runs with neighbouring seeds do not repeat each other's chunk seeds in step."""
+    return config.seed * 1_000_003 + tile * 10_007 + chunk
+
+
+class Solver:
+    """A hiding method. Subclasses set the class attributes and implement solve_tile."""
+
+    name: ClassVar[str]  # the --method value, recorded in bundles
+    settings_types: ClassVar[tuple[type, ...]]  # frozen dataclasses with a `key`, their defaults in every config
+    layouts: ClassVar[tuple[str, ...]]  # noise layouts it can write, the default first
+    default_samples: ClassVar[int]  # samples per ray of its secret view
+    default_network: ClassVar[str | None] = None  # None: the scene's render network
+
+    def check(self, config: HideConfig) -> None:
+        """Refuse settings this method cannot honour (UserError)."""
+
+    def settings_from_arguments(self, args: argparse.Namespace, device: torch.device) -> tuple:
+        """Its settings as `noisenerf hide`'s flags ask, for `device`. The flags themselves are declared in
+        cli/main.py, whose parser must not import torch (instant --help, one clear line without it)."""
+        return ()
+
+    def threads(self, device: torch.device):
+        """A context in which the solve runs (thread settings); nothing by default."""
+        return contextlib.nullcontext()
+
+    def solve_tile(self, view: SecretView, pixels: torch.Tensor, shape: tuple[int, int], config: HideConfig,
+                   progress: Progress, k: int, bar) -> TileSolution:
+        """Solve tile k: pixels (n, 3) uint8 of a (height, width) tile, saving resumable parts in progress."""
+        raise NotImplementedError
