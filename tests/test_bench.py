@@ -10,6 +10,7 @@ from conftest import make_tiny_scene
 from noisenerf.runtime.errors import UserError
 from noisenerf.runtime.images import write_image
 from noisenerf.cli.bench import EXPERIMENTS, BenchConfig, field_flops, run_bench
+from noisenerf.cli.bench.report import verdict
 
 
 @pytest.fixture(scope="module")
@@ -78,6 +79,13 @@ def test_field_flops_counts_linear_layers():
     scene = make_tiny_scene(seed=0, width=32, depth=3)
     # 63->32, (32+63)->32 (skip after layer 1), 32->32, feature 32->32, alpha 32->1, views (32+27)->16, rgb 16->3
     assert field_flops(scene.render_field) == 2 * (63 * 32 + 95 * 32 + 32 * 32 + 32 * 32 + 32 + 59 * 16 + 16 * 3)
+
+
+def test_a_goal_reached_exactly_is_met():
+    assert verdict(25, 25, lower_is_better=True) == "met" and verdict(25.5, 25, lower_is_better=True) == "not met"
+    assert verdict(0.97, 0.97, lower_is_better=False) == "met"
+    assert verdict(0.96, 0.97, lower_is_better=False) == "not met"
+    assert verdict(0.01, 0.05, lower_is_better=True, also=False) == "not met"  # a second condition fails it
 
 
 def test_unknown_experiment_is_refused(tmp_path):

@@ -1,0 +1,37 @@
+"""What one `noisenerf bench` run measures."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from noisenerf.cli.bench.registry import EXPERIMENTS
+
+
+@dataclass(frozen=True)
+class BenchConfig:
+    """What one `noisenerf bench` run measures (saved at the top of the report)."""
+
+    scene: str
+    secret: str
+    data: str | None = None  # dataset whose test views the skipping experiment renders
+    photos: tuple[str, ...] = ()  # secrets hidden at native size in the photos experiment
+    view: int = 0
+    small_width: int = 48  # secret width for the curves that include the paper's method on a CPU
+    paper_samples: int = 64
+    paper_iters: int = 300  # the paper's iteration count (lower only to test the bench quickly)
+    paper_recipe: str = "authors"
+    paper_width: int | None = None  # paper-quality secrets (square): None = 400 (the paper's) on CUDA, small_width on CPU
+    paper_photos: int = 3
+    ablation_samples: int = 64
+    ablation_width: int | None = None  # None = 100 (the authors' secret) on CUDA, small_width on CPU
+    device: str = "cpu"  # where the paper-mode and error-vs-time experiments run (cpu or cuda)
+    twok_size: int = 2048
+    twok_tile: int = 512
+    twok_rows: int = 1  # tile rows of the 2048² secret hidden (of 4); the rest is extrapolated
+    threads: tuple[int, ...] = (1, 2)
+    payload_bytes: int = 1 << 20  # the file the payload experiment hides, plain and sealed (random bytes)
+    views: int = 8  # views spread around the scene for the per-view hide times
+    view_photos: int = 5  # photos (the first of `photos`) hidden at each of those views
+    view_width: int | None = 128  # their width there (None: native; 8 × 5 native photos take ~15 min on 2 cores)
+    experiments: tuple[str, ...] = EXPERIMENTS
+    seed: int = 0

@@ -1,0 +1,233 @@
+"""The paper's method: its quality at the paper's scale, its run time against the exact method's, and the
+paper's Table 3 ablation."""
+
+from __future__ import annotations
+
+import dataclasses
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from noisenerf.runtime.images import load_secret, resize_image, to_uint8
+from noisenerf.train.hide.paper import PaperSettings, pass_samples_for, recipe
+
+from noisenerf.cli.bench.context import BenchContext, Measured, peak_rss_gib, size_of, small_secret
+from noisenerf.cli.bench.curves import PaperRun, exact_curve, paper_curve
+from noisenerf.cli.bench.report import curves_plot, save_figure, verdict
+
+PAPER_SSIM_GOAL = 0.97  # mean SSIM (data_range 1, 11×11 Gaussian) over the photos after 300 iterations
+PAPER_GPU_MEMORY_GOAL_GIB = 8.0  # peak GPU memory of a run at twice the secret width (CUDA only)
+EXACT_OVER_PAPER_GOAL = 0.05  # exact-mode time ÷ paper-mode time, whole runs, with strictly better quality
+CURVE_POINTS = (1, 5, 10, 25, 50, 75, 100, 150, 200, 250, 300)
+
+ABLATION = {  # the paper's Table 3 on the paper's recipe as the paper ran it (no revival), then revival
+    "none": ("paper", False, False, "off"), "no APS": ("paper", True, False, "off"),
+    "no PP": ("paper", False, True, "off"), "full": ("paper", True, True, "off"),
+    "full + revival (dead)": ("paper", True, True, "dead"), "full + revival (all)": ("paper", True, True, "all"),
+    "authors": ("authors", False, False, "off"), "authors + revival (dead)": ("authors", False, False, "dead"),
+    "authors + revival (all)": ("authors", False, False, "all"),
+}
+
+
+@dataclass(frozen=True, kw_only=True)
+class PaperCurves(Measured):
+    settings: PaperSettings  # the recipe the rows ran (the report names it)
+
+
+@dataclass(frozen=True, kw_only=True)
+class PaperQuality(PaperCurves):
+    runs: list[tuple[str, PaperRun]]  # (photo name, its run)
+    probe_gib: float | None  # peak GPU memory at twice the width (CUDA only)
+
+
+def square_secret(photo: np.ndarray, width: int) -> np.ndarray:
+    """The photo's central square resized to width × width (the paper's views are square)."""
+    height, full_width = photo.shape[:2]
+    side = min(height, full_width)
+    top, left = (height - side) // 2, (full_width - side) // 2
+    crop = photo[top:top + side, left:left + side].astype(np.float32) / 255.0
+    return to_uint8(resize_image(crop, width, width))
+
+
+def ablation_secret(context: BenchContext) -> np.ndarray:
+    """The secret the run-time and ablation curves hide: the authors' 100 px wide on CUDA, small on a CPU."""
+    config = context.config
+    cuda = context.device.type == "cuda"
+    return small_secret(context.secret, config.ablation_width or (100 if cuda else config.small_width))
+
+
+def measure_paper_quality(context: BenchContext) -> PaperQuality:
+    """The paper's method at the paper's scale: photos as square secrets at a scene view, 64 samples,
+    300 iterations, the default recipe; SSIM both ways, PSNR, time and peak memory. On a CPU the secrets
+    are downscaled (the report says so); on CUDA a last run at twice the width measures memory only."""
+    config, device = context.config, context.device
+    width = config.paper_width or (400 if device.type == "cuda" else config.small_width)
+    settings = recipe(config.paper_recipe, iters=config.paper_iters, pass_samples=pass_samples_for(device),
+                      record_at=tuple(t for t in CURVE_POINTS if t < config.paper_iters) + (config.paper_iters,))
+    rows, runs = [], []
+    for path in config.photos[:config.paper_photos] or (config.secret,):
+        photo = square_secret(load_secret(path)[0], width)
+        run = paper_curve(context.scene, photo, config.view, config.paper_samples, settings, device,
+                          label=Path(path).name)
+        rows += [{**row, "width": width, "peak_gib": run.peak_gib, "dead_fraction": run.dead_fraction} for row in run.rows]
+        print(f"paper_quality: {Path(path).name} {width}²: SSIM {run.rows[-1]['ssim']:.4f}, authors' SSIM "
+              f"{run.rows[-1]['ssim_authors']:.4f}, PSNR {run.rows[-1]['psnr']:.2f} dB, {run.seconds:.1f} s, "
+              f"peak GPU {run.peak_gib} GiB", file=sys.stderr, flush=True)  # seen even if a long run is cut
+        runs.append((Path(path).name, run))
+    probe_gib = None
+    if device.type == "cuda":
+        big = square_secret(context.secret, 2 * width)
+        probe_gib = paper_curve(context.scene, big, config.view, config.paper_samples,
+                                dataclasses.replace(settings, iters=2, record_at=(2,)), device,
+                                label="memory probe").peak_gib
+    return PaperQuality(rows, (width, width), settings=settings, runs=runs, probe_gib=probe_gib)
+
+
+def describe_paper_quality(context: BenchContext, measured: PaperQuality) -> list[str]:
+    config, settings, (width, _) = context.config, measured.settings, measured.secret_size
+    memory_lines = [] if measured.probe_gib is None else [
+        f"- peak GPU memory at {2 * width}² (2 iterations, memory only): **{measured.probe_gib:.2f} GiB** "
+        f"(goal ≤ {PAPER_GPU_MEMORY_GOAL_GIB:g} GiB: "
+        f"{verdict(measured.probe_gib, PAPER_GPU_MEMORY_GOAL_GIB, lower_is_better=True)})."]
+    mean_ssim = float(np.mean([run.rows[-1]["ssim"] for _, run in measured.runs]))
+    scale = (f"the paper's scale ({width}×{width})" if width >= 400
+             else f"secrets **downscaled to {width}×{width}** (the paper's 400² costs hours on a CPU; run the bench "
+                  "with `--device cuda` for it)")
+    lines = [f"Recipe `{settings.recipe}`, revival `{settings.revival}`, {config.paper_samples} samples per ray, "
+             f"{settings.iters} iterations, blocks of {settings.block_pixels} pixels, coarse network, scene view "
+             f"{config.view}, on {context.device.type.upper()}; {scale}. SSIM: data_range 1, 11×11 "
+             "Gaussian; authors' SSIM: data_range 2, 7×7 uniform (their code's).", "",
+             "| secret | SSIM | authors' SSIM | PSNR dB | exact fraction | seconds | dead rays | peak GPU GiB |",
+             "|---|---|---|---|---|---|---|---|"]
+    for name, run in measured.runs:
+        final = run.rows[-1]
+        lines.append(f"| {name} | {final['ssim']:.4f} | {final['ssim_authors']:.4f} | {final['psnr']:.2f} | "
+                     f"{final['exact_fraction']:.3f} | {run.seconds:.1f} | {run.dead_fraction:.1%} | "
+                     f"{'—' if run.peak_gib is None else format(run.peak_gib, '.2f')} |")
+    lines += ["", f"- mean SSIM after {settings.iters} iterations: **{mean_ssim:.4f}** (goal ≥ {PAPER_SSIM_GOAL}: "
+              f"{verdict(mean_ssim, PAPER_SSIM_GOAL, lower_is_better=False)}); the paper reports 0.9913 on "
+              "NeRF-Synthetic.",
+              *memory_lines, f"- peak resident memory of the bench process so far: {peak_rss_gib():.2f} GiB."]
+    return lines
+
+
+def plot_paper_quality(rows: list[dict], path: Path) -> None:
+    import matplotlib.pyplot as plt
+
+    figure, axes = plt.subplots(1, 2, figsize=(10, 3.6))
+    for photo in dict.fromkeys(r["method"] for r in rows):
+        curve = [r for r in rows if r["method"] == photo]
+        for axis, key in zip(axes, ("ssim", "psnr")):
+            axis.plot([r["iteration"] for r in curve], [r[key] for r in curve], marker=".", label=photo)
+            axis.set_xlabel("iteration")
+            axis.set_title({"ssim": "SSIM (data_range 1)", "psnr": "PSNR dB"}[key])
+    axes[0].axhline(PAPER_SSIM_GOAL, color="grey", linestyle=":")
+    axes[0].legend(fontsize=7)
+    figure.tight_layout()
+    save_figure(figure, path)
+
+
+def measure_error_vs_time(context: BenchContext) -> PaperCurves:
+    """Both methods on the same small secret, quality against time; keeps the paper's noise for bundle_size."""
+    config, device = context.config, context.device
+    small = ablation_secret(context)
+    exact_rows, _ = exact_curve(context.scene, small, config.view, device=device)
+    record_at = tuple(t for t in sorted({1, 2, 5, 10, 20, *range(25, 301, 25), config.paper_iters})
+                      if t <= config.paper_iters)
+    settings = recipe(config.paper_recipe, iters=config.paper_iters, record_at=record_at,
+                      pass_samples=pass_samples_for(device))
+    run = paper_curve(context.scene, small, config.view, config.paper_samples, settings, device, keep_noise=True)
+    context.handoffs.paper_noise = run.kept
+    return PaperCurves(exact_rows + run.rows, size_of(small), settings=settings)
+
+
+def first_reaching(rows: list[dict], key: str, value: float) -> dict | None:
+    return next((row for row in rows if row[key] >= value), None)
+
+
+def describe_error_vs_time(context: BenchContext, measured: PaperCurves) -> list[str]:
+    config, settings, (width, height) = context.config, measured.settings, measured.secret_size
+    exact_rows = [row for row in measured.rows if row["method"] == "exact"]
+    paper_rows = [row for row in measured.rows if row["method"] == "paper"]
+    lines = [f"Secret: `{Path(config.secret).name}` downscaled to {width}×{height}, scene view {config.view}, both on "
+             f"{context.device.type.upper()}. Paper: recipe `{settings.recipe}` with revival `{settings.revival}`, "
+             f"{config.paper_samples} samples per ray, {config.paper_iters} iterations, coarse network; exact: one "
+             "sample per ray, float16 noise.", "",
+             "| target | exact: seconds | paper: seconds | exact ÷ paper |", "|---|---|---|---|"]
+    paper_final_ssim = paper_rows[-1]["ssim"]
+    targets = (("ssim", paper_final_ssim, f"SSIM ≥ {paper_final_ssim:.4f} (the paper method's final: same quality)"),
+               ("ssim", 0.99, "SSIM ≥ 0.99"), ("exact_fraction", 1.0, "100 % exact 8-bit values"))
+    for key, value, label in targets:
+        hit_exact, hit_paper = first_reaching(exact_rows, key, value), first_reaching(paper_rows, key, value)
+        paper_text = f"{hit_paper['seconds']:.1f}" if hit_paper else f"not reached in {config.paper_iters} iterations"
+        ratio = (f"{hit_exact['seconds'] / hit_paper['seconds']:.4f}" if hit_exact and hit_paper
+                 else f"< {exact_rows[-1]['seconds'] / paper_rows[-1]['seconds']:.4f}" if hit_exact else "—")
+        lines.append(f"| {label} | {hit_exact['seconds']:.2f} | {paper_text} | {ratio} |" if hit_exact
+                     else f"| {label} | not reached | {paper_text} | — |")
+    final_exact, final_paper = exact_rows[-1], paper_rows[-1]
+    lines += ["", "| method | seconds | PSNR dB | SSIM | exact fraction | max error |", "|---|---|---|---|---|---|"]
+    for row in (final_exact, final_paper):
+        lines.append(f"| {row['method']} | {row['seconds']:.1f} | {row['psnr']:.2f} | {row['ssim']:.4f} | "
+                     f"{row['exact_fraction']:.4f} | {row['max_error']} |")
+    ratio = final_exact["seconds"] / final_paper["seconds"]
+    met = verdict(ratio, EXACT_OVER_PAPER_GOAL, lower_is_better=True, also=final_exact["psnr"] > final_paper["psnr"])
+    lines += ["", f"Exact-mode time ÷ paper-mode time (whole runs): **{ratio:.4f}** (goal ≤ {EXACT_OVER_PAPER_GOAL:g}, "
+              f"with strictly better quality: {met})."]
+    return lines
+
+
+def plot_error_vs_time(rows: list[dict], path: Path) -> None:
+    import matplotlib.pyplot as plt
+
+    figure, axes = plt.subplots(1, 3, figsize=(13, 3.6))
+    for method in ("exact", "paper"):
+        curve = [r for r in rows if r["method"] == method]
+        for axis, key in zip(axes, ("psnr", "ssim", "exact_fraction")):
+            axis.plot([r["seconds"] for r in curve], [min(r[key], 100) for r in curve], marker=".", label=method)
+            axis.set_xscale("log")
+            axis.set_xlabel("seconds (log)")
+            axis.set_title({"psnr": "PSNR dB (capped at 100)", "ssim": "SSIM", "exact_fraction": "exact fraction"}[key])
+    axes[0].legend()
+    figure.tight_layout()
+    save_figure(figure, path)
+
+
+def ablation_points(iters: int) -> tuple[int, ...]:
+    """The Table 3 iterations (50, 200, 300) a run of `iters` reaches, and its last."""
+    return tuple(sorted({t for t in (50, 200, 300) if t <= iters} | {iters}))
+
+
+def measure_ablation(context: BenchContext) -> Measured:
+    """The paper's Table 3: SSIM and loss at 50, 200, 300 iterations with each strategy switched off,
+    and each recipe with and without revival."""
+    config, device = context.config, context.device
+    small = ablation_secret(context)
+    rows = []
+    for name, (recipe_name, perturbation, selection, revival) in ABLATION.items():
+        settings = recipe(recipe_name, iters=config.paper_iters, pixel_perturbation=perturbation,
+                          adaptive_selection=selection, revival=revival, record_at=ablation_points(config.paper_iters),
+                          pass_samples=pass_samples_for(device))
+        rows += paper_curve(context.scene, small, config.view, config.ablation_samples, settings, device,
+                            label=name).rows
+    return Measured(rows, size_of(small))
+
+
+def describe_ablation(context: BenchContext, measured: Measured) -> list[str]:
+    config, (width, height) = context.config, measured.secret_size
+    points = ablation_points(config.paper_iters)
+    lines = [f"Secret {width}×{height}, {config.ablation_samples} samples per ray, coarse network, on "
+             f"{context.device.type.upper()}. SSIM uses data_range 1. Rows 1–4 are the paper's Table 3 (the paper's "
+             "recipe as the paper describes it); revival is our addition.", "",
+             "| variant | " + " | ".join(f"SSIM@{t}" for t in points) + " | " + " | ".join(f"loss@{t}" for t in points)
+             + " |", "|---|" + "---|" * 2 * len(points)]
+    for name in ABLATION:
+        by_t = {row["iteration"]: row for row in measured.rows if row["method"] == name}
+        lines.append(f"| {name} | " + " | ".join(f"{by_t[t]['ssim']:.4f}" for t in points) + " | "
+                     + " | ".join(f"{by_t[t]['loss']:.5f}" for t in points) + " |")
+    return lines
+
+
+def plot_ablation(rows: list[dict], path: Path) -> None:
+    curves_plot(rows, path, "method", "iteration", "ssim", ("iteration", "SSIM"))

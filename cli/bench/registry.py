@@ -1,0 +1,48 @@
+"""Every bench experiment, in the order a run measures and reports them."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Callable
+
+from noisenerf.cli.bench import exact_cost, exact_scale, paper, payload
+from noisenerf.cli.bench.context import BenchContext, Measured, Section
+
+
+@dataclass(frozen=True)
+class Experiment:
+    """One experiment: it measures rows (its CSV), then describes them for the report."""
+
+    name: str  # of its CSV and plot, and what --only takes
+    title: str  # its report section's heading
+    measure: Callable[[BenchContext], Measured]
+    describe: Callable[[BenchContext, Any], list[str]]  # the report's lines, from what `measure` returned
+    plot: Callable[[list[dict], Path], None] | None = None  # draws the rows as a PNG at the path given
+
+    def run(self, context: BenchContext) -> Section:
+        measured = self.measure(context)
+        return Section(self.name, self.title, measured.rows, self.describe(context, measured))
+
+
+# The order matters beyond the report's: error_vs_time hands its paper-mode noise to bundle_size.
+REGISTRY = (
+    Experiment("paper_quality", "The paper's method at the paper's scale", paper.measure_paper_quality,
+               paper.describe_paper_quality, paper.plot_paper_quality),
+    Experiment("error_vs_time", "Run time against error: paper vs exact", paper.measure_error_vs_time,
+               paper.describe_error_vs_time, paper.plot_error_vs_time),
+    Experiment("ablation", "The paper's Table 3 ablation (paper mode)", paper.measure_ablation, paper.describe_ablation,
+               paper.plot_ablation),
+    Experiment("cost", "Hide ÷ reveal cost", exact_cost.measure_cost, exact_cost.describe_cost),
+    Experiment("throughput", "Reveal throughput", exact_cost.measure_throughput, exact_cost.describe_throughput),
+    Experiment("skipping", "Skipping what the scene does not need", exact_cost.measure_skipping,
+               exact_cost.describe_skipping),
+    Experiment("bundle_size", "Bundle size", exact_cost.measure_bundle_size, exact_cost.describe_bundle_size),
+    Experiment("photos", "Real photos at native size", exact_scale.measure_photos, exact_scale.describe_photos),
+    Experiment("views", "Hide time across views and photos", exact_scale.measure_views, exact_scale.describe_views,
+               exact_scale.plot_views),
+    Experiment("contention", "Hide on a busy machine", exact_scale.measure_contention, exact_scale.describe_contention),
+    Experiment("twok", "2K secrets as tiles", exact_scale.measure_twok, exact_scale.describe_twok),
+    Experiment("payload", "File payloads, plain and sealed", payload.measure_payload, payload.describe_payload),
+)
+EXPERIMENTS = tuple(experiment.name for experiment in REGISTRY)
