@@ -16,7 +16,8 @@ from noisenerf.runtime.bundle import load_bundle
 from noisenerf.runtime.images import resize_image, to_uint8
 from noisenerf.runtime.model import Model
 from noisenerf.runtime.reveal import Revealed, reveal
-from noisenerf.train.hide.run import HideConfig, hide
+from noisenerf.train.hide.plan import HideConfig
+from noisenerf.train.hide.run import hide
 from noisenerf.train.hide.secret_view import SecretView
 from noisenerf.train.scene.scene import Scene
 

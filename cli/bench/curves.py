@@ -10,10 +10,10 @@ import numpy as np
 import torch
 
 from noisenerf.runtime.images import to_uint8
-from noisenerf.runtime.metrics import ssim_authors
+from noisenerf.runtime.metrics import ssim_authors, tile_quality
 from noisenerf.train.hide.exact import ExactSettings, NoiseSpace, solve_exact
 from noisenerf.train.hide.paper import PaperSettings, recorded_points, solve_blocks, survey
-from noisenerf.train.hide.run import HideConfig, plan, quality
+from noisenerf.train.hide.plan import HideConfig, plan
 from noisenerf.train.hide.secret_view import SecretView
 from noisenerf.train.hide.tiling import MIN_TILE_SIZE
 from noisenerf.train.scene.field import NeRFField
@@ -32,9 +32,9 @@ def secret_view(scene: Scene, secret: np.ndarray, view: int, n_samples: int, dev
     return SecretView(field or scene.fields()[tile.network], tile, scene.config.render, device)
 
 
-def tile_quality(colors: torch.Tensor, secret: np.ndarray) -> dict:
+def secret_quality(colors: torch.Tensor, secret: np.ndarray) -> dict:
     """hide.quality of a rendered tile (n, 3) against the secret (h, w, 3) uint8."""
-    return quality(colors.cpu().numpy(), secret.reshape(-1, 3), secret.shape[:2])
+    return tile_quality(colors.cpu().numpy(), secret.reshape(-1, 3), secret.shape[:2])
 
 
 def exact_curve(scene: Scene, secret: np.ndarray, view: int, settings: ExactSettings = ExactSettings(),
@@ -54,7 +54,7 @@ def exact_curve(scene: Scene, secret: np.ndarray, view: int, settings: ExactSett
             with torch.no_grad():
                 colors = tile_view.render(index, current)
             rows.append({"method": "exact", "iteration": len(rows) + 1, "seconds": watch.elapsed(),
-                         "jacobians_per_pixel": counts.jacobians / len(index), **tile_quality(colors, secret)})
+                         "jacobians_per_pixel": counts.jacobians / len(index), **secret_quality(colors, secret)})
 
     result = solve_exact(tile_view, index, pixels, NoiseSpace(torch.float16), settings, torch.Generator().manual_seed(0),
                          observe)
@@ -97,6 +97,6 @@ def paper_curve(scene: Scene, secret: np.ndarray, view: int, n_samples: int, set
         image = to_uint8(colors[i].numpy()).reshape(secret.shape) / 255.0
         rows.append({"method": label, "iteration": t, "seconds": seconds * t / settings.iters,
                      "loss": float(((colors[i] - pixels.cpu().float() / 255.0) ** 2).sum(-1).mean()),
-                     **tile_quality(colors[i], secret), "ssim_authors": ssim_authors(image, secret / 255.0)})
+                     **secret_quality(colors[i], secret), "ssim_authors": ssim_authors(image, secret / 255.0)})
     return PaperRun(rows, seconds, peak, float((~clean.alive).float().mean()),
                     PaperNoise(torch.cat(kept).float(), tile_view, secret) if keep_noise else None)

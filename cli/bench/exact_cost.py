@@ -18,13 +18,13 @@ from noisenerf.runtime.sampling import render_network
 from noisenerf.runtime.session import OnnxField
 from noisenerf.train.hide.exact import ExactSettings
 from noisenerf.train.hide.paper import recipe
-from noisenerf.train.hide.run import HideConfig
+from noisenerf.train.hide.plan import HideConfig
 from noisenerf.train.scene.datasets import load_dataset
 from noisenerf.train.scene.field import NeRFField
 from noisenerf.train.scene.render import numpy_field
 
 from noisenerf.cli.bench.context import BenchContext, FullHide, Measured, size_of, small_secret, timed
-from noisenerf.cli.bench.curves import exact_curve, tile_quality
+from noisenerf.cli.bench.curves import exact_curve, secret_quality
 from noisenerf.cli.bench.report import verdict
 
 HIDE_OVER_REVEAL_GOAL = 25  # exact hide time ÷ onnxruntime reveal time (the views experiment checks it too)
@@ -211,7 +211,7 @@ def measure_bundle_size(context: BenchContext) -> Measured:
                                            ("paper", "sample", "float16", config.paper_samples)):
         paper = recipe(config.paper_recipe, iters=1, record_at=())
         report = context.hide(small, "size", HideConfig(method=method, layout=layout, dtype=dtype, n_samples=samples,
-                                                        view=config.view, paper=paper))
+                                                        view=config.view, settings=(paper,)))
         rows.append({"method": method, "layout": layout, "dtype": dtype, "samples": samples,
                      "file_bytes_per_pixel": report["bundle_bytes"] / n_pixels, "hide_seconds": report["seconds"],
                      "exact_fraction": report["exact_fraction"] if method == "exact" else None})
@@ -221,7 +221,7 @@ def measure_bundle_size(context: BenchContext) -> Measured:
         with torch.no_grad():
             for row, dtype in ((rows[3], torch.float32), (rows[4], torch.float16)):
                 stored = kept.noise.to(dtype).float().to(index.device)
-                quality = tile_quality(kept.view.render(index, stored), kept.secret)
+                quality = secret_quality(kept.view.render(index, stored), kept.secret)
                 row["exact_fraction"], row["psnr"] = quality["exact_fraction"], quality["psnr"]
     return Measured(rows, size_of(small))
 

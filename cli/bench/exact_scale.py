@@ -12,7 +12,7 @@ import numpy as np
 
 from noisenerf.runtime.images import load_secret, resize_image, to_uint8
 from noisenerf.runtime.session import available_cores
-from noisenerf.train.hide.run import HideConfig
+from noisenerf.train.hide.plan import HideConfig
 
 from noisenerf.cli.bench.context import BenchContext, Measured, size_of, small_secret
 from noisenerf.cli.bench.exact_cost import HIDE_OVER_REVEAL_GOAL

@@ -11,7 +11,8 @@ from pathlib import Path
 import numpy as np
 
 from noisenerf.runtime.images import load_secret, resize_image, to_uint8
-from noisenerf.train.hide.paper import PaperSettings, pass_samples_for, recipe
+from noisenerf.train.hide.paper import PaperSettings, recipe
+from noisenerf.train.hide.secret_view import pass_samples_for
 
 from noisenerf.cli.bench.context import BenchContext, Measured, peak_rss_gib, size_of, small_secret
 from noisenerf.cli.bench.curves import PaperRun, exact_curve, paper_curve

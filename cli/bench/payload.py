@@ -14,7 +14,7 @@ from noisenerf.runtime.payload import Record, open_payload, seal_of
 from noisenerf.runtime.reveal import reveal
 from noisenerf.runtime.sealing import ScryptParams, derive_keys, new_seal, unseal_keys
 from noisenerf.train.hide.payload import hide_payload
-from noisenerf.train.hide.run import HideConfig
+from noisenerf.train.hide.plan import HideConfig
 
 from noisenerf.cli.bench.context import BenchContext, Measured, timed
 
