@@ -168,8 +168,8 @@ def run(args: argparse.Namespace) -> dict:
     loaded = time.perf_counter()
     if bundle is not None:
         revealed, report = reveal_secret(model, bundle)
-        # 8-bit outputs get the very pixels `exact` judged (quantised once); 16-bit and float, the render
-        image = revealed.pixels if written_format(output)[1] == "uint8" else revealed.image
+        # 8-bit images get the very pixels `exact` judged (quantised once); 16-bit and float, the render
+        image = revealed.pixels if not payload and written_format(output)[1] == "uint8" else revealed.image
     else:
         image, report = render_dataset_view(model, args.view, skip=not args.no_skip)
     rendered = time.perf_counter()
