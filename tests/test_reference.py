@@ -1,7 +1,9 @@
-"""Same seed, same inputs → the same bytes as the code wrote before the restructuring (issue 9).
+"""Same seed, same inputs → the same bytes as the references in tests/reference/.
 
-The references in tests/reference/ were written by main at e98c111 (before train/ was split into
-layers and the solvers moved behind one interface) with `python tests/test_reference.py`:
+The references were first written by main at e98c111, before train/ was split into layers (issue 9),
+and are rewritten (`python tests/test_reference.py`) only by a change that means to alter what is
+written, whose commit says why: last when exact bundles changed with the lattice search and the chord
+warm start, and bundles began to record only their own method's settings (issue 11).
 `exact_compact.bundle` is the small exact bundle itself, and `digests.json` holds the SHA-256 of every
 artifact below (bundles of each method and layout, a plain and a sealed payload, a fitted scene's files
 and an exported ONNX file). Each artifact is rebuilt here from seeds alone and must match byte for byte.
@@ -125,7 +127,7 @@ def test_onnx_file_matches_the_reference_digest(artifacts, digests):
     assert sha256(artifacts["model.onnx"]) == digests["sha256"]["model.onnx"]
 
 
-if __name__ == "__main__":  # writes the references (only ever from the code before a behaviour-neutral change)
+if __name__ == "__main__":  # writes the references (see the module docstring for when)
     import tempfile
 
     with tempfile.TemporaryDirectory() as tmp:

@@ -42,6 +42,7 @@ class CompactSettings:
     coefficient_range: float = 1024.0  # largest storable |coefficient|: int16 steps of 1/32
     basis_pixels: int = 256  # seeded sample of a tile's pixels whose solved noise chooses its offset and basis
     max_iters: int = 50  # per phase in the basis; a pixel still unfinished escapes to full float16 noise
+    tolerance_bins: float = 0.4  # float phase in the basis: round_to_lattice re-aims at the bin centre after it
 
     def __post_init__(self):
         if not 1 <= self.coefficients <= MAX_COMPACT_COEFFICIENTS:

@@ -53,13 +53,14 @@ def solve_chunk(view: SecretView, index: torch.Tensor, pixels: torch.Tensor, spa
     """One chunk's solve, as saved for resume: params (m, P), counts, and for a compact space the pixels it
     could not finish, `escaped` (m,) uint8, solved again in full float16 noise, `escape_noise` (m, dims)
     (zero where not escaped). Compact solves run at most CompactSettings.max_iters per phase: the few
-    pixels its basis cannot reach escape sooner."""
+    pixels its basis cannot reach escape sooner, and their float phase stops at CompactSettings.tolerance_bins."""
     generator = torch.Generator().manual_seed(seed)
     settings = config.get(ExactSettings)
     if space.basis is None:
         result = solve_exact(view, index, pixels, space, settings, generator)
         return {"noise": result.params, "counts": torch.tensor(dataclasses.astuple(result.counts))}
-    in_basis = dataclasses.replace(settings, max_iters=config.get(CompactSettings).max_iters)
+    compact = config.get(CompactSettings)
+    in_basis = dataclasses.replace(settings, max_iters=compact.max_iters, tolerance_bins=compact.tolerance_bins)
     result = solve_exact(view, index, pixels, space, in_basis, generator)
     left = (~result.done).nonzero()[:, 0]
     escape_noise = torch.zeros(len(index), view.noise_dims, device=index.device)

@@ -25,7 +25,7 @@ class HideConfig:
     samples per ray and its network (None: the scene's render network, the fine one where there is one);
     the dtype defaults to the layout's first (runtime/bundle.py). `settings` holds settings dataclasses that
     replace a method's defaults, e.g. `settings=(PaperSettings(iters=50),)`; after construction it holds
-    every registered method's settings, which the bundle records whichever method ran.
+    every registered method's settings; the bundle records those of the method that ran (to_dict).
     """
 
     method: str = "exact"
@@ -75,9 +75,11 @@ class HideConfig:
         return next(settings for settings in self.settings if isinstance(settings, kind))
 
     def to_dict(self) -> dict:
-        """As bundles record it: the common fields, then each settings dataclass under its key."""
+        """As bundles record it: the common fields, then each settings dataclass of the method that runs
+        under its key (another method's settings would only cost bytes: ~0.9 KB for the paper's)."""
         common = {f.name: getattr(self, f.name) for f in dataclasses.fields(self) if f.name != "settings"}
-        return {**common, **{type(s).key: dataclasses.asdict(s) for s in self.settings}}
+        own = METHODS[self.method].settings_types
+        return {**common, **{type(s).key: dataclasses.asdict(s) for s in self.settings if isinstance(s, own)}}
 
 
 @dataclass(frozen=True)

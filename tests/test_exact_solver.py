@@ -1,0 +1,100 @@
+"""The exact solver's steps between phases: lattice candidates, entering a compact tile's integer lattice,
+and the chord warm start."""
+
+import numpy as np
+import pytest
+import torch
+
+from noisenerf.cli.demo import DEMO_VIEW
+from noisenerf.train.hide.compact import CompactSettings, tile_space
+from noisenerf.train.hide.exact import (Criteria, ExactSettings, SolveCounts, chord_start, counted_outputs,
+                                        lattice_candidates, output_jacobian, refine, residuals, round_to_lattice)
+from noisenerf.train.hide.plan import HideConfig, plan
+from noisenerf.train.hide.secret_view import SecretView
+from noisenerf.train.scene.procedural import DEMO_SCENE, procedural_secret
+from noisenerf.train.scene.scene import load_scene
+
+CPU = torch.device("cpu")
+
+
+def test_lattice_candidates_move_the_colour_only_by_the_pivots_rounding():
+    generator = torch.Generator().manual_seed(0)
+    m, k, radius = 200, 6, 2
+    jac = torch.randn(m, 3, k, generator=generator) * torch.rand(m, 1, k, generator=generator)
+    coords = torch.randn(m, k, generator=generator) * 40
+    candidates = lattice_candidates(coords, jac, radius)
+    assert candidates.shape == (m, (2 * radius + 1) ** (k - 3), k)
+    assert torch.equal(candidates, torch.round(candidates))
+    moved = candidates - coords[:, None, :]
+    # free coordinates stay within radius of their rounding, and at most 3 coordinates (the pivots) move
+    # further than radius + 1/2 from the continuous point
+    assert int((moved.abs() > radius + 0.5 + 1e-4).sum(-1).max()) <= 3
+    colour_change = (moved @ jac.transpose(1, 2)).abs()  # (m, c, 3): what the lattice point costs in colour
+    pivot_bound = 0.5 * jac.abs().sum(-1)  # every column's rounding at most half a step
+    assert bool((colour_change <= pivot_bound[:, None, :] + 1e-3).all())
+    best = colour_change.amax(-1).amin(-1)
+    plain = ((torch.round(coords) - coords)[:, None, :] @ jac.transpose(1, 2)).abs().amax(-1)[:, 0]
+    assert float(best.median()) < float(plain.median()) / 4
+
+
+def test_singular_jacobians_give_plain_rounding():
+    coords = torch.tensor([[0.4, -1.6, 2.5, 7.2, 0.0, -0.5]])
+    candidates = lattice_candidates(coords, torch.zeros(1, 3, 6), radius=1)
+    pivots_and_centre = candidates[0, len(candidates[0]) // 2]
+    assert torch.equal(pivots_and_centre, torch.round(coords[0]))
+
+
+@pytest.fixture(scope="module")
+def compact_view():
+    """A 16×12 secret's view of the demo scene, its pixels, a compact space and the float-phase solution."""
+    scene = load_scene(DEMO_SCENE)
+    secret = procedural_secret(16, 12)
+    config = HideConfig(view=DEMO_VIEW, tile_size=16)
+    view = SecretView(scene.coarse, plan(scene, secret, config).tiles[0], scene.config.render, CPU)
+    pixels = torch.tensor(secret.reshape(-1, 3))
+    exact = ExactSettings()
+    space = tile_space(view, pixels, CompactSettings(), exact, torch.int16, seed=0)
+    index = torch.arange(view.n_rays)
+    criteria = Criteria(pixels, exact)
+    converged, done = refine(view, index, criteria.goal, space, space.zeros(len(index), view.noise_dims, CPU),
+                             criteria.converged, lambda p: p, exact, torch.Generator().manual_seed(0), SolveCounts())
+    return view, index, space, criteria, converged[done], done
+
+
+def test_entering_the_lattice_keeps_more_pixels_exact_than_rounding(compact_view):
+    view, index, space, criteria, converged, done = compact_view
+    which = done.nonzero()[:, 0]
+    assert len(which) > 100
+    entered = round_to_lattice(view, index[which], space, converged, criteria_of(criteria, which), ExactSettings(),
+                               SolveCounts())
+    assert torch.equal(space.store(entered), entered)  # on the lattice
+    right = {name: criteria.rounds_right(counted_outputs(view, index[which], space, params, SolveCounts()), which)
+             for name, params in {"lattice": entered, "rounded": space.store(converged)}.items()}
+    assert float(right["lattice"].float().mean()) >= 0.95
+    assert int(right["lattice"].sum()) > int(right["rounded"].sum())
+
+
+def criteria_of(criteria: Criteria, which: torch.Tensor) -> Criteria:
+    """The criteria of a subset of pixels, indexed from 0 as round_to_lattice indexes them."""
+    return Criteria((criteria.values[which] * 255).round().to(torch.uint8), criteria.settings)
+
+
+def test_chord_start_is_never_worse_than_its_start(compact_view):
+    view, index, space, criteria, converged, done = compact_view
+    which = done.nonzero()[:, 0]
+    seeds, rest = which[::4], which[torch.arange(len(which)) % 4 != 0]
+    donor = seeds[torch.cdist(criteria.goal[rest], criteria.goal[seeds]).argmin(1)]
+    solved = dict(zip(which.tolist(), converged))
+    start = torch.stack([solved[int(d)] for d in donor])
+    _, jac = output_jacobian(view, index[donor], space.expand(start))
+    moved = chord_start(view, index[rest], space, start, criteria.goal[rest], space.chain(jac), ExactSettings(),
+                        SolveCounts())
+
+    def error(params):
+        outputs = counted_outputs(view, index[rest], space, params, SolveCounts())
+        return (residuals(outputs, criteria.goal[rest], ExactSettings().density_floor) ** 2).sum(-1)
+
+    assert bool((error(moved) <= error(start)).all())
+    assert float(error(moved).median()) < float(error(start).median())
+    assert np.isfinite(moved.numpy()).all()
+
