@@ -98,3 +98,11 @@ def test_chord_start_is_never_worse_than_its_start(compact_view):
     assert float(error(moved).median()) < float(error(start).median())
     assert np.isfinite(moved.numpy()).all()
 
+
+
+def test_rank_deficient_jacobians_give_finite_candidates():
+    jac = torch.zeros(2, 3, 6)
+    jac[0, :, 0] = 1.0  # one colour direction
+    jac[1, 0, :2], jac[1, 1, :2] = torch.tensor([1.0, 2.0]), torch.tensor([2.0, 4.0])  # parallel columns
+    candidates = lattice_candidates(torch.full((2, 6), 3.3), jac, radius=1)
+    assert torch.isfinite(candidates).all() and torch.equal(candidates, torch.round(candidates))

@@ -188,16 +188,19 @@ def lattice_candidates(coords: torch.Tensor, jac: torch.Tensor, radius: int) -> 
     pivots = subsets[volumes.argmax(1)]  # (m, 3)
     is_free = torch.ones(m, k, dtype=torch.bool, device=jac.device).scatter(1, pivots, False)
     free = torch.arange(k, device=jac.device).expand(m, k)[is_free].reshape(m, k - 3)
-    pivot_jac, free_jac = jac.gather(2, pivots[:, None].expand(m, 3, 3)), jac.gather(2, free[:, None].expand(m, 3, k - 3))
-    singular = volumes.amax(1) < 1e-20  # no colour direction at all: the candidates are plain rounding
+    pivot_jac = jac.gather(2, pivots[:, None].expand(m, 3, 3))
+    free_jac = jac.gather(2, free[:, None].expand(m, 3, k - 3))
+    singular = volumes.amax(1) < 1e-20  # J of rank < 3: the candidates are plain rounding around the free grid
     eye = torch.eye(3, device=jac.device).expand(m, 3, 3)
-    trade = torch.linalg.solve(torch.where(singular[:, None, None], eye, pivot_jac), free_jac)  # (m, 3, k − 3)
-    trade = torch.where(singular[:, None, None], 0.0, trade)
+    trade, failed = torch.linalg.solve_ex(torch.where(singular[:, None, None], eye, pivot_jac), free_jac)
+    singular = singular | (failed != 0) | ~torch.isfinite(trade).all(2).all(1)
+    trade = torch.where(singular[:, None, None], 0.0, trade)  # (m, 3, k − 3)
     grid = torch.tensor(list(itertools.product(range(-radius, radius + 1), repeat=k - 3)),
                         dtype=coords.dtype, device=coords.device).reshape(-1, k - 3)  # (c, k − 3)
     free_coords = coords.gather(1, free)
     free_values = torch.round(free_coords)[:, None, :] + grid  # (m, c, k − 3)
-    pivot_values = coords.gather(1, pivots)[:, None, :] + (free_coords[:, None, :] - free_values) @ trade.transpose(1, 2)
+    shift = (free_coords[:, None, :] - free_values) @ trade.transpose(1, 2)  # pivots keep J (q − coords) = 0
+    pivot_values = coords.gather(1, pivots)[:, None, :] + shift
     candidates = torch.empty(m, grid.shape[0], k, dtype=coords.dtype, device=coords.device)
     candidates.scatter_(2, pivots[:, None].expand(-1, grid.shape[0], -1), torch.round(pivot_values))
     candidates.scatter_(2, free[:, None].expand(-1, grid.shape[0], -1), free_values)
