@@ -87,10 +87,12 @@ def cmd_hide(args) -> None:
 
     if (args.secret is None) == (args.file is None):
         raise UserError("give exactly one of SECRET_IMAGE or --file PAYLOAD")
+    if args.workers is not None and args.workers < 1:
+        raise UserError(f"--workers must be at least 1, got {args.workers}")
     passphrase = sealing_passphrase(args)
     output = Path(args.output)
     device = resolve_device(args.device)
-    # every method's settings as the flags say (a bundle records them all, whichever method ran)
+    # every method's settings as the flags say (the bundle records those of the method that runs)
     settings = tuple(s for method in METHODS.values() for s in method.settings_from_arguments(args, device))
     config = HideConfig(method=args.method, layout=args.layout, dtype=args.dtype,
                         n_samples=args.samples, tile_size=args.tile_size, view=args.view, seed=args.seed,
@@ -106,7 +108,8 @@ def cmd_hide(args) -> None:
         record = read_payload_file(args.file) if args.file is not None else image_record(secret)
         report = hide_record(args, scene, record, output, config, device, passphrase)
     else:
-        report = hide(scene, secret, output, config, device, force=args.force, show_progress=not args.quiet)
+        report = hide(scene, secret, output, config, device, force=args.force, show_progress=not args.quiet,
+                      workers=args.workers)
     lines = [f"bundle: {report['bundle']} ({report['bundle_bytes']} bytes, {report['bytes_per_pixel']:.1f} B/px)",
              f"tiles: {len(report['tiles'])}, exact fraction {report['exact_fraction']:.6f}, "
              f"exact: {str(report['exact']).lower()}", f"seconds: {report['seconds']}"]
@@ -138,7 +141,7 @@ def hide_record(args, scene, record, output: Path, config, device, passphrase: b
                   f"expect about {room['expected_seconds']} s of hiding on 2 CPU cores", file=sys.stderr, flush=True)
 
     return hide_payload(scene, record, output, config, device, passphrase=passphrase, force=args.force,
-                        show_progress=not args.quiet, announce=announce)
+                        show_progress=not args.quiet, announce=announce, workers=args.workers)
 
 
 def cmd_export(args) -> None:
@@ -233,6 +236,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--revival", choices=("all", "dead", "off"),
                    help="paper method: which rays start from a colour donor (default all)")
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--workers", type=int, help="exact method on a CPU: processes its chunks are spread over "
+                   "(default: every core this process may use; the bundle is the same for any number)")
     p.add_argument("--force", action="store_true", help="overwrite an existing bundle")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     add_device(p)

@@ -21,7 +21,8 @@ def report(tmp_path_factory):
     write_image(folder / "secret.png", secret)
     config = BenchConfig(scene=str(folder / "scene"), secret=str(folder / "secret.png"),
                          photos=(str(folder / "secret.png"),), small_width=12, paper_samples=3, paper_iters=60, ablation_samples=2,
-                         twok_size=32, twok_tile=16, twok_rows=1, threads=(1,), payload_bytes=200, view_width=12)
+                         twok_size=32, twok_tile=16, twok_rows=1, threads=(1,), payload_bytes=200, view_width=12,
+                         contention_width=12)
     sections = run_bench(config, folder / "out", run_stress=False, command="noisenerf bench (test)",
                          progress=lambda line: None)
     return folder / "out", {section.name: section for section in sections}

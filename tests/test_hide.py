@@ -73,19 +73,28 @@ def test_same_seed_gives_byte_identical_bundles(scene, tmp_path):
     assert (tmp_path / "a.bundle").read_bytes() == (tmp_path / "b.bundle").read_bytes()
 
 
+def test_chunks_spread_over_worker_processes_give_the_same_bytes(scene, tmp_path):
+    secret = random_secret(24, 24, seed=3)
+    config = HideConfig(tile_size=16, chunk_pixels=64)  # tiles of 256 px: 4 chunks each, solved 2 at once
+    for workers in (1, 2):
+        report = hide(scene, secret, tmp_path / f"{workers}.bundle", config, CPU, show_progress=False, workers=workers)
+        assert report["exact"]
+    assert (tmp_path / "1.bundle").read_bytes() == (tmp_path / "2.bundle").read_bytes()
+
+
 def test_interrupted_hide_resumes_to_a_byte_identical_bundle(scene, tmp_path, monkeypatch):
     secret = random_secret(24, 24, seed=3)
     config = HideConfig(tile_size=16, chunk_pixels=64)
-    hide(scene, secret, tmp_path / "whole.bundle", config, CPU, show_progress=False)
+    hide(scene, secret, tmp_path / "whole.bundle", config, CPU, show_progress=False, workers=1)
 
     from noisenerf.train.hide import exact_solver
     with pytest.raises(KeyboardInterrupt), interrupted_after_saves(5):
-        hide(scene, secret, tmp_path / "resumed.bundle", config, CPU, show_progress=False)
+        hide(scene, secret, tmp_path / "resumed.bundle", config, CPU, show_progress=False, workers=1)
     assert not (tmp_path / "resumed.bundle").exists()
     assert len(list((tmp_path / "resumed.bundle.partial").glob("*.safetensors"))) == 5
-    solved, solve_exact = [], exact_solver.solve_exact
+    solved, solve_exact = [], exact_solver.solve_exact  # counted in this process: workers=1
     monkeypatch.setattr(exact_solver, "solve_exact", lambda *a, **k: solved.append(1) or solve_exact(*a, **k))
-    hide(scene, secret, tmp_path / "resumed.bundle", config, CPU, show_progress=False)
+    hide(scene, secret, tmp_path / "resumed.bundle", config, CPU, show_progress=False, workers=1)
     assert len(solved) == 9 - 5  # tiles of 256, 128, 128 and 64 px make 9 chunks of 64; 5 were saved
     assert (tmp_path / "resumed.bundle").read_bytes() == (tmp_path / "whole.bundle").read_bytes()
     assert not (tmp_path / "resumed.bundle.partial").exists()

@@ -33,5 +33,6 @@ class BenchConfig:
     views: int = 8  # views spread around the scene for the per-view hide times
     view_photos: int = 5  # photos (the first of `photos`) hidden at each of those views
     view_width: int | None = 128  # their width there (None: native; 8 × 5 native photos take ~15 min on 2 cores)
+    contention_width: int = 256  # the contention experiment's secret: several chunks, so the hide's workers take part
     experiments: tuple[str, ...] = EXPERIMENTS
     seed: int = 0

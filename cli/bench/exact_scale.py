@@ -137,8 +137,8 @@ def plot_views(rows: list[dict], path: Path) -> None:
 
 
 def measure_contention(context: BenchContext) -> Measured:
-    """The exact hide of the small secret alone, then with one CPU-bound process beside it."""
-    small = small_secret(context.secret, context.config.small_width)
+    """The exact hide of the secret at contention_width alone, then with one CPU-bound process beside it."""
+    small = small_secret(context.secret, context.config.contention_width)
     rows = []
     for busy in (0, 1, 0, 1):
         loops = [subprocess.Popen([sys.executable, "-c", "while True: pass"]) for _ in range(busy)]
@@ -157,8 +157,9 @@ def describe_contention(context: BenchContext, measured: Measured) -> list[str]:
     alone = np.median([r["hide_seconds"] for r in rows if r["busy_processes"] == 0])
     busy = np.median([r["hide_seconds"] for r in rows if r["busy_processes"] == 1])
     lines = [f"`{Path(context.config.secret).name}` at {width}×{height}, view {context.config.view}, hidden twice "
-             f"alone and twice beside one `python -c 'while True: pass'` on {available_cores()} cores "
-             "(the exact solve runs on one torch thread there, train/hide.solver_threads).", "",
+             f"alone and twice beside one `python -c 'while True: pass'` on {available_cores()} cores: its "
+             f"{-(-width * height // HideConfig().chunk_pixels)} chunk(s) of {HideConfig().chunk_pixels:,} pixels spread over {available_cores()} worker "
+             "processes of one torch thread each (train/hide/solver.ChunkPool, ExactSolver.threads).", "",
              f"- hide alone {alone:.2f} s, beside a busy process {busy:.2f} s: **{busy / alone:.1f}×** "
              f"(goal ≤ {CONTENTION_GOAL}: {verdict(busy / alone, CONTENTION_GOAL, lower_is_better=True)}).",
              "", "| busy processes | hide s | exact |", "|---|---|---|"]

@@ -14,7 +14,7 @@ from noisenerf.runtime.errors import UserError
 from noisenerf.train.hide.compact import CompactSettings, tile_space
 from noisenerf.train.hide.exact import ExactSettings, NoiseSpace, chunk_pixels_for, solve_exact
 from noisenerf.train.hide.secret_view import SecretView
-from noisenerf.train.hide.solver import Solver, TileSolution, chunk_seed, storage_dtype
+from noisenerf.train.hide.solver import ChunkPool, Solver, TileSolution, chunk_seed, storage_dtype
 
 if TYPE_CHECKING:
     from noisenerf.train.hide.plan import HideConfig
@@ -105,24 +105,21 @@ class ExactSolver(Solver):
             torch.set_num_threads(before)
 
     def solve_tile(self, view: SecretView, pixels: torch.Tensor, shape: tuple[int, int], config: HideConfig,
-                   progress: Progress, k: int, bar) -> TileSolution:
-        """Solve a tile chunk by chunk (resuming saved chunks); the report has the solver's counts and the
-        number of escaped pixels."""
+                   progress: Progress, k: int, bar, pool: ChunkPool) -> TileSolution:
+        """Solve a tile chunk by chunk, resuming saved chunks and spreading the others over the pool's
+        workers (each gets its chunk's rays alone); the report has the solver's counts and the number of
+        escaped pixels."""
         space = exact_space(view, config, k, pixels)
         n, dims = view.n_rays, view.noise_dims
         params = space.zeros(n, dims, pixels.device)
         escaped = torch.zeros(n, dtype=torch.bool, device=pixels.device)
         escape_noise = torch.zeros(n, dims, device=pixels.device)
         totals = dict.fromkeys(COUNTS, 0)
-        for c, start in enumerate(range(0, n, config.chunk_pixels)):
-            index = torch.arange(start, min(start + config.chunk_pixels, n), device=pixels.device)
-            shapes = {"noise": (len(index), params.shape[1]), "counts": (len(totals),)}
-            if space.basis is not None:
-                shapes.update(escaped=(len(index),), escape_noise=(len(index), dims))
-            saved = progress.load(k, c, shapes)
-            if saved is None:
-                saved = solve_chunk(view, index, pixels[index], space, config, chunk_seed(config, k, c))
-                progress.save(k, c, saved)
+        chunks = [torch.arange(start, min(start + config.chunk_pixels, n), device=pixels.device)
+                  for start in range(0, n, config.chunk_pixels)]
+
+        def absorb(index: torch.Tensor, saved: dict[str, torch.Tensor]) -> None:
+            nonlocal totals
             params[index] = saved["noise"].to(params.device)
             if "escaped" in saved:
                 escaped[index] = saved["escaped"].bool().to(escaped.device)
@@ -131,6 +128,22 @@ class ExactSolver(Solver):
             totals = {name: max(value, counts[name]) if name == "iterations" else value + counts[name]
                       for name, value in totals.items()}
             bar.update(len(index))
+
+        unsolved = []
+        for c, index in enumerate(chunks):
+            shapes = {"noise": (len(index), params.shape[1]), "counts": (len(totals),)}
+            if space.basis is not None:
+                shapes.update(escaped=(len(index),), escape_noise=(len(index), dims))
+            saved = progress.load(k, c, shapes)
+            if saved is None:
+                unsolved.append(c)
+            else:
+                absorb(index, saved)
+        jobs = [(view.subset(chunks[c]), torch.arange(len(chunks[c]), device=pixels.device), pixels[chunks[c]],
+                 space, config, chunk_seed(config, k, c)) for c in unsolved]
+        for job, saved in pool.solve_all(solve_chunk, jobs):
+            progress.save(k, unsolved[job], saved)
+            absorb(chunks[unsolved[job]], saved)
         noise = torch.where(escaped[:, None, None], escape_noise[:, None, :], space.expand(params))
         stored, frame = stored_noise(space, params, escaped, escape_noise, noise_shape(config.layout, *shape, 1, -1))
         return TileSolution(noise, {**totals, "escaped": int(escaped.sum())}, stored, frame)

@@ -12,7 +12,7 @@ from noisenerf.runtime.bundle import noise_shape
 from noisenerf.runtime.metrics import tile_quality
 from noisenerf.train.hide.paper import PaperSettings, recipe, recorded_points, solve_blocks, survey
 from noisenerf.train.hide.secret_view import SecretView, pass_samples_for
-from noisenerf.train.hide.solver import Solver, TileSolution, storage_dtype
+from noisenerf.train.hide.solver import ChunkPool, Solver, TileSolution, storage_dtype
 
 if TYPE_CHECKING:
     from noisenerf.train.hide.plan import HideConfig
@@ -32,10 +32,11 @@ class PaperSolver(Solver):
         return (recipe(args.recipe, pass_samples=pass_samples_for(device), **overrides),)
 
     def solve_tile(self, view: SecretView, pixels: torch.Tensor, shape: tuple[int, int], config: HideConfig,
-                   progress: Progress, k: int, bar) -> TileSolution:
+                   progress: Progress, k: int, bar, pool: ChunkPool) -> TileSolution:
         """The tile's blocks (resuming saved ones). Its noise waits on the CPU in the storage dtype, so
         device memory holds one block. The report has the tile's quality at each recorded iteration and
-        how many of its rays were dead (every density ≤ 0) before solving."""
+        how many of its rays were dead (every density ≤ 0) before solving. Blocks run one after another
+        in this process (each already fills the device); the pool is left unused."""
         settings = config.get(PaperSettings)
         points = recorded_points(settings)
         clean = survey(view, settings.pass_samples)

@@ -39,9 +39,11 @@ def capacity(secret: np.ndarray, tile_size: int) -> dict:
 
 def hide_payload(scene: Scene, record: Record, output: Path, config: HideConfig, device: torch.device,
                  passphrase: bytes | None = None, seal: Seal | None = None, force: bool = False,
-                 show_progress: bool = True, announce: Callable[[dict], None] | None = None) -> dict:
+                 show_progress: bool = True, announce: Callable[[dict], None] | None = None,
+                 workers: int | None = None) -> dict:
     """Hide a record; sealed under `passphrase` when one is given, with `seal` (default: a fresh one,
-    random salt and nonce; tests pass a fixed one). announce(capacity) is called before the hide starts."""
+    random salt and nonce; tests pass a fixed one). announce(capacity) is called before the hide starts;
+    workers as run.hide takes them."""
     if config.method != "exact":
         raise UserError("a file or sealed payload needs --method exact (the paper's method does not reproduce "
                         "every byte)")
@@ -54,7 +56,8 @@ def hide_payload(scene: Scene, record: Record, output: Path, config: HideConfig,
     room = capacity(secret, config.tile_size)
     if announce is not None:
         announce(room)
-    report = hide(scene, secret, output, config, device, force=force, show_progress=show_progress, payload=payload)
+    report = hide(scene, secret, output, config, device, force=force, show_progress=show_progress, payload=payload,
+                  workers=workers)
     try:
         if not report["exact"]:
             raise UserError(f"the hide reproduced {report['exact_fraction']:.6%} of the secret's values, not all of "

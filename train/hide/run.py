@@ -22,17 +22,23 @@ from noisenerf.runtime.errors import UserError
 from noisenerf.runtime.files import check_output_path
 from noisenerf.runtime.limits import MAX_RAY_LAYOUT_SAMPLES, checked_image_size
 from noisenerf.runtime.metrics import tile_quality
+from noisenerf.runtime.session import available_cores
 from noisenerf.train.hide.methods import METHODS
 from noisenerf.train.hide.plan import HideConfig, plan, run_key
 from noisenerf.train.hide.progress import Progress
 from noisenerf.train.hide.secret_view import SecretView, pass_samples_for
+from noisenerf.train.hide.solver import ChunkPool
 from noisenerf.train.scene.scene import Scene
 
 
 def hide(scene: Scene, secret: np.ndarray, output: Path, config: HideConfig, device: torch.device,
-         force: bool = False, show_progress: bool = True, payload: dict | None = None) -> dict:
+         force: bool = False, show_progress: bool = True, payload: dict | None = None,
+         workers: int | None = None) -> dict:
     """Hide `secret` (H, W, 3) uint8 in the scene; write the bundle to `output`; return the report.
-    payload: the bundle's payload object when the secret carries one (train.payload), else None."""
+    payload: the bundle's payload object when the secret carries one (train.payload), else None.
+    workers: processes a CPU solve may spread its chunks over (None: every core this process may use);
+    the bundle's bytes never depend on it. They are spawned, so a script that calls hide on a secret of
+    several chunks guards its top level with `if __name__ == "__main__":`, as multiprocessing requires."""
     output = check_output_path(output, force=force)
     checked_image_size(secret.shape[1], secret.shape[0], "the secret image")  # what a bundle may hold
     if config.layout == "ray" and config.n_samples > MAX_RAY_LAYOUT_SAMPLES:
@@ -42,7 +48,9 @@ def hide(scene: Scene, secret: np.ndarray, output: Path, config: HideConfig, dev
     scene.to(device)
     field = scene.render_field
     solver = METHODS[config.method]
-    with Progress(output, run_key(scene, secret, config)) as progress, solver.threads(device):
+    workers = (available_cores() if workers is None else workers) if device.type == "cpu" else 1
+    with Progress(output, run_key(scene, secret, config)) as progress, solver.threads(device), \
+            ChunkPool(workers) as pool:
         tiles, reports = [], []
         started = time.perf_counter()
         bar = tqdm(total=secret.shape[0] * secret.shape[1], unit="px", desc=f"hide ({config.method})",
@@ -52,7 +60,7 @@ def hide(scene: Scene, secret: np.ndarray, output: Path, config: HideConfig, dev
             x0, y0, w, h = tile.rect
             view = SecretView(scene.fields()[tile.network], tile, scene.config.render, device)
             pixels = torch.tensor(secret[y0:y0 + h, x0:x0 + w].reshape(-1, 3), device=device)
-            solved = solver.solve_tile(view, pixels, (h, w), config, progress, k, bar)
+            solved = solver.solve_tile(view, pixels, (h, w), config, progress, k, bar, pool)
             colors = view.render_all(solved.noise, pass_samples_for(device))
             tiles.append(dataclasses.replace(tile, noise=solved.stored_noise, frame=solved.frame))
             reports.append({"rect": list(tile.rect), "view": tile.view,

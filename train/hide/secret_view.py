@@ -7,6 +7,8 @@ each evaluation then runs only the MLP on γ + δ. Noise has shape (n_rays, 1, d
 
 from __future__ import annotations
 
+import copy
+
 import numpy as np
 import torch
 
@@ -49,6 +51,14 @@ class SecretView:
         self.background = torch.tensor(render.background, dtype=torch.float32, device=device)
         size = self.n_rays * self.n_samples * self.noise_dims * 4
         self.cached = self.encode(torch.arange(self.n_rays, device=device)) if size <= ENCODING_CACHE_BYTES else None
+
+    def subset(self, index: torch.Tensor) -> SecretView:
+        """A view of rays `index` (m,) alone, ray i being ray index[i] here, with the same field: what a
+        worker process needs to solve one chunk (encodings included, not the whole tile's)."""
+        part = copy.copy(self)
+        part.points, part.viewdirs, part.deltas = self.points[index], self.viewdirs[index], self.deltas[index]
+        part.cached = None if self.cached is None else self.cached[index]
+        return part
 
     @property
     def n_rays(self) -> int:

@@ -10,8 +10,10 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import multiprocessing
+from concurrent.futures import Executor, ProcessPoolExecutor, as_completed
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, ClassVar
+from typing import TYPE_CHECKING, Callable, ClassVar, Iterator
 
 import numpy as np
 import torch
@@ -47,6 +49,39 @@ def chunk_seed(config: HideConfig, tile: int, chunk: int) -> int:
     return config.seed * 1_000_003 + tile * 10_007 + chunk
 
 
+class ChunkPool:
+    """Worker processes a solver may spread independent chunks over, each with one torch thread (the
+    reasons of ExactSolver.threads: no OpenMP pool spinning beside other work). They start at the first
+    `solve_all` with more than one job, so a hide of one chunk never pays their start (~2 s each), and
+    stop with the hide. Results never depend on the number of workers: each chunk is solved from its own
+    inputs and seed, exactly as in one process."""
+
+    def __init__(self, workers: int):
+        self.workers = max(1, workers)
+        self.executor: Executor | None = None
+
+    def solve_all(self, solve: Callable, jobs: list[tuple]) -> Iterator[tuple[int, object]]:
+        """(i, solve(*jobs[i])) for every job, in the order they finish; `solve` must be a module-level
+        function and the jobs picklable when there are workers."""
+        if self.workers == 1 or len(jobs) <= 1:
+            for i, job in enumerate(jobs):
+                yield i, solve(*job)
+            return
+        if self.executor is None:
+            self.executor = ProcessPoolExecutor(min(self.workers, len(jobs)), mp_context=multiprocessing.get_context("spawn"),
+                                                initializer=torch.set_num_threads, initargs=(1,))
+        futures = {self.executor.submit(solve, *job): i for i, job in enumerate(jobs)}
+        for future in as_completed(futures):
+            yield futures[future], future.result()
+
+    def __enter__(self) -> ChunkPool:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        if self.executor is not None:
+            self.executor.shutdown(cancel_futures=True)
+
+
 class Solver:
     """A hiding method. Subclasses set the class attributes and implement solve_tile."""
 
@@ -69,6 +104,7 @@ class Solver:
         return contextlib.nullcontext()
 
     def solve_tile(self, view: SecretView, pixels: torch.Tensor, shape: tuple[int, int], config: HideConfig,
-                   progress: Progress, k: int, bar) -> TileSolution:
-        """Solve tile k: pixels (n, 3) uint8 of a (height, width) tile, saving resumable parts in progress."""
+                   progress: Progress, k: int, bar, pool: ChunkPool) -> TileSolution:
+        """Solve tile k: pixels (n, 3) uint8 of a (height, width) tile, saving resumable parts in progress;
+        independent parts may go to the pool's workers."""
         raise NotImplementedError
