@@ -1,16 +1,21 @@
-"""The exact solver's steps between phases: lattice candidates, entering a compact tile's integer lattice,
-and the chord warm start."""
+"""The exact solver's steps between phases (lattice candidates, entering a compact tile's integer lattice,
+the chord warm start), its settings' checks, and the pool of worker processes chunks are spread over."""
+
+import math
+import os
 
 import numpy as np
 import pytest
 import torch
 
 from noisenerf.cli.demo import DEMO_VIEW
+from noisenerf.runtime.errors import UserError
 from noisenerf.train.hide.compact import CompactSettings, tile_space
 from noisenerf.train.hide.exact import (Criteria, ExactSettings, SolveCounts, chord_start, counted_outputs,
                                         lattice_candidates, output_jacobian, refine, residuals, round_to_lattice)
 from noisenerf.train.hide.plan import HideConfig, plan
 from noisenerf.train.hide.secret_view import SecretView
+from noisenerf.train.hide.solver import ChunkPool
 from noisenerf.train.scene.procedural import DEMO_SCENE, procedural_secret
 from noisenerf.train.scene.scene import load_scene
 
@@ -99,10 +104,41 @@ def test_chord_start_is_never_worse_than_its_start(compact_view):
     assert np.isfinite(moved.numpy()).all()
 
 
-
 def test_rank_deficient_jacobians_give_finite_candidates():
     jac = torch.zeros(2, 3, 6)
     jac[0, :, 0] = 1.0  # one colour direction
     jac[1, 0, :2], jac[1, 1, :2] = torch.tensor([1.0, 2.0]), torch.tensor([2.0, 4.0])  # parallel columns
     candidates = lattice_candidates(torch.full((2, 6), 3.3), jac, radius=1)
     assert torch.isfinite(candidates).all() and torch.equal(candidates, torch.round(candidates))
+
+
+def test_nearly_rank_2_jacobians_keep_candidates_near_the_solution():
+    generator = torch.Generator().manual_seed(1)
+    jac = torch.randn(50, 3, 6, generator=generator)
+    jac[:, 2] = jac[:, 0] + 1e-7 * torch.randn(50, 6, generator=generator)  # two colour rows alike
+    coords = torch.randn(50, 6, generator=generator) * 40
+    candidates = lattice_candidates(coords, jac, radius=2)
+    assert bool(((candidates - coords[:, None, :]).abs() <= 2.5 + 1e-4).all())
+
+
+def test_three_coefficients_have_one_candidate_each():
+    jac = torch.randn(4, 3, 3, generator=torch.Generator().manual_seed(2))
+    coords = torch.randn(4, 3, generator=torch.Generator().manual_seed(3)) * 10
+    candidates = lattice_candidates(coords, jac, radius=2)
+    assert candidates.shape == (4, 1, 3)
+    assert torch.equal(candidates[:, 0], torch.round(coords))  # all three are pivots, J (q − coords) = 0
+
+
+@pytest.mark.parametrize("field, value", [("lattice_tries", 0), ("lattice_radius", -1), ("chord_steps", -1)])
+def test_impossible_solver_settings_are_refused(field, value):
+    with pytest.raises(UserError, match="lattice_tries ≥ 1"):
+        ExactSettings(**{field: value})
+
+
+def test_chunk_pool_spreads_jobs_over_other_processes_and_stops_on_an_error():
+    with ChunkPool(2) as pool:
+        assert dict(pool.solve_all(math.sqrt, [(4.0,), (9.0,), (16.0,)])) == {0: 2.0, 1: 3.0, 2: 4.0}
+        pids = {pid for _, pid in pool.solve_all(os.getpid, [()] * 8)}
+        assert os.getpid() not in pids
+    with pytest.raises(ValueError, match="math domain error"), ChunkPool(2) as pool:
+        dict(pool.solve_all(math.sqrt, [(4.0,), (-1.0,), (9.0,)]))

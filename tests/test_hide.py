@@ -82,6 +82,17 @@ def test_chunks_spread_over_worker_processes_give_the_same_bytes(scene, tmp_path
     assert (tmp_path / "1.bundle").read_bytes() == (tmp_path / "2.bundle").read_bytes()
 
 
+def test_a_hide_interrupted_while_workers_solve_resumes_to_the_same_bytes(scene, tmp_path):
+    secret = random_secret(24, 24, seed=3)
+    config = HideConfig(tile_size=16, chunk_pixels=64)
+    hide(scene, secret, tmp_path / "whole.bundle", config, CPU, show_progress=False, workers=1)
+    with pytest.raises(KeyboardInterrupt), interrupted_after_saves(3):
+        hide(scene, secret, tmp_path / "resumed.bundle", config, CPU, show_progress=False, workers=2)
+    assert len(list((tmp_path / "resumed.bundle.partial").glob("*.safetensors"))) == 3
+    hide(scene, secret, tmp_path / "resumed.bundle", config, CPU, show_progress=False, workers=2)
+    assert (tmp_path / "resumed.bundle").read_bytes() == (tmp_path / "whole.bundle").read_bytes()
+
+
 def test_interrupted_hide_resumes_to_a_byte_identical_bundle(scene, tmp_path, monkeypatch):
     secret = random_secret(24, 24, seed=3)
     config = HideConfig(tile_size=16, chunk_pixels=64)

@@ -541,13 +541,15 @@ def test_hide_output_path_is_refused_before_the_solve(world, tmp_path, capfd, mo
     prepare(out)
     before = sorted(os.listdir(tmp_path))
     monkeypatch.setattr(exact_solver, "solve_exact", lambda *a, **k: pytest.fail("solved before refusing"))
-    assert_refused(run_main(noisenerf_main, hide_args(world, out, "--force"), capfd), None, message)
+    assert_refused(run_main(noisenerf_main, hide_args(world, out, "--force", "--workers", 1), capfd), None,
+                   message)
     assert sorted(os.listdir(tmp_path)) == before
 
 
 def test_hide_into_proc_is_refused_before_the_solve(world, capfd, monkeypatch):
     monkeypatch.setattr(exact_solver, "solve_exact", lambda *a, **k: pytest.fail("solved before refusing"))
-    assert_refused(run_main(noisenerf_main, hide_args(world, "/proc/s.bundle"), capfd), None, "/proc")
+    assert_refused(run_main(noisenerf_main, hide_args(world, "/proc/s.bundle", "--workers", 1), capfd), None,
+                   "/proc")
 
 
 # ---- secret images and datasets -------------------------------------------------------------------
@@ -798,7 +800,8 @@ def test_bad_resume_chunk_is_recomputed(world, tmp_path, capfd, case):
 def test_sound_chunks_are_reused(world, tmp_path, capfd, monkeypatch):
     shutil.copytree(world.partial, tmp_path / "s.bundle.partial")
     monkeypatch.setattr(exact_solver, "solve_exact", lambda *a, **k: pytest.fail("a sound chunk was solved again"))
-    assert run_main(noisenerf_main, hide_args(world, tmp_path / "s.bundle"), capfd).code == 0
+    # patched in this process only: --workers 1
+    assert run_main(noisenerf_main, hide_args(world, tmp_path / "s.bundle", "--workers", 1), capfd).code == 0
     assert (tmp_path / "s.bundle").read_bytes() == world.hidden
 
 

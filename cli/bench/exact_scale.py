@@ -3,6 +3,7 @@ machine, and a 2K secret as tiles."""
 
 from __future__ import annotations
 
+import math
 import subprocess
 import sys
 from dataclasses import dataclass
@@ -154,12 +155,14 @@ def measure_contention(context: BenchContext) -> Measured:
 
 def describe_contention(context: BenchContext, measured: Measured) -> list[str]:
     rows, (width, height) = measured.rows, measured.secret_size
+    chunk_pixels = HideConfig().chunk_pixels
     alone = np.median([r["hide_seconds"] for r in rows if r["busy_processes"] == 0])
     busy = np.median([r["hide_seconds"] for r in rows if r["busy_processes"] == 1])
     lines = [f"`{Path(context.config.secret).name}` at {width}×{height}, view {context.config.view}, hidden twice "
              f"alone and twice beside one `python -c 'while True: pass'` on {available_cores()} cores: its "
-             f"{-(-width * height // HideConfig().chunk_pixels)} chunk(s) of {HideConfig().chunk_pixels:,} pixels spread over {available_cores()} worker "
-             "processes of one torch thread each (train/hide/solver.ChunkPool, ExactSolver.threads).", "",
+             f"{math.ceil(width * height / chunk_pixels)} chunk(s) of {chunk_pixels:,} pixels spread over "
+             f"{available_cores()} worker processes of one torch thread each (train/hide/solver.ChunkPool, "
+             "ExactSolver.threads).", "",
              f"- hide alone {alone:.2f} s, beside a busy process {busy:.2f} s: **{busy / alone:.1f}×** "
              f"(goal ≤ {CONTENTION_GOAL}: {verdict(busy / alone, CONTENTION_GOAL, lower_is_better=True)}).",
              "", "| busy processes | hide s | exact |", "|---|---|---|"]

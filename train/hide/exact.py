@@ -35,6 +35,7 @@ from typing import Callable, ClassVar
 
 import torch
 
+from noisenerf.runtime.errors import UserError
 from noisenerf.train.hide.secret_view import SecretView
 
 def chunk_pixels_for(device: torch.device) -> int:
@@ -67,6 +68,10 @@ class ExactSettings:
     chord_steps: int = 3  # warm-started pixels first step with their seed's Jacobian (chord_start)
     lattice_radius: int = 2  # integer lattices: free coefficients tried within ± this many steps (round_to_lattice)
     lattice_tries: int = 3  # integer lattices: best-predicted lattice points rendered per pixel
+
+    def __post_init__(self):
+        if self.lattice_tries < 1 or self.lattice_radius < 0 or self.chord_steps < 0:
+            raise UserError("the exact solver needs lattice_tries ≥ 1, lattice_radius ≥ 0 and chord_steps ≥ 0")
 
 
 def bin_targets(pixels: torch.Tensor) -> torch.Tensor:
@@ -118,7 +123,11 @@ class NoiseSpace:
         """The nearest storable params: float rounding, or the clamped integer lattice. (m, P) -> (m, P)."""
         if self.basis is None:
             return quantize(params, self.storage)
-        return self.integers(params).float() * torch.tensor(self.scale, dtype=torch.float32)
+        return self.params_of(self.integers(params))
+
+    def params_of(self, integers: torch.Tensor) -> torch.Tensor:
+        """Compact params of integer coefficients, q · scale in float32 as the reveal computes it. (...) -> (...)."""
+        return integers.float() * torch.tensor(self.scale, dtype=torch.float32)
 
     def integers(self, params: torch.Tensor) -> torch.Tensor:
         """Compact params as their stored integers. (m, k) float32 -> (m, k) int8/int16."""
@@ -174,6 +183,9 @@ def donor_noise(stuck: torch.Tensor, finished: torch.Tensor, goal: torch.Tensor,
     return noise[finished[nearest[torch.arange(stuck.numel(), device=nearest.device), pick]]]
 
 
+MIN_PIVOT_SINE = 1e-4  # pivot columns spanning less than this share of their lengths' volume count as rank < 3
+
+
 def lattice_candidates(coords: torch.Tensor, jac: torch.Tensor, radius: int) -> torch.Tensor:
     """Integer points near where a pixel's linearised colour equations hold, for a coarse lattice where
     plain rounding misses the 8-bit bin. Of the k coordinates, the 3 whose columns of J span the most
@@ -185,18 +197,22 @@ def lattice_candidates(coords: torch.Tensor, jac: torch.Tensor, radius: int) -> 
     m, _, k = jac.shape
     subsets = torch.tensor(list(itertools.combinations(range(k), 3)), device=jac.device)
     volumes = torch.linalg.det(jac[:, :, subsets].permute(0, 2, 1, 3)).abs()  # (m, subsets)
-    pivots = subsets[volumes.argmax(1)]  # (m, 3)
+    best = volumes.argmax(1)
+    pivots = subsets[best]  # (m, 3)
+    # relative to its columns' lengths, the volume says how far from rank 3 the pivots are: in float32 a
+    # rank-2 J has a small nonzero determinant, whose solve would send the pivots to the lattice's edge
+    lengths = jac.norm(dim=1).gather(1, pivots).prod(1)
+    singular = volumes.gather(1, best[:, None])[:, 0] <= MIN_PIVOT_SINE * lengths
     is_free = torch.ones(m, k, dtype=torch.bool, device=jac.device).scatter(1, pivots, False)
     free = torch.arange(k, device=jac.device).expand(m, k)[is_free].reshape(m, k - 3)
     pivot_jac = jac.gather(2, pivots[:, None].expand(m, 3, 3))
     free_jac = jac.gather(2, free[:, None].expand(m, 3, k - 3))
-    singular = volumes.amax(1) < 1e-20  # J of rank < 3: the candidates are plain rounding around the free grid
     eye = torch.eye(3, device=jac.device).expand(m, 3, 3)
     trade, failed = torch.linalg.solve_ex(torch.where(singular[:, None, None], eye, pivot_jac), free_jac)
     singular = singular | (failed != 0) | ~torch.isfinite(trade).all(2).all(1)
-    trade = torch.where(singular[:, None, None], 0.0, trade)  # (m, 3, k − 3)
-    grid = torch.tensor(list(itertools.product(range(-radius, radius + 1), repeat=k - 3)),
-                        dtype=coords.dtype, device=coords.device).reshape(-1, k - 3)  # (c, k − 3)
+    trade = torch.where(singular[:, None, None], 0.0, trade)  # (m, 3, k − 3); singular: plain rounding
+    grid = torch.tensor(list(itertools.product(range(-radius, radius + 1), repeat=k - 3)), dtype=coords.dtype,
+                        device=coords.device).reshape((2 * radius + 1) ** (k - 3), k - 3)  # (c, k − 3)
     free_coords = coords.gather(1, free)
     free_values = torch.round(free_coords)[:, None, :] + grid  # (m, c, k − 3)
     shift = (free_coords[:, None, :] - free_values) @ trade.transpose(1, 2)  # pivots keep J (q − coords) = 0
@@ -356,7 +372,7 @@ def chord_start(view: SecretView, index: torch.Tensor, space: NoiseSpace, params
     return best
 
 
-LATTICE_PART = 8192  # pixels whose lattice candidates (m × c × k) are formed at once
+LATTICE_VALUES = 1 << 24  # candidate coordinates (pixels × c × k) formed at once: ~64 MB a tensor
 
 
 def round_to_lattice(view: SecretView, index: torch.Tensor, space: NoiseSpace, params: torch.Tensor,
@@ -365,25 +381,26 @@ def round_to_lattice(view: SecretView, index: torch.Tensor, space: NoiseSpace, p
     solution predicts each lattice_candidates point's colour (the net is piecewise linear, so within a
     ReLU region exactly); the settings.lattice_tries best points (ranked by predicted distance from the
     8-bit value, those that keep the density lifted first) are rendered in turn and the first that
-    rounds right is kept, else the best predicted one. Phase 2 of solve_exact polishes what is left.
+    rounds right is kept, else the best predicted. Phase 2 of solve_exact polishes what is left.
     -> params (m, k) on the lattice."""
-    if space.basis is None or space.basis.shape[1] < 3:
-        return space.store(params)
-    limit = INTEGER_LIMITS[space.storage]
     stored = space.store(params)
-    for part in torch.split(torch.arange(len(index), device=params.device), LATTICE_PART):
+    if space.basis is None or space.basis.shape[1] < 3:
+        return stored
+    k = space.basis.shape[1]
+    limit = INTEGER_LIMITS[space.storage]
+    per_part = max(1, LATTICE_VALUES // ((2 * settings.lattice_radius + 1) ** (k - 3) * k))
+    for part in torch.split(torch.arange(len(index), device=params.device), per_part):
         outputs, jac = output_jacobian(view, index[part], space.expand(params[part]))
         counts.jacobians += part.numel()
         jac = space.chain(jac) * space.scale  # per integer step
         coords = params[part] / space.scale
         candidates = torch.clamp(lattice_candidates(coords, jac[:, :3], settings.lattice_radius), -limit, limit)
-        moved = candidates - coords[:, None, :]
-        predicted = outputs[:, None, :] + moved @ jac.transpose(1, 2)  # (p, c, 4)
+        predicted = outputs[:, None, :] + (candidates - coords[:, None, :]) @ jac.transpose(1, 2)  # (p, c, 4)
         distance = colour_distance_bins(predicted.flatten(0, 1), criteria.values[part].repeat_interleave(
             candidates.shape[1], 0)).reshape(candidates.shape[:2])
         distance = distance + 255.0 * (predicted[..., 3] < settings.density_floor / 2)  # unlifted: last
-        ranked = candidates.gather(1, distance.argsort(1)[:, :settings.lattice_tries, None].expand(
-            -1, -1, candidates.shape[2])) * torch.tensor(space.scale, dtype=torch.float32)
+        ranked = space.params_of(candidates.gather(1, distance.argsort(1)[:, :settings.lattice_tries, None].expand(
+            -1, -1, k)))
         chosen, left = ranked[:, 0].clone(), torch.arange(part.numel(), device=params.device)
         for t in range(ranked.shape[1]):
             after = counted_outputs(view, index[part[left]], space, ranked[left, t], counts)
@@ -424,15 +441,13 @@ def solve_exact(view: SecretView, index: torch.Tensor, pixels: torch.Tensor, spa
     seeds, rest = is_seed.nonzero()[:, 0], (~is_seed).nonzero()[:, 0]
     params[seeds] = both_phases(seeds, params[seeds])
     if rest.numel():
-        nearest = seeds[torch.cdist(criteria.goal[rest], criteria.goal[seeds]).argmin(dim=1)]
-        start = params[nearest]
+        nearest_seed = torch.cdist(criteria.goal[rest], criteria.goal[seeds]).argmin(dim=1)
+        start = params[seeds[nearest_seed]]
         if settings.chord_steps:
             _, seed_jac = output_jacobian(view, index[seeds], space.expand(params[seeds]))
             counts.jacobians += seeds.numel()
-            by_seed = torch.zeros(m, *seed_jac.shape[1:2], space.chain(seed_jac).shape[2], device=pixels.device)
-            by_seed[seeds] = space.chain(seed_jac)
-            start = chord_start(view, index[rest], space, start, criteria.goal[rest], by_seed[nearest], settings,
-                                counts)
+            start = chord_start(view, index[rest], space, start, criteria.goal[rest],
+                                space.chain(seed_jac)[nearest_seed], settings, counts)
         params[rest] = both_phases(rest, start)
     params, done = refine(view, index, criteria.goal, space, params, criteria.rounds_right, space.store, settings,
                           generator, counts, observe)

@@ -35,9 +35,9 @@ def exact_space(view: SecretView, config: HideConfig, k: int, pixels: torch.Tens
 
 def stored_noise(space: NoiseSpace, params: torch.Tensor, escaped: torch.Tensor, escape_noise: torch.Tensor,
                  shape: tuple[int, ...]) -> tuple:
-    """What a tile's bundle entry holds for solved params (n, P): the noise (shape, its last entry −1 for P) in the storage dtype
-    (integer coefficients for a compact space, 0 where a pixel escaped) and the compact frame, with the
-    escaped pixels (n,) bool and their float16 noise (n, dims) (zero elsewhere)."""
+    """What a tile's bundle entry holds for solved params (n, P): the noise (shape, its last entry −1 for
+    P) in the storage dtype (integer coefficients for a compact space, 0 where a pixel escaped) and the
+    compact frame, with the escaped pixels (n,) bool and their float16 noise (n, dims) (zero elsewhere)."""
     if space.basis is None:
         return params.reshape(shape).to(space.storage).cpu().numpy(), None
     escapes = escaped.nonzero()[:, 0]
@@ -141,9 +141,9 @@ class ExactSolver(Solver):
                 absorb(index, saved)
         jobs = [(view.subset(chunks[c]), torch.arange(len(chunks[c]), device=pixels.device), pixels[chunks[c]],
                  space, config, chunk_seed(config, k, c)) for c in unsolved]
-        for job, saved in pool.solve_all(solve_chunk, jobs):
-            progress.save(k, unsolved[job], saved)
-            absorb(chunks[unsolved[job]], saved)
+        for i, saved in pool.solve_all(solve_chunk, jobs):
+            progress.save(k, unsolved[i], saved)
+            absorb(chunks[unsolved[i]], saved)
         noise = torch.where(escaped[:, None, None], escape_noise[:, None, :], space.expand(params))
         stored, frame = stored_noise(space, params, escaped, escape_noise, noise_shape(config.layout, *shape, 1, -1))
         return TileSolution(noise, {**totals, "escaped": int(escaped.sum())}, stored, frame)

@@ -2,8 +2,10 @@
 
 A method (`--method NAME`) is one Solver: it owns its settings dataclasses (each recorded in the bundle
 under its `key`), its defaults (layouts, samples per ray, network), its checks, its CLI flags and how it
-solves one tile, resumably (its flags are declared in cli/main.py, torch-free). `methods.py` registers them; `run.hide` plans tiles, renders each tile's
-secret view and hands it to the method. A new method is one module with a Solver plus one registry line.
+solves one tile, resumably (its flags are declared in cli/main.py, torch-free). `methods.py` registers
+them; `run.hide` plans tiles, renders each tile's secret view and hands it to the method, with a
+ChunkPool of worker processes for independent parts. A new method is one module with a Solver plus one
+registry line.
 """
 
 from __future__ import annotations
@@ -11,7 +13,8 @@ from __future__ import annotations
 import argparse
 import contextlib
 import multiprocessing
-from concurrent.futures import Executor, ProcessPoolExecutor, as_completed
+import pickle
+import signal
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Callable, ClassVar, Iterator
 
@@ -49,37 +52,55 @@ def chunk_seed(config: HideConfig, tile: int, chunk: int) -> int:
     return config.seed * 1_000_003 + tile * 10_007 + chunk
 
 
+def run_job(item: tuple[int, Callable, bytes]) -> tuple[int, bytes]:
+    """A worker's side of ChunkPool.solve_all: (i, solve, pickled args) -> (i, pickled result). Plain pickle
+    (between our own processes, never from a file) keeps tensors out of shared memory, where
+    multiprocessing's torch reducers would put them, and no_grad keeps results picklable."""
+    i, solve, job = item
+    with torch.no_grad():
+        return i, pickle.dumps(solve(*pickle.loads(job)))
+
+
+def start_worker() -> None:
+    """One torch thread (ExactSolver.threads' reasons); Ctrl-C is the parent's to handle."""
+    torch.set_num_threads(1)
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+
+
 class ChunkPool:
     """Worker processes a solver may spread independent chunks over, each with one torch thread (the
     reasons of ExactSolver.threads: no OpenMP pool spinning beside other work). They start at the first
     `solve_all` with more than one job, so a hide of one chunk never pays their start (~2 s each), and
-    stop with the hide. Results never depend on the number of workers: each chunk is solved from its own
-    inputs and seed, exactly as in one process."""
+    stop with the hide: at once (terminated) when it fails or is interrupted. Results never depend on
+    the number of workers: each chunk is solved from its own inputs and seed, exactly as in one process."""
 
     def __init__(self, workers: int):
         self.workers = max(1, workers)
-        self.executor: Executor | None = None
+        self.pool = None
 
     def solve_all(self, solve: Callable, jobs: list[tuple]) -> Iterator[tuple[int, object]]:
         """(i, solve(*jobs[i])) for every job, in the order they finish; `solve` must be a module-level
-        function and the jobs picklable when there are workers."""
+        function when there are workers. A job that raises stops the rest."""
         if self.workers == 1 or len(jobs) <= 1:
             for i, job in enumerate(jobs):
                 yield i, solve(*job)
             return
-        if self.executor is None:
-            self.executor = ProcessPoolExecutor(min(self.workers, len(jobs)), mp_context=multiprocessing.get_context("spawn"),
-                                                initializer=torch.set_num_threads, initargs=(1,))
-        futures = {self.executor.submit(solve, *job): i for i, job in enumerate(jobs)}
-        for future in as_completed(futures):
-            yield futures[future], future.result()
+        if self.pool is None:
+            self.pool = multiprocessing.get_context("spawn").Pool(self.workers, initializer=start_worker)
+        pickled = [(i, solve, pickle.dumps(job)) for i, job in enumerate(jobs)]
+        for i, result in self.pool.imap_unordered(run_job, pickled):
+            yield i, pickle.loads(result)
 
     def __enter__(self) -> ChunkPool:
         return self
 
-    def __exit__(self, *exc) -> None:
-        if self.executor is not None:
-            self.executor.shutdown(cancel_futures=True)
+    def __exit__(self, failed, *exc) -> None:
+        if self.pool is not None:
+            if failed is None:
+                self.pool.close()
+            else:
+                self.pool.terminate()
+            self.pool.join()
 
 
 class Solver:
