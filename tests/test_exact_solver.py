@@ -10,11 +10,11 @@ import torch
 
 from noisenerf.cli.demo import DEMO_VIEW
 from noisenerf.runtime.errors import UserError
-from noisenerf.train.hide.compact import CompactSettings, tile_space
-from noisenerf.train.hide.exact import (Criteria, ExactSettings, SolveCounts, chord_start, counted_outputs,
-                                        lattice_candidates, output_jacobian, refine, residuals, round_to_lattice)
+from noisenerf.train.hide.compact import LIFT_MARGIN, CompactSettings, lift_density, solver_view, tile_space
+from noisenerf.train.hide.exact import (Criteria, ExactSettings, NoiseSpace, SolveCounts, chord_start, counted_outputs,
+                                        lattice_candidates, refine, residuals, round_to_lattice)
 from noisenerf.train.hide.plan import HideConfig, plan
-from noisenerf.train.hide.secret_view import SecretView
+from noisenerf.train.hide.secret_view import BranchView, SecretView
 from noisenerf.train.hide.solver import ChunkPool
 from noisenerf.train.scene.procedural import DEMO_SCENE, procedural_secret
 from noisenerf.train.scene.scene import load_scene
@@ -51,14 +51,15 @@ def test_singular_jacobians_give_plain_rounding():
 
 @pytest.fixture(scope="module")
 def compact_view():
-    """A 16×12 secret's view of the demo scene, its pixels, a compact space and the float-phase solution."""
+    """A 16×12 secret's view of the demo scene, its pixels, a compact space and the float-phase solution.
+    The space's integer steps are 1/4, 8x the default's, so plain rounding misses many pixels' bins."""
     scene = load_scene(DEMO_SCENE)
     secret = procedural_secret(16, 12)
     config = HideConfig(view=DEMO_VIEW, tile_size=16)
     view = SecretView(scene.coarse, plan(scene, secret, config).tiles[0], scene.config.render, CPU)
     pixels = torch.tensor(secret.reshape(-1, 3))
     exact = ExactSettings()
-    space = tile_space(view, pixels, CompactSettings(), exact, torch.int16, seed=0)
+    space = tile_space(view, pixels, CompactSettings(coefficient_range=8192.0), exact, torch.int16, seed=0)
     index = torch.arange(view.n_rays)
     criteria = Criteria(pixels, exact)
     converged, done = refine(view, index, criteria.goal, space, space.zeros(len(index), view.noise_dims, CPU),
@@ -79,6 +80,41 @@ def test_entering_the_lattice_keeps_more_pixels_exact_than_rounding(compact_view
     assert int(right["lattice"].sum()) > int(right["rounded"].sum())
 
 
+def test_a_compact_tile_lifts_its_density_once_and_moves_only_the_view_direction(compact_view):
+    view, index, space, criteria, converged, done = compact_view
+    xyz_dims = view.field.config.xyz_dims
+    assert not space.basis[:xyz_dims].any() and space.basis[xyz_dims:].any()
+    density = view.field.trunk_outputs(view.encodings(index)[:, 0, :xyz_dims] + space.offset[:xyz_dims])[0]
+    assert float(density.min()) >= ExactSettings().density_floor  # every ray of the tile, not only the sample
+    branch = solver_view(view, space)
+    assert isinstance(branch, BranchView)
+    assert solver_view(view, NoiseSpace(torch.float16)) is view  # full noise: the whole field
+
+
+def test_lift_density_reaches_its_margin_on_every_sampled_ray(compact_view):
+    view, index = compact_view[:2]
+    xyz_dims = view.field.config.xyz_dims
+    clean = view.field.trunk_outputs(view.encodings(index)[:, 0, :xyz_dims])[0]
+    assert float(clean.min()) < 1.0  # the demo view's single samples start below the floor
+    lifted = view.field.trunk_outputs(view.encodings(index)[:, 0, :xyz_dims] + lift_density(view, 1.0))[0]
+    assert float(lifted.min()) >= LIFT_MARGIN
+
+
+def test_the_view_branch_renders_what_the_whole_field_renders(compact_view):
+    view, index, space, criteria, converged, done = compact_view
+    branch = solver_view(view, space)
+    noise = space.expand(converged + torch.randn(converged.shape, generator=torch.Generator().manual_seed(4)))
+    which = index[done]
+    whole_outputs, whole_jacobian = view.outputs_and_jacobian(which, noise)
+    outputs, jacobian = branch.outputs_and_jacobian(which, noise)
+    torch.testing.assert_close(outputs, whole_outputs, rtol=0, atol=1e-5)
+    # through the basis (zero in γ(x)) the Jacobians agree: γ(x) columns and the density row never count
+    torch.testing.assert_close(space.chain(jacobian)[:, :3], space.chain(whole_jacobian)[:, :3], rtol=0, atol=1e-5)
+    assert not jacobian[:, 3].any() and not jacobian[:, :, :view.field.config.xyz_dims].any()
+    raw_rgb, raw_density = branch.raw(which, noise)
+    torch.testing.assert_close(torch.cat([raw_rgb[:, 0], raw_density], -1), outputs, rtol=0, atol=0)
+
+
 def criteria_of(criteria: Criteria, which: torch.Tensor) -> Criteria:
     """The criteria of a subset of pixels, indexed from 0 as round_to_lattice indexes them."""
     return Criteria((criteria.values[which] * 255).round().to(torch.uint8), criteria.settings)
@@ -91,7 +127,7 @@ def test_chord_start_is_never_worse_than_its_start(compact_view):
     donor = seeds[torch.cdist(criteria.goal[rest], criteria.goal[seeds]).argmin(1)]
     solved = dict(zip(which.tolist(), converged))
     start = torch.stack([solved[int(d)] for d in donor])
-    _, jac = output_jacobian(view, index[donor], space.expand(start))
+    _, jac = view.outputs_and_jacobian(index[donor], space.expand(start))
     moved = chord_start(view, index[rest], space, start, criteria.goal[rest], space.chain(jac), ExactSettings(),
                         SolveCounts())
 

@@ -103,8 +103,8 @@ def test_interrupted_hide_resumes_to_a_byte_identical_bundle(scene, tmp_path, mo
         hide(scene, secret, tmp_path / "resumed.bundle", config, CPU, show_progress=False, workers=1)
     assert not (tmp_path / "resumed.bundle").exists()
     assert len(list((tmp_path / "resumed.bundle.partial").glob("*.safetensors"))) == 5
-    solved, solve_exact = [], exact_solver.solve_exact  # counted in this process: workers=1
-    monkeypatch.setattr(exact_solver, "solve_exact", lambda *a, **k: solved.append(1) or solve_exact(*a, **k))
+    solved, solve_chunk = [], exact_solver.solve_chunk  # counted in this process: workers=1
+    monkeypatch.setattr(exact_solver, "solve_chunk", lambda *a, **k: solved.append(1) or solve_chunk(*a, **k))
     hide(scene, secret, tmp_path / "resumed.bundle", config, CPU, show_progress=False, workers=1)
     assert len(solved) == 9 - 5  # tiles of 256, 128, 128 and 64 px make 9 chunks of 64; 5 were saved
     assert (tmp_path / "resumed.bundle").read_bytes() == (tmp_path / "whole.bundle").read_bytes()

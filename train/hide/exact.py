@@ -15,9 +15,13 @@ Two phases: the first solves in float32 until every channel sits within `toleran
 centre; the second rounds to the storage dtype and polishes, judging only storable noise, until every
 channel rounds to its 8-bit value with `margin_bins` to spare (far more than the torch ↔ onnxruntime
 disagreement, ~1e-6 in colour). Between the phases, a compact tile's integer lattice (steps of 1/32
-in each of its 6 coefficients, coarse against an 8-bit bin) is entered by round_to_lattice, a search
-among nearby lattice points predicted by the Jacobian; plain rounding then LM on the lattice took ~3×
-the Jacobians and left up to a tenth of a small photo's pixels to escape.
+in each of its 6 coefficients) is entered by round_to_lattice, a search among nearby lattice points
+predicted by the Jacobian: in the whole field's noise a step moved a colour by more than a bin, and
+plain rounding then LM on the lattice took ~3× the Jacobians. In a compact tile's γ(d) basis (compact.py)
+steps move colours less, and radius 1 with 2 tries was as good as 2 and 3, in less time.
+
+The solver renders through a SolverView: the whole field (SecretView), or for a compact tile whose noise
+moves only γ(d), the view branch alone (BranchView, ~1/12 of the multiply-adds).
 
 A pixel that has not finished after `restart_after` iterations, or whose Jacobian is zero (every ReLU
 it needs is off), restarts from the noise of a finished pixel of nearby target colour; every other
@@ -36,7 +40,9 @@ from typing import Callable, ClassVar
 import torch
 
 from noisenerf.runtime.errors import UserError
-from noisenerf.train.hide.secret_view import SecretView
+from noisenerf.train.hide.secret_view import BranchView, SecretView
+
+SolverView = SecretView | BranchView  # what the solver renders: the whole field, or its view branch alone
 
 def chunk_pixels_for(device: torch.device) -> int:
     """Pixels solved together: a GPU needs large batches to be busy (its Jacobians of 4 × 90 per pixel
@@ -66,8 +72,8 @@ class ExactSettings:
     seed_stride: int = 16  # every seed_stride-th pixel is solved first and warm-starts the others
     retire: bool = True  # finished pixels leave the batch (off only to measure what retiring saves)
     chord_steps: int = 3  # warm-started pixels first step with their seed's Jacobian (chord_start)
-    lattice_radius: int = 2  # integer lattices: free coefficients tried within ± this many steps (round_to_lattice)
-    lattice_tries: int = 3  # integer lattices: best-predicted lattice points rendered per pixel
+    lattice_radius: int = 1  # integer lattices: free coefficients tried within ± this many steps (round_to_lattice)
+    lattice_tries: int = 2  # integer lattices: best-predicted lattice points rendered per pixel
 
     def __post_init__(self):
         if self.lattice_tries < 1 or self.lattice_radius < 0 or self.chord_steps < 0:
@@ -98,8 +104,9 @@ class NoiseSpace:
     """The unknowns of a chunk's pixels, `params` (m, P), and how they become noise (m, 1, dims).
 
     Full space (basis None): the params are the noise itself, stored in a float dtype (P = dims).
-    Compact space: noise = offset + (q · scale) Bᵀ with B (dims, k) orthonormal columns, q integers of the
-    storage dtype; the params are q · scale (float32), so `store` rounds them to the integer lattice.
+    Basis space: noise = offset + params Bᵀ with B (dims, k) orthonormal columns. With a float storage
+    dtype the params are stored as they are (a compact tile's basis is found in one); with an integer one
+    (a compact tile) the params are q · scale for integers q, so `store` rounds them to the integer lattice.
     Expanding exactly as the reveal does (runtime.bundle.expand_coefficients: one float32 multiply, then
     the matmul) keeps what the solver judges what the recipient renders, to float32 summation order.
     """
@@ -121,9 +128,14 @@ class NoiseSpace:
 
     def store(self, params: torch.Tensor) -> torch.Tensor:
         """The nearest storable params: float rounding, or the clamped integer lattice. (m, P) -> (m, P)."""
-        if self.basis is None:
+        if not self.lattice:
             return quantize(params, self.storage)
         return self.params_of(self.integers(params))
+
+    @property
+    def lattice(self) -> bool:
+        """Whether params are integer coefficients (times scale)."""
+        return not self.storage.is_floating_point
 
     def params_of(self, integers: torch.Tensor) -> torch.Tensor:
         """Compact params of integer coefficients, q · scale in float32 as the reveal computes it. (...) -> (...)."""
@@ -139,16 +151,10 @@ class NoiseSpace:
         return torch.zeros(m, dims if self.basis is None else self.basis.shape[1], device=device)
 
 
-def sample_outputs(view: SecretView, index: torch.Tensor, noise: torch.Tensor) -> torch.Tensor:
+def sample_outputs(view: SolverView, index: torch.Tensor, noise: torch.Tensor) -> torch.Tensor:
     """Raw colour and raw density of each ray's single sample. index: (m,), noise: (m, 1, dims) -> (m, 4)."""
     raw_rgb, raw_density = view.raw(index, noise)
     return torch.cat([raw_rgb[:, 0], raw_density[:, :1]], dim=-1)
-
-
-def output_jacobian(view: SecretView, index: torch.Tensor, noise: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """Outputs (m, 4) and their exact Jacobian ∂outputs/∂noise (m, 4, dims) for single-sample rays: the
-    noise adds to the encoded input, so this is the field's own input Jacobian."""
-    return view.field.outputs_and_jacobian(view.noisy_encodings(index, noise)[:, 0])
 
 
 def residuals(outputs: torch.Tensor, goal: torch.Tensor, density_floor: float) -> torch.Tensor:
@@ -231,7 +237,7 @@ class SolveCounts:
     restarts: int = 0
 
 
-def counted_outputs(view: SecretView, index: torch.Tensor, space: NoiseSpace, params: torch.Tensor,
+def counted_outputs(view: SolverView, index: torch.Tensor, space: NoiseSpace, params: torch.Tensor,
              counts: SolveCounts) -> torch.Tensor:
     """sample_outputs of params (m, P) without gradients, counted. -> (m, 4)."""
     counts.renders += index.numel()
@@ -242,7 +248,7 @@ def counted_outputs(view: SecretView, index: torch.Tensor, space: NoiseSpace, pa
 Store = Callable[[torch.Tensor], torch.Tensor]  # params (m, P) -> the params a phase may judge
 
 
-def line_search(view: SecretView, index: torch.Tensor, space: NoiseSpace, noise: torch.Tensor, outputs: torch.Tensor,
+def line_search(view: SolverView, index: torch.Tensor, space: NoiseSpace, noise: torch.Tensor, outputs: torch.Tensor,
                 step: torch.Tensor, goal: torch.Tensor, settings: ExactSettings, store: Store, counts: SolveCounts
                 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """The first of settings.step_scales that lowers each pixel's ‖r‖², else the old params.
@@ -265,7 +271,7 @@ def line_search(view: SecretView, index: torch.Tensor, space: NoiseSpace, noise:
 Observer = Callable[[torch.Tensor, torch.Tensor, SolveCounts], None]  # (index (m,), noise (m, 1, dims), counts)
 
 
-def refine(view: SecretView, index: torch.Tensor, goal: torch.Tensor, space: NoiseSpace, noise: torch.Tensor,
+def refine(view: SolverView, index: torch.Tensor, goal: torch.Tensor, space: NoiseSpace, noise: torch.Tensor,
            finished: Callable[[torch.Tensor, torch.Tensor], torch.Tensor], store: Store,
            settings: ExactSettings, generator: torch.Generator, counts: SolveCounts,
            observe: Observer | None = None) -> tuple[torch.Tensor, torch.Tensor]:
@@ -308,7 +314,7 @@ def refine(view: SecretView, index: torch.Tensor, goal: torch.Tensor, space: Noi
             outputs[stuck] = counted_outputs(view, index[stuck], space, noise[stuck], counts)
             age[stuck], damping[stuck] = 0, settings.damping
             counts.restarts += stuck.numel()
-        _, jac = output_jacobian(view, index[active], space.expand(noise[active]))
+        _, jac = view.outputs_and_jacobian(index[active], space.expand(noise[active]))
         jac = space.chain(jac)
         counts.jacobians += active.numel()
         age[active[jac.flatten(1).abs().amax(-1) < 1e-12]] = settings.restart_after + 1  # all ReLUs off: restart
@@ -352,7 +358,7 @@ class Criteria:
         return inside & self.lifted(outputs)
 
 
-def chord_start(view: SecretView, index: torch.Tensor, space: NoiseSpace, params: torch.Tensor, goal: torch.Tensor,
+def chord_start(view: SolverView, index: torch.Tensor, space: NoiseSpace, params: torch.Tensor, goal: torch.Tensor,
                 jac: torch.Tensor, settings: ExactSettings, counts: SolveCounts) -> torch.Tensor:
     """Warm starts refined without Jacobians of their own: from params (m, P) (a solved seed's), take
     settings.chord_steps Gauss–Newton steps with that seed's Jacobian jac (m, 4, P) (the chord method),
@@ -375,7 +381,7 @@ def chord_start(view: SecretView, index: torch.Tensor, space: NoiseSpace, params
 LATTICE_VALUES = 1 << 24  # candidate coordinates (pixels × c × k) formed at once: ~64 MB a tensor
 
 
-def round_to_lattice(view: SecretView, index: torch.Tensor, space: NoiseSpace, params: torch.Tensor,
+def round_to_lattice(view: SolverView, index: torch.Tensor, space: NoiseSpace, params: torch.Tensor,
                      criteria: Criteria, settings: ExactSettings, counts: SolveCounts) -> torch.Tensor:
     """Storable params for float params (m, k) of an integer lattice: the field's Jacobian at the float
     solution predicts each lattice_candidates point's colour (the net is piecewise linear, so within a
@@ -384,13 +390,13 @@ def round_to_lattice(view: SecretView, index: torch.Tensor, space: NoiseSpace, p
     rounds right is kept, else the best predicted. Phase 2 of solve_exact polishes what is left.
     -> params (m, k) on the lattice."""
     stored = space.store(params)
-    if space.basis is None or space.basis.shape[1] < 3:
+    if not space.lattice or space.basis.shape[1] < 3:
         return stored
     k = space.basis.shape[1]
     limit = INTEGER_LIMITS[space.storage]
     per_part = max(1, LATTICE_VALUES // ((2 * settings.lattice_radius + 1) ** (k - 3) * k))
     for part in torch.split(torch.arange(len(index), device=params.device), per_part):
-        outputs, jac = output_jacobian(view, index[part], space.expand(params[part]))
+        outputs, jac = view.outputs_and_jacobian(index[part], space.expand(params[part]))
         counts.jacobians += part.numel()
         jac = space.chain(jac) * space.scale  # per integer step
         coords = params[part] / space.scale
@@ -413,7 +419,7 @@ def round_to_lattice(view: SecretView, index: torch.Tensor, space: NoiseSpace, p
     return stored
 
 
-def solve_exact(view: SecretView, index: torch.Tensor, pixels: torch.Tensor, space: NoiseSpace,
+def solve_exact(view: SolverView, index: torch.Tensor, pixels: torch.Tensor, space: NoiseSpace,
                 settings: ExactSettings, generator: torch.Generator, observe: Observer | None = None) -> ChunkResult:
     """Bring pixels `index` (m,) of a single-sample view to their 8-bit values `pixels` (m, 3) uint8, with
     each pixel's noise in `space` (the full 90 values, or a tile's compact basis).
@@ -444,7 +450,7 @@ def solve_exact(view: SecretView, index: torch.Tensor, pixels: torch.Tensor, spa
         nearest_seed = torch.cdist(criteria.goal[rest], criteria.goal[seeds]).argmin(dim=1)
         start = params[seeds[nearest_seed]]
         if settings.chord_steps:
-            _, seed_jac = output_jacobian(view, index[seeds], space.expand(params[seeds]))
+            _, seed_jac = view.outputs_and_jacobian(index[seeds], space.expand(params[seeds]))
             counts.jacobians += seeds.numel()
             start = chord_start(view, index[rest], space, start, criteria.goal[rest],
                                 space.chain(seed_jac)[nearest_seed], settings, counts)

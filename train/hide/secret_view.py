@@ -96,6 +96,11 @@ class SecretView:
         m = index.shape[0]
         return raw_rgb.reshape(m, self.n_samples, 3), raw_density.reshape(m, self.n_samples)
 
+    def outputs_and_jacobian(self, index: torch.Tensor, noise: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Single-sample views: [raw colour ‖ raw density] (m, 4) of rays `index` (m,) with noise (m, 1, dims),
+        and its exact Jacobian ∂/∂noise (m, 4, dims), the field's input Jacobian (noise adds to the input)."""
+        return self.field.outputs_and_jacobian(self.noisy_encodings(index, noise)[:, 0])
+
     def shade(self, index: torch.Tensor, raw_rgb: torch.Tensor, raw_density: torch.Tensor) -> torch.Tensor:
         """Colours (m, 3) of rays `index` (m,) from their raw outputs (m, n_samples, 3), (m, n_samples)."""
         weights = render_weights(torch.relu(raw_density), self.deltas[index])
@@ -112,3 +117,45 @@ class SecretView:
             return torch.cat([self.render(torch.arange(part.start, part.stop, device=self.device),
                                           noise[part].to(self.device, torch.float32))
                               for part in pass_slices(self.n_rays, self.n_samples, pass_samples)])
+
+
+class BranchView:
+    """A single-sample secret view whose noise moves only the view-direction encoding γ(d), its γ(x) part
+    being one vector shared by every ray (a compact tile's offset, compact.tile_space): each ray's trunk,
+    and with it its density and feature, is evaluated once, and what the exact solver evaluates again and
+    again is the view branch alone, one ReLU layer of width/2 (~1/12 of the standard NeRF's multiply-adds).
+
+    Evaluates what SecretView would for noise whose γ(x) part equals `xyz_noise` (the part passed in is
+    not read): the same ops on the same values, so the solver judges what the field renders.
+    """
+
+    n_samples = 1
+
+    def __init__(self, view: SecretView, xyz_noise: torch.Tensor):
+        if view.n_samples != 1:
+            raise ValueError("a BranchView needs a secret view with one sample per ray")
+        self.field, self.xyz_dims = view.field, view.field.config.xyz_dims
+        encoded = view.encodings(torch.arange(view.n_rays, device=view.device))[:, 0]
+        with torch.no_grad():
+            self.density, self.feature = self.field.trunk_outputs(encoded[:, :self.xyz_dims] + xyz_noise)
+        self.encoded_dirs = encoded[:, self.xyz_dims:]
+
+    @property
+    def n_rays(self) -> int:
+        return self.density.shape[0]
+
+    @property
+    def noise_dims(self) -> int:
+        return self.field.config.noise_dims
+
+    def raw(self, index: torch.Tensor, noise: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Raw colour (m, 1, 3) and density (m, 1) of rays `index` (m,) with noise (m, 1, dims)."""
+        raw_rgb, _ = self.field.view_branch(self.feature[index], self.encoded_dirs[index] + noise[:, 0, self.xyz_dims:])
+        return raw_rgb[:, None], self.density[index, None]
+
+    def outputs_and_jacobian(self, index: torch.Tensor, noise: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """As SecretView.outputs_and_jacobian; only the colour rows' γ(d) columns are nonzero."""
+        raw_rgb, pre = self.field.view_branch(self.feature[index], self.encoded_dirs[index] + noise[:, 0, self.xyz_dims:])
+        jacobian = raw_rgb.new_zeros(len(index), 4, self.noise_dims)
+        jacobian[:, :3, self.xyz_dims:] = self.field.view_branch_rows(pre, slice(self.field.config.width, None))
+        return torch.cat([raw_rgb, self.density[index, None]], dim=-1), jacobian

@@ -94,16 +94,29 @@ class NeRFField(nn.Module):
     def raw_outputs(self, encoded: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Pre-activation colour and density. encoded: (n, noise_dims) -> (n, 3), (n,)."""
         encoded_xyz = encoded[..., : self.config.xyz_dims]
-        h = self.trunk(encoded_xyz)
         if not self.config.use_viewdirs:
-            raw = self.output_linear(h)
+            raw = self.output_linear(self.trunk(encoded_xyz))
             return raw[..., :3], raw[..., 3]
-        density = self.alpha_linear(h)[..., 0]
-        feature = self.feature_linear(h)
-        h = torch.cat([feature, encoded[..., self.config.xyz_dims:]], dim=-1)
-        for layer in self.views_linears:
-            h = torch.relu(layer(h))
-        return self.rgb_linear(h), density
+        density, feature = self.trunk_outputs(encoded_xyz)
+        raw_rgb, _ = self.view_branch(feature, encoded[..., self.config.xyz_dims:])
+        return raw_rgb, density
+
+    def trunk_outputs(self, encoded_xyz: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """What the position alone decides (view-direction fields): raw density (n,) and the feature the view
+        branch reads (n, width). encoded_xyz: (n, xyz_dims)."""
+        h = self.trunk(encoded_xyz)
+        return self.alpha_linear(h)[..., 0], self.feature_linear(h)
+
+    def view_branch(self, feature: torch.Tensor, encoded_dirs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Raw colour (n, 3) from the trunk's feature (n, width) and the encoded direction (n, dir_dims), and
+        the branch's pre-activation (n, width/2), whose ReLU mask is all view_branch_rows needs."""
+        pre = self.views_linears[0](torch.cat([feature, encoded_dirs], dim=-1))
+        return self.rgb_linear(torch.relu(pre)), pre
+
+    def view_branch_rows(self, pre: torch.Tensor, inputs: slice = slice(None)) -> torch.Tensor:
+        """∂raw colour/∂(the branch's input [feature ‖ encoded dirs])[inputs] at its pre-activation pre
+        (n, width/2) -> (n, 3, len(inputs)): one ReLU layer, so its weight times the mask."""
+        return ((pre > 0)[:, None, :] * self.rgb_linear.weight) @ self.views_linears[0].weight[:, inputs]
 
     def outputs_and_jacobian(self, encoded: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """[raw colour ‖ raw density] (n, 4) and its exact Jacobian with respect to the encoded input
@@ -121,12 +134,10 @@ class NeRFField(nn.Module):
             if i in self.config.skips:
                 h = torch.cat([encoded_xyz, h], dim=-1)
         if self.config.use_viewdirs:
-            view_in = torch.cat([self.feature_linear(h), encoded[:, xyz_dims:]], dim=-1)
-            view_pre = self.views_linears[0](view_in)
-            raw = torch.cat([self.rgb_linear(torch.relu(view_pre)), self.alpha_linear(h)], dim=-1)
+            raw_rgb, view_pre = self.view_branch(self.feature_linear(h), encoded[:, xyz_dims:])
+            raw = torch.cat([raw_rgb, self.alpha_linear(h)], dim=-1)
             # rows 0-2: colour through the view branch; row 3: density straight from the trunk
-            rgb_rows = (view_pre > 0)[:, None, :] * self.rgb_linear.weight  # (n, 3, width/2)
-            rgb_in = rgb_rows @ self.views_linears[0].weight  # (n, 3, width + dir_dims)
+            rgb_in = self.view_branch_rows(view_pre)  # (n, 3, width + dir_dims)
             width = self.config.width
             rows = torch.cat([rgb_in[:, :, :width] @ self.feature_linear.weight,
                               self.alpha_linear.weight.expand(encoded.shape[0], 1, width)], dim=1)
