@@ -178,3 +178,8 @@ def test_chunk_pool_spreads_jobs_over_other_processes_and_stops_on_an_error():
         assert os.getpid() not in pids
     with pytest.raises(ValueError, match="math domain error"), ChunkPool(2) as pool:
         dict(pool.solve_all(math.sqrt, [(4.0,), (-1.0,), (9.0,)]))
+
+
+def test_a_basis_that_ignores_what_it_missed_is_refused():
+    with pytest.raises(UserError, match="missed_weight must be at least 1, got 0"):
+        CompactSettings(missed_weight=0)

@@ -11,7 +11,7 @@ import torch
 
 from noisenerf.runtime.bundle import Frame, noise_shape
 from noisenerf.runtime.errors import UserError
-from noisenerf.train.hide.compact import CompactSettings, solver_view, tile_space
+from noisenerf.train.hide.compact import CompactSettings, in_basis, solver_view, tile_space
 from noisenerf.train.hide.exact import ExactSettings, NoiseSpace, chunk_pixels_for, solve_exact
 from noisenerf.train.hide.secret_view import SecretView
 from noisenerf.train.hide.solver import ChunkPool, Solver, TileSolution, chunk_seed, storage_dtype
@@ -60,8 +60,7 @@ def solve_chunk(view: SecretView, index: torch.Tensor, pixels: torch.Tensor, spa
         result = solve_exact(view, index, pixels, space, settings, generator)
         return {"noise": result.params, "counts": torch.tensor(dataclasses.astuple(result.counts))}
     compact = config.get(CompactSettings)
-    in_basis = dataclasses.replace(settings, max_iters=compact.max_iters, tolerance_bins=compact.tolerance_bins)
-    result = solve_exact(solver_view(view, space), index, pixels, space, in_basis, generator)
+    result = solve_exact(solver_view(view, space), index, pixels, space, in_basis(settings, compact), generator)
     left = (~result.done).nonzero()[:, 0]
     escape_noise = torch.zeros(len(index), view.noise_dims, device=index.device)
     counts = torch.tensor(dataclasses.astuple(result.counts))
