@@ -49,8 +49,7 @@ def hide(scene: Scene, secret: np.ndarray, output: Path, config: HideConfig, dev
     field = scene.render_field
     solver = METHODS[config.method]
     workers = (available_cores() if workers is None else workers) if device.type == "cpu" else 1
-    with Progress(output, run_key(scene, secret, config)) as progress, solver.threads(device), \
-            ChunkPool(workers) as pool:
+    with Progress(output, run_key(scene, secret, config)) as progress, ChunkPool(workers) as pool:
         tiles, reports = [], []
         started = time.perf_counter()
         bar = tqdm(total=secret.shape[0] * secret.shape[1], unit="px", desc=f"hide ({config.method})",
@@ -60,7 +59,8 @@ def hide(scene: Scene, secret: np.ndarray, output: Path, config: HideConfig, dev
             x0, y0, w, h = tile.rect
             view = SecretView(scene.fields()[tile.network], tile, scene.config.render, device)
             pixels = torch.tensor(secret[y0:y0 + h, x0:x0 + w].reshape(-1, 3), device=device)
-            solved = solver.solve_tile(view, pixels, (h, w), config, progress, k, bar, pool)
+            with solver.threads(device):  # the check below is a few large passes, for every core
+                solved = solver.solve_tile(view, pixels, (h, w), config, progress, k, bar, pool)
             colors = view.render_all(solved.noise, pass_samples_for(device))
             tiles.append(dataclasses.replace(tile, noise=solved.stored_noise, frame=solved.frame))
             reports.append({"rect": list(tile.rect), "view": tile.view,
