@@ -17,15 +17,11 @@ noise (315 -> 64 µs a pixel on one core, 3 photos × 4 views of lego), and fewe
 A basis cannot reach every colour from every start; those pixels escape: they are solved again in the
 full 90 values and stored as float16 noise beside the coefficients, so every pixel is still exact.
 
-Why k = 6 with steps of 1/32 (measured on a lego fit with the basis in the whole noise, README "Formats"): each coefficient costs ~1.2
-bytes a pixel after xz, each escape 184 bytes. k = 4 left 0.3–6 % of pixels to escape and hid 4× slower
-than the ray layout; k = 5 cost 6.2–6.6 bytes on most photos but let a fifth of one photo's pixels
-(a near-white background) escape, 42 bytes a pixel; k = 6 costs ~0.8 byte more on easy photos, brings
-that photo to 8.7 and hides faster (fewer restarts); k = 7–8 cost more than their fewer escapes save.
-A coarser step (1/16) saves ~0.4 byte but escapes several times more pixels; int8 coefficients leave
-most pixels unreachable on their lattice. (Measured before exact.round_to_lattice, which brought that
-photo to 7.3; with it, k = 8 hid a 128-px photo ~4× slower than k = 6, its lattice search being 25×
-larger, and k = 5 let 14 % of a koala escape.)
+Why k = 6: in the γ(d) basis, k = 5 took a median 6.1 bytes a pixel against 7.2 on 128-px lego photos
+but let 14x as many pixels escape (362 against 25), its worst photo at 9.1. Measured before, with the
+basis in the whole noise (README "Formats"): each coefficient costs ~1.2 bytes a pixel after xz, each
+escape 184 bytes; k = 4 left 0.3–6 % of pixels to escape; k = 7–8 cost more than their fewer escapes
+save; int8 coefficients leave most pixels unreachable on their lattice.
 """
 
 from __future__ import annotations
@@ -46,7 +42,9 @@ from noisenerf.train.hide.exact import INTEGER_LIMITS, ExactSettings, NoiseSpace
 class CompactSettings:
     key: ClassVar[str] = "compact"  # where bundles record these settings
     coefficients: int = 6  # k per pixel
-    coefficient_range: float = 1024.0  # largest storable |coefficient|: int16 steps of 1/32
+    # largest storable |coefficient|: int16 steps of 1/16. In the γ(d) basis, 1/16 saved ~0.6 byte a pixel
+    # against 1/32 at as many escapes (23 -> 27, 4 photos × 4 views at 128 px); 1/8 let 181 escape
+    coefficient_range: float = 2048.0
     # a seeded sample of a tile's pixels whose solved noise chooses its offset and basis: 256 let 3.6 % of a
     # tench photo's pixels escape (13 bytes a pixel), 1,024 0.07 % (6.7), and hid it faster (README "Formats")
     basis_pixels: int = 1024

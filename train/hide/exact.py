@@ -14,11 +14,12 @@ with that seed's Jacobian (chord_start: forward passes only; ~20 % fewer Jacobia
 Two phases: the first solves in float32 until every channel sits within `tolerance_bins` of its bin's
 centre; the second rounds to the storage dtype and polishes, judging only storable noise, until every
 channel rounds to its 8-bit value with `margin_bins` to spare (far more than the torch ↔ onnxruntime
-disagreement, ~1e-6 in colour). Between the phases, a compact tile's integer lattice (steps of 1/32
-in each of its 6 coefficients) is entered by round_to_lattice, a search among nearby lattice points
-predicted by the Jacobian: in the whole field's noise a step moved a colour by more than a bin, and
-plain rounding then LM on the lattice took ~3× the Jacobians. In a compact tile's γ(d) basis (compact.py)
-steps move colours less, and radius 1 with 2 tries was as good as 2 and 3, in less time.
+disagreement, ~1e-6 in colour). Between the phases, a compact tile's integer lattice (each of its 6
+coefficients in steps of CompactSettings.coefficient_range / 32767) is entered by round_to_lattice, a
+search among nearby lattice points predicted by the Jacobian: with a basis in the whole noise a step of
+1/32 moved a colour by more than a bin, and plain rounding then LM on the lattice took ~3× the
+Jacobians. In a compact tile's γ(d) basis (compact.py) steps move colours less, and radius 1 with 2
+tries was as good as 2 and 3, in less time.
 
 The solver renders through a SolverView: the whole field (SecretView), or for a compact tile whose noise
 moves only γ(d), the view branch alone (BranchView, ~1/12 of the multiply-adds).
