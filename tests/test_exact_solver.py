@@ -52,7 +52,7 @@ def test_singular_jacobians_give_plain_rounding():
 @pytest.fixture(scope="module")
 def compact_view():
     """A 16×12 secret's view of the demo scene, its pixels, a compact space and the float-phase solution.
-    The space's integer steps are 1/4, 8x the default's, so plain rounding misses many pixels' bins."""
+    The space's integer steps are 1/4, 4x the default's, so plain rounding misses many pixels' bins."""
     scene = load_scene(DEMO_SCENE)
     secret = procedural_secret(16, 12)
     config = HideConfig(view=DEMO_VIEW, tile_size=16)

@@ -36,13 +36,13 @@ import torch
 from noisenerf.runtime.errors import UserError
 from noisenerf.runtime.limits import MAX_COMPACT_COEFFICIENTS
 from noisenerf.train.hide.secret_view import BranchView, SecretView
-from noisenerf.train.hide.exact import INTEGER_LIMITS, ExactSettings, NoiseSpace, solve_exact
+from noisenerf.train.hide.exact import INTEGER_LIMITS, ExactSettings, NoiseSpace, is_lifted, solve_exact
 
 @dataclass(frozen=True)
 class CompactSettings:
     key: ClassVar[str] = "compact"  # where bundles record these settings
     coefficients: int = 6  # k per pixel
-    # largest storable |coefficient|: int16 steps of 1/16. In the γ(d) basis, 1/16 saved ~0.6 byte a pixel
+    # largest storable |coefficient|: int16 steps of 1/16 (int8: 2048/127). In the γ(d) basis, 1/16 saved ~0.6 byte a pixel
     # against 1/32 at as many escapes (23 -> 27, 4 photos × 4 views at 128 px); 1/8 let 181 escape
     coefficient_range: float = 2048.0
     # a seeded sample of a tile's pixels whose solved noise chooses its offset and basis: 256 let 3.6 % of a
@@ -79,37 +79,46 @@ def principal_basis(noise: torch.Tensor, k: int) -> tuple[torch.Tensor, torch.Te
 
 
 LIFT_MARGIN = 2.0  # lift_density lifts its sample to this many density floors, so the tile's other rays clear one
-LIFT_STEPS = (0.25, 0.5, 1.0, 2.0, 4.0, 8.0, 16.0, 32.0)  # step lengths lift_density tries, shortest first
+LIFT_STEPS = (0.25, 0.5, 1.0, 2.0, 4.0, 8.0, 16.0, 32.0)  # step lengths lift_density tries
 LIFT_ROUNDS = 8
+# below this share of its sample lifted, a tile takes the basis in the full noise: every ray the shared γ(x)
+# leaves unlifted would escape at 184 bytes (lego: always 100 %; a random-weight test net: none)
+MIN_LIFTED = 0.99
 
 
 def lift_density(view: SecretView, floor: float) -> torch.Tensor:
-    """One γ(x) noise vector (xyz_dims,) shared by a single-sample view's rays that lifts each ray's raw
-    density to LIFT_MARGIN · floor: from zero, steps along the mean density gradient of the rays still
-    below, each the shortest of LIFT_STEPS that lifts the most of them. (On lego one step of 8–16 lifted
-    every ray of every view tried.) Rays it leaves below the floor escape (exact_solver.solve_chunk)."""
+    """One γ(x) noise vector (xyz_dims,) shared by a single-sample view's rays that lifts their raw
+    densities towards LIFT_MARGIN · floor: from zero, steps along the mean density gradient of the rays
+    still below, each of the LIFT_STEPS length that most raises Σ min(density, goal) over every ray, until
+    all are there or no step helps. (On lego one step of 8–16 lifted every ray of every view tried.)"""
     field, xyz_dims = view.field, view.field.config.xyz_dims
     encoded = view.encodings(torch.arange(view.n_rays, device=view.device))[:, 0, :xyz_dims]
+    goal = LIFT_MARGIN * floor
 
-    def density(noise: torch.Tensor, rays: torch.Tensor) -> torch.Tensor:
-        return field.trunk_outputs(encoded[rays] + noise)[0]
+    def density(noise: torch.Tensor) -> torch.Tensor:
+        return field.trunk_outputs(encoded + noise)[0]
+
+    def progress(noise: torch.Tensor) -> float:
+        return float(torch.clamp_max(density(noise), goal).sum())
 
     noise = torch.zeros(xyz_dims, device=view.device)
-    everyone = torch.arange(view.n_rays, device=view.device)
-    goal = LIFT_MARGIN * floor
+    with torch.no_grad():
+        best = progress(noise)
     for _ in range(LIFT_ROUNDS):
         with torch.no_grad():
-            low = everyone[density(noise, everyone) < goal]
-        if low.numel() == 0:
+            low = density(noise) < goal
+        if not low.any():
             break
-        moving = noise.expand(low.numel(), xyz_dims).clone().requires_grad_(True)
-        gradient, = torch.autograd.grad(density(moving, low).sum(), moving)
+        with torch.enable_grad():  # the only gradient a hide takes: callers may be under no_grad
+            moving = noise.expand(int(low.sum()), xyz_dims).clone().requires_grad_(True)
+            gradient, = torch.autograd.grad(field.trunk_outputs(encoded[low] + moving)[0].sum(), moving)
         direction = gradient.mean(0) / (gradient.mean(0).norm() + 1e-12)
         with torch.no_grad():
-            lifted = [int((density(noise + step * direction, low) >= goal).sum()) for step in LIFT_STEPS]
-        if max(lifted) == 0:
+            scores = [progress(noise + step * direction) for step in LIFT_STEPS]
+        if max(scores) <= best:
             break
-        noise = (noise + LIFT_STEPS[lifted.index(max(lifted))] * direction).detach()
+        best = max(scores)
+        noise = noise + LIFT_STEPS[scores.index(best)] * direction
     return noise
 
 
@@ -117,29 +126,38 @@ def tile_space(view: SecretView, pixels: torch.Tensor, settings: CompactSettings
                storage: torch.dtype, seed: int) -> NoiseSpace:
     """The compact NoiseSpace of one tile with int8/int16 coefficients, from `basis_pixels` of its pixels
     (n, 3) uint8 drawn with `seed`. A field with a view branch gets a shared γ(x) noise that lifts the
-    sample's density (lift_density) and a basis in γ(d) alone: the principal directions of the sample solved
-    there (BranchView), found twice, the second time weighting what the first missed. One without a view
-    branch gets its offset and basis from the sample solved in the full noise."""
+    sample's density (lift_density) and a basis in γ(d) alone (direction_basis), unless that noise leaves
+    more than 1 − MIN_LIFTED of the sample unlifted; then, as for a field without a view branch, the
+    offset and basis come from the sample solved in the full noise."""
     generator = torch.Generator().manual_seed(seed)
     sample = torch.randperm(view.n_rays, generator=generator)[:settings.basis_pixels].to(pixels.device)
     scale = float(np.float32(settings.coefficient_range / INTEGER_LIMITS[storage]))
     k = settings.coefficients
-    if not view.field.config.use_viewdirs:
-        solved = solve_exact(view, sample, pixels[sample], NoiseSpace(torch.float32), exact, generator)
-        offset, basis = principal_basis(solved.params, k)
-        return NoiseSpace(storage, basis, offset, scale)
-    part = view.subset(sample)
-    xyz_noise = lift_density(part, exact.density_floor)
-    dir_dims = view.field.config.dir_dims
+    if view.field.config.use_viewdirs:
+        part = view.subset(sample)
+        xyz_noise = lift_density(part, exact.density_floor)
+        branch = BranchView(part, xyz_noise)
+        if float(is_lifted(branch.density, exact.density_floor).float().mean()) >= MIN_LIFTED:
+            return direction_basis(branch, pixels[sample], xyz_noise, settings, exact, storage, scale, generator)
+    solved = solve_exact(view, sample, pixels[sample], NoiseSpace(torch.float32), exact, generator)
+    offset, basis = principal_basis(solved.params, k)
+    return NoiseSpace(storage, basis, offset, scale)
+
+
+def direction_basis(branch: BranchView, pixels: torch.Tensor, xyz_noise: torch.Tensor, settings: CompactSettings,
+                    exact: ExactSettings, storage: torch.dtype, scale: float, generator: torch.Generator) -> NoiseSpace:
+    """tile_space's γ(d) basis from a sample's BranchView and pixels (s, 3): the principal directions of
+    the sample's solved noise, found twice. The solved pixels the first basis cannot bring to their
+    colours (mostly the darkest) count missed_weight times in the second; on lego 128-px photos that cut
+    escapes from 145 to 25 (4 photos × 4 views). Pixels left unsolved never count."""
+    dir_dims, k = branch.noise_dims - len(xyz_noise), settings.coefficients
+    every = torch.arange(branch.n_rays, device=pixels.device)
     directions = direction_space(torch.float32, xyz_noise, xyz_noise.new_zeros(dir_dims),
                                  torch.eye(dir_dims, device=xyz_noise.device))
-    branch, every = BranchView(part, xyz_noise), torch.arange(len(sample), device=pixels.device)
-    solved = solve_exact(branch, every, pixels[sample], directions, exact, generator)
-    first = direction_space(torch.float32, xyz_noise, *principal_basis(solved.params, k))
-    # the sample's pixels the first basis cannot bring to their colours (mostly the darkest) count
-    # missed_weight times in the second; on lego 128-px photos that cut escapes from 145 to 25 (4 photos × 4 views)
-    trial = solve_exact(branch, every, pixels[sample], first, in_basis(exact, settings), generator)
-    weights = torch.where(trial.done, 1, settings.missed_weight)
+    solved = solve_exact(branch, every, pixels, directions, exact, generator)
+    first = direction_space(torch.float32, xyz_noise, *principal_basis(solved.params[solved.done], k))
+    trial = solve_exact(branch, every, pixels, first, in_basis(exact, settings), generator)
+    weights = torch.where(trial.done, 1, settings.missed_weight) * solved.done
     return direction_space(storage, xyz_noise, *principal_basis(solved.params.repeat_interleave(weights, 0), k),
                            scale)
 

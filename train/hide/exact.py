@@ -106,7 +106,7 @@ class NoiseSpace:
 
     Full space (basis None): the params are the noise itself, stored in a float dtype (P = dims).
     Basis space: noise = offset + params Bᵀ with B (dims, k) orthonormal columns. With a float storage
-    dtype the params are stored as they are (a compact tile's basis is found in one); with an integer one
+    dtype the params are rounded to it (a compact tile's basis is found in float32); with an integer one
     (a compact tile) the params are q · scale for integers q, so `store` rounds them to the integer lattice.
     Expanding exactly as the reveal does (runtime.bundle.expand_coefficients: one float32 multiply, then
     the matmul) keeps what the solver judges what the recipient renders, to float32 summation order.
@@ -337,6 +337,12 @@ class ChunkResult:
     counts: SolveCounts
 
 
+def is_lifted(raw_density: torch.Tensor, floor: float) -> torch.Tensor:
+    """Whether a single sample's density counts as lifted (opacity exactly 1, with room to spare): at least
+    half the floor the solver aims at. (...) -> (...) bool."""
+    return raw_density >= floor / 2
+
+
 class Criteria:
     """What a chunk's pixels aim at: logit goals, and when a pixel counts as converged (float32 phase,
     near its bin's centre) or as rounding right (storage phase, inside its bin with the margin)."""
@@ -348,7 +354,7 @@ class Criteria:
         self.settings = settings
 
     def lifted(self, outputs: torch.Tensor) -> torch.Tensor:
-        return outputs[:, 3] >= self.settings.density_floor / 2
+        return is_lifted(outputs[:, 3], self.settings.density_floor)
 
     def converged(self, outputs: torch.Tensor, which: torch.Tensor) -> torch.Tensor:
         near = colour_distance_bins(outputs, self.target[which]) <= self.settings.tolerance_bins

@@ -12,8 +12,8 @@ import torch
 from noisenerf.runtime.bundle import Frame, noise_shape
 from noisenerf.runtime.errors import UserError
 from noisenerf.train.hide.compact import CompactSettings, in_basis, solver_view, tile_space
-from noisenerf.train.hide.exact import ExactSettings, NoiseSpace, chunk_pixels_for, solve_exact
-from noisenerf.train.hide.secret_view import SecretView
+from noisenerf.train.hide.exact import ExactSettings, NoiseSpace, chunk_pixels_for, is_lifted, solve_exact
+from noisenerf.train.hide.secret_view import BranchView, SecretView
 from noisenerf.train.hide.solver import ChunkPool, Solver, TileSolution, chunk_seed, storage_dtype
 
 if TYPE_CHECKING:
@@ -59,17 +59,22 @@ def solve_chunk(view: SecretView, index: torch.Tensor, pixels: torch.Tensor, spa
     if space.basis is None:
         result = solve_exact(view, index, pixels, space, settings, generator)
         return {"noise": result.params, "counts": torch.tensor(dataclasses.astuple(result.counts))}
-    compact = config.get(CompactSettings)
-    result = solve_exact(solver_view(view, space), index, pixels, space, in_basis(settings, compact), generator)
-    left = (~result.done).nonzero()[:, 0]
+    solving = solver_view(view, space)
+    # a ray the tile's shared γ(x) leaves unlifted can only escape: no basis solve for it
+    tried = (is_lifted(solving.density[index], settings.density_floor) if isinstance(solving, BranchView)
+             else torch.ones_like(index, dtype=torch.bool)).nonzero()[:, 0]
+    result = solve_exact(solving, index[tried], pixels[tried], space, in_basis(settings, config.get(CompactSettings)),
+                         generator)
+    params, done = space.zeros(len(index), view.noise_dims, index.device), torch.zeros_like(index, dtype=torch.bool)
+    params[tried], done[tried] = result.params, result.done
+    left = (~done).nonzero()[:, 0]
     escape_noise = torch.zeros(len(index), view.noise_dims, device=index.device)
     counts = torch.tensor(dataclasses.astuple(result.counts))
     if left.numel():
         full = solve_exact(view, index[left], pixels[left], NoiseSpace(ESCAPE_DTYPE), settings, generator)
         escape_noise[left] = full.params
         counts += torch.tensor(dataclasses.astuple(full.counts))
-    return {"noise": result.params, "counts": counts, "escaped": (~result.done).to(torch.uint8),
-            "escape_noise": escape_noise}
+    return {"noise": params, "counts": counts, "escaped": (~done).to(torch.uint8), "escape_noise": escape_noise}
 
 
 class ExactSolver(Solver):

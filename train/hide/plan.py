@@ -9,6 +9,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from noisenerf import __version__
 from noisenerf.runtime.bundle import LAYOUT_DTYPES, LAYOUTS, Tile, secret_digest
 from noisenerf.runtime.errors import UserError
 from noisenerf.runtime.sampling import NETWORKS, SamplingConfig, render_network
@@ -108,7 +109,8 @@ def plan(scene: Scene, secret: np.ndarray, config: HideConfig) -> HidePlan:
 
 
 def run_key(scene: Scene, secret: np.ndarray, config: HideConfig) -> str:
-    """What a resumable partial result belongs to: scene, secret and every setting."""
+    """What a resumable partial result belongs to: scene, secret, every setting and the noisenerf version
+    (saved chunks are only valid in the compact basis the version that solved them computes)."""
     payload = json.dumps({"scene": scene.fingerprint(), "secret": secret_digest(secret), "shape": secret.shape,
-                          "config": config.to_dict()}, sort_keys=True)
+                          "config": config.to_dict(), "noisenerf": __version__}, sort_keys=True)
     return hashlib.sha256(payload.encode()).hexdigest()

@@ -126,7 +126,8 @@ class BranchView:
     again is the view branch alone, one ReLU layer of width/2 (~1/12 of the standard NeRF's multiply-adds).
 
     Evaluates what SecretView would for noise whose γ(x) part equals `xyz_noise` (the part passed in is
-    not read): the same ops on the same values, so the solver judges what the field renders.
+    not read): the same ops on the same values, to float32 rounding (the trunk runs over every ray at
+    once, not per call), far inside the solver's margin.
     """
 
     n_samples = 1
