@@ -439,6 +439,9 @@ def solve_exact(view: SolverView, index: torch.Tensor, pixels: torch.Tensor, spa
         raise ValueError("the exact solver needs a secret view with one sample per ray")
     m = index.shape[0]
     counts = SolveCounts()
+    if m == 0:  # e.g. a chunk whose rays all escape (exact_solver.solve_chunk)
+        return ChunkResult(space.zeros(0, view.noise_dims, pixels.device),
+                           torch.zeros(0, dtype=torch.bool, device=pixels.device), counts)
     criteria = Criteria(pixels, settings)
 
     def both_phases(group: torch.Tensor, start: torch.Tensor) -> torch.Tensor:
