@@ -132,7 +132,6 @@ def tile_space(view: SecretView, pixels: torch.Tensor, settings: CompactSettings
     generator = torch.Generator().manual_seed(seed)
     sample = torch.randperm(view.n_rays, generator=generator)[:settings.basis_pixels].to(pixels.device)
     scale = float(np.float32(settings.coefficient_range / INTEGER_LIMITS[storage]))
-    k = settings.coefficients
     if view.field.config.use_viewdirs:
         part = view.subset(sample)
         xyz_noise = lift_density(part, exact.density_floor)
@@ -140,7 +139,7 @@ def tile_space(view: SecretView, pixels: torch.Tensor, settings: CompactSettings
         if float(is_lifted(branch.density, exact.density_floor).float().mean()) >= MIN_LIFTED:
             return direction_basis(branch, pixels[sample], xyz_noise, settings, exact, storage, scale, generator)
     solved = solve_exact(view, sample, pixels[sample], NoiseSpace(torch.float32), exact, generator)
-    offset, basis = principal_basis(solved.params, k)
+    offset, basis = principal_basis(solved.params, settings.coefficients)
     return NoiseSpace(storage, basis, offset, scale)
 
 

@@ -149,14 +149,17 @@ class BranchView:
     def noise_dims(self) -> int:
         return self.field.config.noise_dims
 
+    def branch(self, index: torch.Tensor, noise: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """NeRFField.view_branch of rays `index` (m,) with noise (m, 1, dims): raw colour (m, 3), pre-activation."""
+        return self.field.view_branch(self.feature[index], self.encoded_dirs[index] + noise[:, 0, self.xyz_dims:])
+
     def raw(self, index: torch.Tensor, noise: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Raw colour (m, 1, 3) and density (m, 1) of rays `index` (m,) with noise (m, 1, dims)."""
-        raw_rgb, _ = self.field.view_branch(self.feature[index], self.encoded_dirs[index] + noise[:, 0, self.xyz_dims:])
-        return raw_rgb[:, None], self.density[index, None]
+        return self.branch(index, noise)[0][:, None], self.density[index, None]
 
     def outputs_and_jacobian(self, index: torch.Tensor, noise: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """As SecretView.outputs_and_jacobian; only the colour rows' γ(d) columns are nonzero."""
-        raw_rgb, pre = self.field.view_branch(self.feature[index], self.encoded_dirs[index] + noise[:, 0, self.xyz_dims:])
+        raw_rgb, pre = self.branch(index, noise)
         jacobian = raw_rgb.new_zeros(len(index), 4, self.noise_dims)
         jacobian[:, :3, self.xyz_dims:] = self.field.view_branch_rows(pre, slice(self.field.config.width, None))
         return torch.cat([raw_rgb, self.density[index, None]], dim=-1), jacobian
