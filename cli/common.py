@@ -44,7 +44,8 @@ def quiet_warnings():
 
 
 def failure(prog: str, error: BaseException) -> int:
-    """Print one line for a UserError, OSError or MemoryError and return exit code 2."""
+    """Print one line for a UserError, OSError or MemoryError and return its exit code (2; an
+    InexactResult 3)."""
     if isinstance(error, OSError):
         where = f": {error.filename}" if error.filename else ""
         message = f"{error.strerror or error}{where}"
@@ -53,7 +54,7 @@ def failure(prog: str, error: BaseException) -> int:
     else:
         message = str(error)
     print(f"{prog}: error: {one_line(message)}", file=sys.stderr)
-    return 2
+    return getattr(error, "exit_code", 2)
 
 
 PASSPHRASE_ENV = "NOISENERF_PASSPHRASE"

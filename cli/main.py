@@ -82,7 +82,7 @@ def cmd_hide(args) -> None:
     from noisenerf.train.hide.exact import chunk_pixels_for
     from noisenerf.train.hide.methods import METHODS
     from noisenerf.train.hide.plan import HideConfig
-    from noisenerf.train.hide.run import hide
+    from noisenerf.train.hide.run import PAYLOAD_IS_EXACT, hide
     from noisenerf.train.scene.scene import load_scene
 
     if (args.secret is None) == (args.file is None):
@@ -90,6 +90,8 @@ def cmd_hide(args) -> None:
     if args.workers is not None and args.workers < 1:
         raise UserError(f"--workers must be at least 1, got {args.workers}")
     passphrase = sealing_passphrase(args)
+    if args.allow_inexact and (args.file is not None or passphrase is not None):
+        raise UserError(PAYLOAD_IS_EXACT)
     output = Path(args.output)
     device = resolve_device(args.device)
     # every method's settings as the flags say (the bundle records those of the method that runs)
@@ -109,7 +111,11 @@ def cmd_hide(args) -> None:
         report = hide_record(args, scene, record, output, config, device, passphrase)
     else:
         report = hide(scene, secret, output, config, device, force=args.force, show_progress=not args.quiet,
-                      workers=args.workers)
+                      workers=args.workers, allow_inexact=args.allow_inexact)
+        if METHODS[args.method].exact and not report["exact"]:
+            off = [f"tile {k}: {t['inexact_pixels']} px off by up to {t['max_error']}"
+                   for k, t in enumerate(report["tiles"]) if t["inexact_pixels"]]
+            print(f"{PROG}: warning: the bundle is not exact (--allow-inexact): {'; '.join(off)}", file=sys.stderr)
     lines = [f"bundle: {report['bundle']} ({report['bundle_bytes']} bytes, {report['bytes_per_pixel']:.1f} B/px)",
              f"tiles: {len(report['tiles'])}, exact fraction {report['exact_fraction']:.6f}, "
              f"exact: {str(report['exact']).lower()}", f"seconds: {report['seconds']}"]
@@ -239,6 +245,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--workers", type=int, help="exact method on a CPU: processes its chunks are spread over "
                    "(default: every core this process may use; the bundle is the same for any number)")
     p.add_argument("--force", action="store_true", help="overwrite an existing bundle")
+    p.add_argument("--allow-inexact", action="store_true",
+                   help="exact method: write the bundle even if some pixels are off (says so on stderr); by "
+                        "default such a hide exits 3 and writes none")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     add_device(p)
 

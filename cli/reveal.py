@@ -59,6 +59,8 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--threads", type=int, help="onnxruntime threads (default and most: the cores there are)")
     parser.add_argument("--device", choices=("cpu", "cuda"), default="cpu")
     parser.add_argument("--force", action="store_true", help="overwrite an existing output")
+    parser.add_argument("--verbose", action="store_true", help="let onnxruntime's own warnings and errors through "
+                                                                  "to stderr (off: our one line is the only one)")
     return parser
 
 
@@ -204,6 +206,9 @@ def main(argv: list[str] | None = None) -> int:
     if args.no_skip and args.view is None:
         parser.error("--no-skip applies to --view renders only (a reveal never skips)")
     try:
+        from noisenerf.runtime.session import onnxruntime_logging
+
+        onnxruntime_logging(args.verbose)
         with quiet_warnings():
             report = run(args)
     except FAILURES as error:

@@ -2,98 +2,71 @@
 
 The graph holds the scene's frozen fields: inputs `points` (n, 3), `viewdirs` (n, 3), `noise`
 (n, noise_dims), outputs `rgb` (n, 3) and `sigma` (n,) of the render network (the fine one if there is
-one, as before the coarse network was exported) and, for a scene with a fine network, `rgb_coarse` and
-`sigma_coarse` of the coarse one on the same inputs: the runtime needs it for nerf-pytorch's hierarchical
-render and for bundles hidden through it (the paper's method). n is dynamic. Positional encoding is
-inside the graph and the noise is added to [γ(x) ‖ γ(d)] exactly as NeRFField.forward does; rays,
-sampling, skipping and compositing stay in numpy on the host (noisenerf.runtime), so a torch render
-and an onnxruntime render differ only by field evaluation.
+one) and, for a scene with a fine network, `rgb_coarse` and `sigma_coarse` of the coarse one on the same
+inputs: the runtime needs it for nerf-pytorch's hierarchical render and for bundles hidden through it
+(the paper's method). n is dynamic. Positional encoding is inside the graph and the noise is added to
+[γ(x) ‖ γ(d)] exactly as NeRFField.forward does; rays, sampling, skipping and compositing stay in numpy
+on the host (noisenerf.runtime), so a torch render and an onnxruntime render differ only by field
+evaluation.
 
-The initializers are the scene's weights under the scene's names (coarse.pts_linears.0.weight, ...) in
-nn.Linear's (out, in) layout, which Gemm(transB=1) reads as is: the runtime recomputes the scene
-fingerprint from them. They are traced as graph inputs (keep_initializers_as_inputs), which turns off the
-exporter's merging of equal-valued initializers (it would drop one of two equal tensors, and its name),
-and are then removed from the inputs again. The export refuses to write a graph whose initializers do
-not reproduce the scene fingerprint.
-
-Exporter: torch's TorchScript exporter (`dynamo=False`). In torch 2.13 it is deprecated but present; it
-exports this MLP in under a second, deterministically (same weights -> same bytes), and its graph runs
-as fast in onnxruntime as the dynamo exporter's, which takes ~10 s per export here. The output is
-checked with onnx.checker (full_check) and against torch on probe batches before anything is written.
+The graph is written node for node from runtime.graph.field_graph, a pure function of the architecture
+that the reveal rebuilds to check a model's graph (so it is not traced: a tracer's output may change with
+the torch version, and the runtime could not predict it). The initializers are the scene's weights under
+the scene's names (coarse.pts_linears.0.weight, ...) in nn.Linear's (out, in) layout, which
+Gemm(transB=1) reads as is, plus the graph's few constants; the runtime recomputes the scene fingerprint
+from the weights. The output is checked with onnx.checker (full_check), against torch on probe batches
+and by the runtime's own graph and fingerprint checks before anything is written.
 """
 
 from __future__ import annotations
 
 import copy
 import dataclasses
-import inspect
-import io
 import os
 import time
-import warnings
 from dataclasses import dataclass
 
 import numpy as np
 import onnx
-import torch
-from torch import nn
 
 from noisenerf.runtime.errors import UserError
 from noisenerf.runtime.files import atomic_output, check_output_path
 from noisenerf.runtime.fingerprint import weights_fingerprint
 from noisenerf.runtime.model import ModelMetadata
 from noisenerf.runtime.onnx_file import parse_model
-from noisenerf.runtime.session import COARSE_OUTPUT_NAMES, INPUT_NAMES, OUTPUT_NAMES, OnnxField
+from noisenerf.runtime.graph import IR_VERSION, OPSET, Port, check_graph, field_graph
+from noisenerf.runtime.session import OnnxField
 from noisenerf.train.scene.field import NeRFField
 from noisenerf.train.scene.render import numpy_field
 from noisenerf.train.scene.scene import Scene, load_scene
 
-OPSET = 17
 PROBE_TOLERANCE = 1e-5  # see probe_parity
 FLOAT32_SLACK = 2.0  # onnxruntime may be this many times less exact than torch float32, plus the tolerance
 PROBE_POINTS = 1024
 PROBE_NOISE_SCALES = {"zero": 0.0, "normal": 1.0, "huge": 1e3}
 
 
-class SceneFields(nn.Module):
-    """The scene's networks as one module to trace: (points, viewdirs, noise) -> rgb, sigma of the render
-    network, then rgb_coarse, sigma_coarse where there is a fine network. Its submodules are named
-    `coarse` and `fine`, so parameter names are the scene's weight names."""
+def fields_to_onnx(scene: Scene, metadata: ModelMetadata) -> onnx.ModelProto:
+    """The ONNX model of the scene's fields, node for node runtime.graph.field_graph of its architecture
+    (the graph the reveal checks), with the scene's weights as named initializers."""
+    graph = field_graph(metadata.architecture, metadata.noise_dims)
+    weights = scene.weight_arrays()
+    if set(weights) != set(graph.weights):
+        raise UserError(f"export refused: the scene's weights {sorted(set(weights) ^ set(graph.weights))[:3]} "
+                        "disagree with its architecture")
 
-    def __init__(self, coarse: NeRFField, fine: NeRFField | None):
-        super().__init__()
-        self.coarse, self.fine = coarse, fine
+    def port(value: Port) -> onnx.ValueInfoProto:
+        return onnx.helper.make_tensor_value_info(value.name, value.elem_type, list(value.shape))
 
-    @property
-    def output_names(self) -> tuple[str, ...]:
-        return OUTPUT_NAMES + (COARSE_OUTPUT_NAMES if self.fine is not None else ())
-
-    def forward(self, points: torch.Tensor, viewdirs: torch.Tensor, noise: torch.Tensor):
-        if self.fine is None:
-            return self.coarse(points, viewdirs, noise)
-        return (*self.fine(points, viewdirs, noise), *self.coarse(points, viewdirs, noise))
-
-
-def fields_to_onnx(fields: SceneFields, opset: int = OPSET) -> onnx.ModelProto:
-    """Trace the fields (on the CPU, as load_scene leaves them) with their noise port into an in-memory
-    ONNX model with a dynamic batch axis, weights as named initializers."""
-    example = (torch.zeros(2, 3), torch.zeros(2, 3), torch.zeros(2, fields.coarse.config.noise_dims))
-    # torch < 2.5 has no `dynamo` switch and only the TorchScript exporter
-    exporter = {"dynamo": False} if "dynamo" in inspect.signature(torch.onnx.export).parameters else {}
-    names = INPUT_NAMES + fields.output_names
-    buffer = io.BytesIO()
-    with warnings.catch_warnings():
-        # the TorchScript exporter's deprecation notice is ours to track, not the user's to read
-        warnings.simplefilter("ignore", DeprecationWarning)
-        torch.onnx.export(fields.eval(), example, buffer, input_names=list(INPUT_NAMES),
-                          output_names=list(fields.output_names), opset_version=opset,
-                          dynamic_axes={name: {0: "n"} for name in names}, keep_initializers_as_inputs=True,
-                          **exporter)
-    model = onnx.load_from_string(buffer.getvalue())
-    weights = {tensor.name for tensor in model.graph.initializer}
-    inputs = [value for value in model.graph.input if value.name not in weights]
-    del model.graph.input[:]
-    model.graph.input.extend(inputs)
+    nodes = [onnx.helper.make_node(node.op, list(node.inputs), list(node.outputs), name=f"node{i}",
+                                   **dict(node.attributes)) for i, node in enumerate(graph.nodes)]
+    initializers = [onnx.numpy_helper.from_array(np.ascontiguousarray(values), name)
+                    for name, values in {**weights, **graph.constants}.items()]
+    model = onnx.helper.make_model(
+        onnx.helper.make_graph(nodes, "noisenerf", [port(p) for p in graph.inputs], [port(p) for p in graph.outputs],
+                               initializers),
+        opset_imports=[onnx.helper.make_opsetid("", OPSET)], producer_name="noisenerf")
+    model.ir_version = IR_VERSION
     return model
 
 
@@ -177,10 +150,12 @@ def probe_parity(field: NeRFField, onnx_field: OnnxField, aabb, seed: int, netwo
     return tuple(cases)
 
 
-def check_initializers(data: bytes, metadata: ModelMetadata) -> None:
-    """Refuse a graph whose initializers, read back as the runtime reads them, miss the scene fingerprint."""
+def check_as_runtime(data: bytes, metadata: ModelMetadata) -> None:
+    """Refuse a model that the runtime would refuse: its graph, read back, is not field_graph's, or its
+    weights miss the scene fingerprint."""
     source = "the exported graph"
-    if weights_fingerprint(parse_model(data, source).weights(source), metadata.architecture) != metadata.fingerprint:
+    weights = check_graph(parse_model(data, source), field_graph(metadata.architecture, metadata.noise_dims), source)
+    if weights_fingerprint(weights, metadata.architecture) != metadata.fingerprint:
         raise UserError("export refused: the graph's initializers do not reproduce the scene's weights")
 
 
@@ -192,8 +167,8 @@ def export_scene(scene_dir: str | os.PathLike, out_path: str | os.PathLike, prob
     start = time.perf_counter()
     check_output_path(out_path, force=force)
     scene = load_scene(scene_dir)
-    model = fields_to_onnx(SceneFields(scene.coarse, scene.fine))
     metadata = scene_metadata(scene)
+    model = fields_to_onnx(scene, metadata)
     attach_metadata(model, metadata)
     onnx.checker.check_model(model, full_check=True)
     data = model.SerializeToString()
@@ -205,7 +180,7 @@ def export_scene(scene_dir: str | os.PathLike, out_path: str | os.PathLike, prob
             raise UserError(f"export refused: on the '{case.name}' noise probe of the {case.network} network "
                             f"onnxruntime is off by {case.onnx_error:.3g}, torch float32 by "
                             f"{case.torch_error:.3g} (allowed: {PROBE_TOLERANCE:g} + {FLOAT32_SLACK:g}x torch's)")
-    check_initializers(data, metadata)
+    check_as_runtime(data, metadata)
     with atomic_output(out_path) as tmp:
         tmp.write_bytes(data)
     return {"model": str(out_path), "fingerprint": scene.fingerprint(), "bytes": len(data),

@@ -72,12 +72,14 @@ def exact_fraction(pixels: np.ndarray, target: np.ndarray) -> float:
 
 
 def tile_quality(colors: np.ndarray, pixels: np.ndarray, shape: tuple[int, int]) -> dict:
-    """A rendered tile against its 8-bit target: exact fraction, max error, PSNR, SSIM (None under 11 px).
-    colors: (n, 3) float in [0, 1], pixels: (n, 3) uint8, shape: the tile's (height, width)."""
+    """A rendered tile against its 8-bit target: exact fraction (of values), pixels with any value off, max
+    error, PSNR, SSIM (None under 11 px). colors: (n, 3) float in [0, 1], pixels: (n, 3) uint8, shape: the
+    tile's (height, width)."""
     image, target = colors.reshape(*shape, 3), pixels.reshape(*shape, 3)
     got = to_uint8(image)
     return {
         "exact_fraction": exact_fraction(got, target),
+        "inexact_pixels": int((got != target).any(-1).sum()),
         "max_error": int(np.abs(got.astype(np.int16) - target).max()),
         "psnr": psnr(got / 255.0, target / 255.0),
         "ssim": ssim(got / 255.0, target / 255.0) if min(shape) >= 11 else None,

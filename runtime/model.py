@@ -10,9 +10,13 @@
     initializers                 the weights, named and laid out as in the scene directory
                                  (coarse.pts_linears.0.weight, ...; nn.Linear's (out, in))
 
-The model is its weights: load_model recomputes the scene fingerprint from the initializers and the
-architecture and refuses a model whose weights were changed after export, even if its metadata kept
-the original fingerprint (and with it, a bundle's). Version 1 models named their weights otherwise and
+The model is its weights and its graph: load_model rebuilds the graph the architecture exports and
+refuses a model whose graph differs in any node, attribute, constant, port or opset (runtime.graph), then
+recomputes the scene fingerprint from the initializers and the architecture and refuses a model whose
+weights were changed after export, even if its metadata kept the original fingerprint (and with it, a
+bundle's). Both happen before onnxruntime sees the bytes. Models exported before the graph was written
+from runtime.graph (traced by torch) are refused with the re-export line; their bundles keep revealing
+with a fresh export, being tied to the scene. Version 1 models named their weights otherwise and
 are refused with a request to re-export; bundles are tied to the scene, so they keep revealing.
 
 The export writes this metadata (noisenerf.export.onnx_export) and this module reads it back, both
@@ -35,6 +39,7 @@ from noisenerf.runtime.camera import Camera
 from noisenerf.runtime.errors import UserError
 from noisenerf.runtime.files import parse_json
 from noisenerf.runtime.fingerprint import weights_fingerprint
+from noisenerf.runtime.graph import FieldGraph, check_graph, field_graph
 from noisenerf.runtime.limits import (
     MAX_CAMERAS, MAX_GRID_RESOLUTION, MAX_NOISE_DIMS, checked_float, checked_int, checked_list,
 )
@@ -185,7 +190,7 @@ def load_model(path: str | os.PathLike, device: str = "cpu", threads: int | None
     data, source = read_model_bytes(path)
     file = parse_model(data, source)
     metadata = ModelMetadata.from_metadata_props(file.metadata_props, source)
-    check_weights(file.weights(source), metadata, source)
+    check_weights(check_graph(file, expected_graph(metadata, source), source), metadata, source)
     field = OnnxField(data, device=device, threads=threads, source=source)
     if metadata.noise_dims != field.noise_dims:
         raise UserError(f"{field.source}: metadata says {metadata.noise_dims} noise dims, "
@@ -193,6 +198,15 @@ def load_model(path: str | os.PathLike, device: str = "cpu", threads: int | None
     if field.has_fine != (metadata.hierarchy is not None):
         raise UserError(f"{field.source}: metadata and graph disagree on whether there is a fine network")
     return Model(metadata, field)
+
+
+def expected_graph(metadata: ModelMetadata, source: str) -> FieldGraph:
+    """The graph a model with this metadata's architecture exports (runtime.graph), or a UserError naming
+    the model when the architecture is out of the caps."""
+    try:
+        return field_graph(metadata.architecture, metadata.noise_dims)
+    except UserError as error:
+        raise UserError(f"{source}: {error}") from None
 
 
 def short_fingerprint(fingerprint: str) -> str:

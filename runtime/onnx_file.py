@@ -6,12 +6,18 @@ bytes still resolves an external `location` against the current directory, so an
 recipient runs could feed the model. onnxruntime exposes neither, so this module reads the protobuf
 wire format directly, only the few ONNX fields it needs (field numbers from onnx.proto):
 
-    ModelProto      graph 7, metadata_props 14 (key 1, value 2), training_info 20, functions 25
-    GraphProto      node 1, initializer 5, sparse_initializer 15
-    NodeProto       attribute 5
-    AttributeProto  t 5, g 6, tensors 10, graphs 11, sparse_tensor 22, sparse_tensors 23
-    TensorProto     dims 1, data_type 2, float_data 4, name 8, raw_data 9, external_data 13,
+    ModelProto      ir_version 1, graph 7, opset_import 8 (domain 1, version 2), metadata_props 14
+                    (key 1, value 2), training_info 20, functions 25
+    GraphProto      node 1, initializer 5, input 11, output 12, sparse_initializer 15
+    NodeProto       input 1, output 2, op_type 4, attribute 5, domain 7
+    AttributeProto  name 1, i 3, t 5, g 6, tensors 10, graphs 11, type 20, sparse_tensor 22, sparse_tensors 23
+    ValueInfoProto  name 1, type 2 (TypeProto tensor_type 1: elem_type 1, shape 2: dim 1: value 1, param 2)
+    TensorProto     dims 1, data_type 2, float_data 4, int64_data 7, name 8, raw_data 9, external_data 13,
                     data_location 14
+
+The graph's nodes, ports and opsets are read so that runtime.graph can compare them with the graph the
+model's architecture exports; fields that compute nothing (names, doc strings) are skipped, and any
+other field of a graph or node is recorded as unexpected, which that comparison refuses.
 
 A noisenerf model never has subgraphs, functions, training graphs or sparse tensors, so a model with
 any is refused rather than searched: every tensor onnxruntime could load then lies where this module
@@ -26,8 +32,8 @@ from typing import Iterator
 import numpy as np
 
 from noisenerf.runtime.errors import UserError
+from noisenerf.runtime.graph import FLOAT, INT64, Node, Port
 
-FLOAT = 1  # TensorProto.DataType.FLOAT
 EXTERNAL = 1  # TensorProto.DataLocation.EXTERNAL
 VARINT, FIXED64, LENGTH, FIXED32 = 0, 1, 2, 5
 UNSUPPORTED = {  # (message, field number) -> what it is
@@ -104,16 +110,22 @@ class TensorRecord:
     raw_data: bytes | None
     float_data: np.ndarray | None  # float32 values stored in the float_data field
     external: bool
+    int64_data: np.ndarray | None = None  # int64 values stored in the int64_data field
 
-    def array(self, source: str) -> np.ndarray:
-        """The values as a little-endian float32 array of shape dims; refuses any other element type and
-        a byte count that disagrees with the dims."""
-        if self.data_type != FLOAT:
-            raise UserError(f"{source}: initializer {self.name!r} has ONNX data type {self.data_type}; "
-                            "noisenerf weights are float32")
+    def array(self, source: str, data_type: int = FLOAT) -> np.ndarray:
+        """The values as a little-endian float32 (or int64) array of shape dims; refuses any other element
+        type and a byte count that disagrees with the dims."""
+        if self.data_type != data_type:
+            raise UserError(f"{source}: initializer {self.name!r} has ONNX data type {self.data_type}, "
+                            f"expected {data_type} (noisenerf weights are float32)")
         count = int(np.prod(self.dims, dtype=np.int64))
-        values = (np.frombuffer(self.raw_data, dtype="<f4") if self.raw_data is not None
-                  else self.float_data if self.float_data is not None else np.zeros(0, "<f4"))
+        dtype = np.dtype("<f4" if data_type == FLOAT else "<i8")
+        if self.raw_data is not None:  # a ragged byte count holds no whole number of values: refused below
+            whole = len(self.raw_data) % dtype.itemsize == 0
+            values = np.frombuffer(self.raw_data, dtype) if whole else np.zeros(count + 1, dtype)
+        else:
+            typed = self.float_data if data_type == FLOAT else self.int64_data
+            values = typed if typed is not None else np.zeros(0, dtype)
         if values.size != count:
             raise UserError(f"{source}: initializer {self.name!r} holds {values.size} values, its dims "
                             f"{list(self.dims)} need {count}")
@@ -122,7 +134,7 @@ class TensorRecord:
 
 def read_tensor(data: memoryview) -> TensorRecord:
     """One TensorProto's fields; values are not decoded until TensorRecord.array."""
-    name, data_type, dims, raw, floats, external = "", 0, [], None, [], False
+    name, data_type, dims, raw, floats, integers, external = "", 0, [], None, [], [], False
     for number, wire, value in fields(data):
         if number == 1:
             dims.extend(packed_varints(value) if wire == LENGTH else [value])
@@ -132,6 +144,8 @@ def read_tensor(data: memoryview) -> TensorRecord:
             if wire not in (LENGTH, FIXED32):
                 raise WireError("float_data neither packed nor 32-bit")
             floats.append(np.frombuffer(value, "<f4") if wire == LENGTH else np.array([value], "<u4").view("<f4"))
+        elif number == 7:
+            integers.extend(packed_varints(value) if wire == LENGTH else [value])
         elif number == 8:
             name = bytes(blob(value)).decode("utf-8", "replace")
         elif number == 9:
@@ -140,7 +154,8 @@ def read_tensor(data: memoryview) -> TensorRecord:
             external = True
     if any(d >= 2 ** 63 for d in dims):
         raise WireError("negative tensor dimension")
-    return TensorRecord(name, data_type, tuple(dims), raw, np.concatenate(floats) if floats else None, external)
+    return TensorRecord(name, data_type, tuple(dims), raw, np.concatenate(floats) if floats else None, external,
+                        np.array(integers, np.uint64).view(np.int64) if integers else None)
 
 
 @dataclass(frozen=True)
@@ -149,6 +164,12 @@ class ModelFile:
 
     metadata_props: dict[str, str]
     initializers: tuple[TensorRecord, ...]
+    nodes: tuple[Node, ...] = ()
+    inputs: tuple[Port | None, ...] = ()  # None: a port that is not a tensor of known element type and rank
+    outputs: tuple[Port | None, ...] = ()
+    opsets: tuple[tuple[str, int], ...] = ()  # (domain, version)
+    ir_version: int = 0
+    unexpected: tuple[str, ...] = ()  # fields a noisenerf graph never has ("graph field 13", ...)
 
     def weights(self, source: str) -> dict[str, np.ndarray]:
         """Initializer name -> float32 array, refusing duplicate names."""
@@ -177,16 +198,86 @@ def node_tensors(node: memoryview, source: str) -> Iterator[TensorRecord]:
                 yield read_tensor(blob(value))
 
 
+def text(value: int | memoryview) -> str:
+    return bytes(blob(value)).decode("utf-8")
+
+
+def read_attribute(data: memoryview) -> tuple[str, int | str]:
+    """(name, value) of an integer attribute; any other kind reads as (name, "not an integer")."""
+    name, value, kinds = "", "not an integer", set()
+    for number, wire, item in fields(data):
+        if number == 1:
+            name = text(item)
+        elif number == 3 and wire == VARINT:
+            value = item - (1 << 64) if item >= 1 << 63 else item
+        elif number not in (13, 20):  # doc_string, type
+            kinds.add(number)
+    return name, value if not kinds else "not an integer"
+
+
+def read_node(data: memoryview) -> Node:
+    """A NodeProto as runtime.graph.Node; a field that computes nothing is skipped, an unknown one kept
+    as an attribute that no expected node has."""
+    inputs, outputs, op, domain, attributes = [], [], "", "", []
+    for number, _, value in fields(data):
+        if number == 1:
+            inputs.append(text(value))
+        elif number == 2:
+            outputs.append(text(value))
+        elif number == 4:
+            op = text(value)
+        elif number == 7:
+            domain = text(value)
+        elif number == 5:
+            attributes.append(read_attribute(blob(value)))
+        elif number not in (3, 6):  # name, doc_string
+            attributes.append((f"field {number}", "unexpected"))
+    if domain not in ("", "ai.onnx"):
+        op = f"{domain}.{op}"
+    return Node(op, tuple(inputs), tuple(outputs), tuple(sorted(attributes, key=str)))
+
+
+def read_port(data: memoryview) -> Port | None:
+    """A ValueInfoProto as runtime.graph.Port (symbolic dims by their names), None if it is not a tensor
+    whose every dim is a value or a name."""
+    name, elem_type, shape, tensor = "", 0, None, False
+    for number, _, value in fields(data):
+        if number == 1:
+            name = text(value)
+        elif number == 2:
+            for kind, _, tensor_type in fields(blob(value)):
+                if kind != 1:
+                    return None
+                tensor = True
+                for part, _, item in fields(blob(tensor_type)):
+                    if part == 1:
+                        elem_type = item
+                    elif part == 2:
+                        shape = []
+                        for _, _, dim in fields(blob(item)):
+                            sizes = {k: v for k, _, v in fields(blob(dim)) if k in (1, 2)}
+                            if len(sizes) != 1:
+                                return None
+                            shape.append(sizes[1] if 1 in sizes else text(sizes[2]))
+    return Port(name, tuple(shape), elem_type) if tensor and shape is not None else None
+
+
 def parse_model(data: bytes, source: str) -> ModelFile:
-    """Read a model's metadata and tensors; refuses malformed bytes, unsupported structures and, before
-    anything could load them, tensors whose data lives outside the file."""
+    """Read a model's metadata, tensors and graph; refuses malformed bytes, unsupported structures and,
+    before anything could load them, tensors whose data lives outside the file."""
     try:
-        props, initializers, attributes = {}, [], []
+        props, initializers, attributes, nodes, ports, opsets = {}, [], [], [], {11: [], 12: []}, []
+        ir_version, unexpected = 0, []
         for number, _, value in fields(memoryview(data)):
             refuse_unsupported("model", number, source)
             if number == 14:
-                entry = {k: bytes(blob(v)).decode("utf-8") for k, _, v in fields(blob(value)) if k in (1, 2)}
+                entry = {k: text(v) for k, _, v in fields(blob(value)) if k in (1, 2)}
                 props[entry.get(1, "")] = entry.get(2, "")
+            elif number == 1:
+                ir_version = value
+            elif number == 8:
+                entry = {k: v for k, _, v in fields(blob(value)) if k in (1, 2)}
+                opsets.append((text(entry.get(1, memoryview(b""))), entry.get(2, 0)))
             elif number == 7:
                 for inner, _, item in fields(blob(value)):
                     refuse_unsupported("graph", inner, source)
@@ -194,10 +285,16 @@ def parse_model(data: bytes, source: str) -> ModelFile:
                         initializers.append(read_tensor(blob(item)))
                     elif inner == 1:
                         attributes.extend(node_tensors(blob(item), source))
+                        nodes.append(read_node(blob(item)))
+                    elif inner in ports:
+                        ports[inner].append(read_port(blob(item)))
+                    elif inner not in (2, 10):  # name, doc_string
+                        unexpected.append(f"graph field {inner}")
     except ValueError as error:  # WireError, UnicodeDecodeError, float_data of a length not divisible by 4
         raise UserError(f"{source} is not a loadable ONNX model (not ONNX, or truncated): {error}") from None
     external = [t.name or "(unnamed)" for t in initializers + attributes if t.external]
     if external:
         raise UserError(f"{source} keeps tensor {external[0]!r} in external data; a noisenerf model must be "
                         "one self-contained .onnx file")
-    return ModelFile(props, tuple(initializers))
+    return ModelFile(props, tuple(initializers), tuple(nodes), tuple(ports[11]), tuple(ports[12]), tuple(opsets),
+                     ir_version, tuple(unexpected))

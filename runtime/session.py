@@ -20,16 +20,24 @@ import numpy as np
 import onnxruntime as ort
 
 from noisenerf.runtime.errors import UserError
+from noisenerf.runtime.graph import COARSE_OUTPUT_NAMES, INPUT_NAMES, OUTPUT_NAMES
 from noisenerf.runtime.limits import MAX_NOISE_DIMS
 from noisenerf.runtime.onnx_file import parse_model
 from noisenerf.runtime.sampling import NETWORKS
 
-INPUT_NAMES = ("points", "viewdirs", "noise")
-OUTPUT_NAMES = ("rgb", "sigma")  # the render network: the fine one where the model has both
-COARSE_OUTPUT_NAMES = ("rgb_coarse", "sigma_coarse")  # the coarse network, present only beside a fine one
 DEVICES = {"cpu": "CPUExecutionProvider", "cuda": "CUDAExecutionProvider"}
 DEFAULT_CHUNK = 16384  # points per run: as fast as larger chunks on CPU, ~16 MB per 256-wide activation
-QUIET = 3  # onnxruntime's ERROR log level: no warnings or telemetry notes; errors raise and are reported once
+# onnxruntime's log levels: FATAL keeps its own lines, errors included (they raise and are reported once, as
+# our one line), off stderr; --verbose shows its warnings and errors
+LOG_SEVERITY = {"quiet": 4, "verbose": 2}
+log_severity = LOG_SEVERITY["quiet"]
+
+
+def onnxruntime_logging(verbose: bool) -> None:
+    """Whether onnxruntime's own log lines reach stderr (the process-wide logger and every later session)."""
+    global log_severity
+    log_severity = LOG_SEVERITY["verbose" if verbose else "quiet"]
+    ort.set_default_logger_severity(log_severity)
 # The shapes a noisenerf field declares; a str is a free (symbolic) batch size, an int a fixed width.
 PORT_SHAPES = {"points": ("n", 3), "viewdirs": ("n", 3), "noise": ("n", None), "rgb": ("n", 3), "sigma": ("n",)}
 
@@ -61,12 +69,12 @@ def session_options(threads: int | None) -> ort.SessionOptions:
     threads = cores if threads is None else threads
     if threads < 1:
         raise UserError(f"threads must be at least 1, got {threads}")
-    ort.set_default_logger_severity(QUIET)
+    ort.set_default_logger_severity(log_severity)
     options = ort.SessionOptions()
     options.intra_op_num_threads = min(threads, cores)
     options.inter_op_num_threads = 1
     options.add_session_config_entry("session.intra_op.allow_spinning", "0")
-    options.log_severity_level = QUIET
+    options.log_severity_level = log_severity
     return options
 
 

@@ -8,10 +8,11 @@ import pytest
 
 from conftest import make_tiny_scene
 from noisenerf.export import onnx_export
-from noisenerf.export.onnx_export import SceneFields, export_scene, probe_parity
+from noisenerf.export.onnx_export import export_scene, probe_parity
 from noisenerf.runtime.bundle import Tile
 from noisenerf.runtime.errors import UserError
 from noisenerf.runtime.fingerprint import weights_fingerprint
+from noisenerf.runtime.graph import field_graph
 from noisenerf.runtime.model import grid_from_dict, grid_to_dict, load_model
 from noisenerf.runtime.render import render_view
 from noisenerf.runtime.images import to_uint8
@@ -54,24 +55,29 @@ def test_model_is_checked_and_self_contained(exported):
 
 
 def test_initializers_are_the_scene_weights(exported):
-    """Named and laid out as in the scene directory, so the runtime can recompute the fingerprint."""
+    """Named and laid out as in the scene directory, so the runtime can recompute the fingerprint; the
+    only other initializers are the graph's constants (runtime.graph)."""
     scene, path, _ = exported
     model = onnx.load(str(path))
     initializers = {t.name: onnx.numpy_helper.to_array(t) for t in model.graph.initializer}
     weights = scene.weight_arrays()
-    assert sorted(initializers) == sorted(weights)
-    for name, value in weights.items():
+    constants = field_graph(scene.config.architecture(), scene.render_field.config.noise_dims).constants
+    assert sorted(initializers) == sorted([*weights, *constants])
+    for name, value in {**weights, **constants}.items():
         np.testing.assert_array_equal(initializers[name], value)
-    assert weights_fingerprint(initializers, scene.config.architecture()) == scene.fingerprint()
+    assert weights_fingerprint({name: initializers[name] for name in weights},
+                               scene.config.architecture()) == scene.fingerprint()
 
 
 def test_equal_coarse_and_fine_weights_keep_both_initializers(tmp_path):
-    """The exporter would merge equal tensors (and drop a name); a fine net equal to the coarse one exports."""
+    """A fine net equal to the coarse one exports with both networks' weights under their own names (a
+    tracing exporter merged equal tensors and dropped a name)."""
     scene = make_tiny_scene(seed=3, fine=True)
     scene.fine.load_state_dict(scene.coarse.state_dict())
     scene.save(tmp_path / "scene")
     export_scene(tmp_path / "scene", tmp_path / "model.onnx")
-    assert len(onnx.load(str(tmp_path / "model.onnx")).graph.initializer) == len(scene.weight_arrays())
+    names = [t.name for t in onnx.load(str(tmp_path / "model.onnx")).graph.initializer]
+    assert set(scene.weight_arrays()) <= set(names) and len(names) == len(set(names))
     assert load_model(tmp_path / "model.onnx", threads=1).fingerprint == scene.fingerprint()
 
 
@@ -156,9 +162,9 @@ def test_export_is_deterministic(exported, tmp_path):
 
 def test_export_refuses_a_graph_that_disagrees_with_torch(tmp_path, monkeypatch):
     make_tiny_scene(seed=1).save(tmp_path / "scene")
-    other = make_tiny_scene(seed=2).render_field  # same architecture, other weights: a faulty export
+    other = make_tiny_scene(seed=2)  # same architecture, other weights: a faulty export
     real_export = onnx_export.fields_to_onnx
-    monkeypatch.setattr(onnx_export, "fields_to_onnx", lambda fields: real_export(SceneFields(other, None)))
+    monkeypatch.setattr(onnx_export, "fields_to_onnx", lambda scene, metadata: real_export(other, metadata))
     with pytest.raises(UserError, match="export refused"):
         export_scene(tmp_path / "scene", tmp_path / "model.onnx")
     assert sorted(p.name for p in tmp_path.iterdir()) == ["scene"]

@@ -776,6 +776,10 @@ PARTIALS = {  # case: corrupt(partial folder); the rerun must recompute and writ
     "chunk wrong shape": with_tensors(lambda t: t.update(noise=t["noise"][:-1].clone())),
     "chunk float64, no stamp": first_chunk(lambda p, _: save_torch_file(
         {k: v.double() for k, v in load_torch_file(str(p)).items()}, str(p))),
+    "chunk float64, stamped": with_tensors(lambda t: t.update(noise=t["noise"].double())),
+    "chunk counts float32, stamped": with_tensors(lambda t: t.update(counts=t["counts"].float())),
+    "chunk params off the lattice, stamped": with_tensors(lambda t: t["noise"].view(-1).__setitem__(0, 1e-3)),
+    "chunk escaped 7, stamped": with_tensors(lambda t: t["escaped"].view(-1).__setitem__(0, 7)),
     "chunk NaN": with_tensors(lambda t: t["noise"].view(-1).__setitem__(5, float("nan"))),
     "chunk without counts": with_tensors(lambda t: t.pop("counts")),
     "chunk with an extra field": with_tensors(lambda t: t.update(extra=torch.zeros(3))),

@@ -426,6 +426,20 @@ def round_to_lattice(view: SolverView, index: torch.Tensor, space: NoiseSpace, p
     return stored
 
 
+def solve_from(view: SolverView, index: torch.Tensor, pixels: torch.Tensor, space: NoiseSpace, start: torch.Tensor,
+               settings: ExactSettings, generator: torch.Generator, counts: SolveCounts,
+               observe: Observer | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+    """Both phases for pixels `index` (m,) with 8-bit values `pixels` (m, 3) from params `start` (m, P):
+    float32 until converged near the bin centres, onto the storable lattice, then storable params until
+    every value rounds right. -> params (m, P), done (m,) bool."""
+    criteria = Criteria(pixels, settings)
+    converged, _ = refine(view, index, criteria.goal, space, start, criteria.converged, lambda n: n, settings,
+                          generator, counts, observe)
+    on_lattice = round_to_lattice(view, index, space, converged, criteria, settings, counts)
+    return refine(view, index, criteria.goal, space, on_lattice, criteria.rounds_right, space.store, settings,
+                  generator, counts, observe)
+
+
 def solve_exact(view: SolverView, index: torch.Tensor, pixels: torch.Tensor, space: NoiseSpace,
                 settings: ExactSettings, generator: torch.Generator, observe: Observer | None = None) -> ChunkResult:
     """Bring pixels `index` (m,) of a single-sample view to their 8-bit values `pixels` (m, 3) uint8, with
@@ -445,12 +459,7 @@ def solve_exact(view: SolverView, index: torch.Tensor, pixels: torch.Tensor, spa
     criteria = Criteria(pixels, settings)
 
     def both_phases(group: torch.Tensor, start: torch.Tensor) -> torch.Tensor:
-        group_criteria = Criteria(pixels[group], settings)
-        converged, _ = refine(view, index[group], group_criteria.goal, space, start, group_criteria.converged,
-                              lambda n: n, settings, generator, counts, observe)
-        on_lattice = round_to_lattice(view, index[group], space, converged, group_criteria, settings, counts)
-        return refine(view, index[group], group_criteria.goal, space, on_lattice,
-                      group_criteria.rounds_right, space.store, settings, generator, counts, observe)[0]
+        return solve_from(view, index[group], pixels[group], space, start, settings, generator, counts, observe)[0]
 
     params = space.zeros(m, view.noise_dims, pixels.device)
     is_seed = torch.arange(m, device=pixels.device) % settings.seed_stride == 0

@@ -77,11 +77,19 @@ def solve_chunk(view: SecretView, index: torch.Tensor, pixels: torch.Tensor, spa
     return {"noise": params, "counts": counts, "escaped": (~done).to(torch.uint8), "escape_noise": escape_noise}
 
 
+def sound_chunk(saved: dict[str, torch.Tensor], space: NoiseSpace) -> bool:
+    """What the solver assumes of a saved chunk beyond its layout: storable params (on the lattice, or
+    in the storage dtype), counts ≥ 0, escapes 0 or 1."""
+    return (torch.equal(space.store(saved["noise"]), saved["noise"]) and bool((saved["counts"] >= 0).all())
+            and ("escaped" not in saved or bool((saved["escaped"] <= 1).all())))
+
+
 class ExactSolver(Solver):
     name = "exact"
     settings_types = (ExactSettings, CompactSettings)
     layouts = ("compact", "ray", "sample")
     default_samples = 1  # see exact.py: one sample per ray makes every pixel a piecewise-linear problem
+    exact = True
 
     def check(self, config: HideConfig) -> None:
         if config.n_samples != 1:
@@ -135,10 +143,10 @@ class ExactSolver(Solver):
 
         unsolved = []
         for c, index in enumerate(chunks):
-            shapes = {"noise": (len(index), params.shape[1]), "counts": (len(totals),)}
+            layout = {"noise": ((len(index), params.shape[1]), torch.float32), "counts": ((len(totals),), torch.int64)}
             if space.basis is not None:
-                shapes.update(escaped=(len(index),), escape_noise=(len(index), dims))
-            saved = progress.load(k, c, shapes)
+                layout.update(escaped=((len(index),), torch.uint8), escape_noise=((len(index), dims), torch.float32))
+            saved = progress.load(k, c, layout, lambda tensors: sound_chunk(tensors, space))
             if saved is None:
                 unsolved.append(c)
             else:

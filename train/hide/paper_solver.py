@@ -47,7 +47,8 @@ class PaperSolver(Solver):
 
         def saved_block(b: int) -> dict | None:
             m = min(settings.block_pixels, view.n_rays - b * settings.block_pixels)
-            return progress.load(k, b, {"noise": (m, *noise.shape[1:]), "colors": (len(points), m, 3)})
+            return progress.load(k, b, {"noise": ((m, *noise.shape[1:]), noise.dtype),
+                                               "colors": ((len(points), m, 3), torch.float32)})
 
         for b, block in enumerate(solve_blocks(view, pixels, layout_samples, settings, clean, noise.dtype,
                                                saved_block)):

@@ -3,7 +3,7 @@
 The record (runtime.payload) is turned into pixels, sealed first when there is a passphrase
 (runtime.sealing), hidden by `hide` like any secret, and a sealed bundle is then tagged. Only the exact
 method reproduces every byte, so payloads are refused with --method paper; a hide that is not exact
-leaves no bundle.
+leaves no bundle (run.hide raises InexactResult, and never takes allow_inexact with a payload).
 """
 
 from __future__ import annotations
@@ -58,14 +58,11 @@ def hide_payload(scene: Scene, record: Record, output: Path, config: HideConfig,
         announce(room)
     report = hide(scene, secret, output, config, device, force=force, show_progress=show_progress, payload=payload,
                   workers=workers)
-    try:
-        if not report["exact"]:
-            raise UserError(f"the hide reproduced {report['exact_fraction']:.6%} of the secret's values, not all of "
-                            "them; no bundle written")
-        if sealing is not None:
+    if sealing is not None:
+        try:
             add_bundle_tag(output, sealing[1])
-    except BaseException:
-        output.unlink(missing_ok=True)
-        raise
+        except BaseException:
+            output.unlink(missing_ok=True)
+            raise
     return {**report, "bundle_bytes": output.stat().st_size, "payload": record.report(),
             "sealed": sealing is not None, "capacity": room}

@@ -7,6 +7,7 @@ import hashlib
 import os
 import shutil
 from pathlib import Path
+from typing import Callable
 
 import torch
 from safetensors import safe_open
@@ -23,7 +24,7 @@ class Progress:
     same output is refused at once instead of mixing two secrets' chunks. Each chunk is written atomically
     (fsynced, then renamed) and carries the run key, its own position and a SHA-256 of its tensors; a
     chunk that fails any check on load (another run's, truncated, edited, wrong shape or dtype, NaN,
-    missing fields) is deleted and solved again. The key file says which run the folder belongs to; if it
+    missing fields, a dtype or value the solver does not expect) is deleted and solved again. The key file says which run the folder belongs to; if it
     is anything but this run's key in a regular file, every chunk there is discarded.
     """
 
@@ -76,19 +77,22 @@ class Progress:
             digest.update(value.view(torch.uint8).numpy().tobytes() if value.numel() else b"")
         return {"run_key": self.key, "tile": str(tile), "chunk": str(chunk), "sha256": digest.hexdigest()}
 
-    def load(self, tile: int, chunk: int, shapes: dict[str, tuple[int, ...]] | None = None) -> dict | None:
-        """A saved chunk that passes every check (and has exactly `shapes`, when given), else None; a chunk
-        that fails is deleted, so it is solved again and rewritten."""
+    def load(self, tile: int, chunk: int, layout: dict[str, tuple[tuple[int, ...], torch.dtype]],
+             sound: Callable[[dict[str, torch.Tensor]], bool] = lambda tensors: True) -> dict | None:
+        """A saved chunk that passes every check, else None: exactly the tensors `layout` names with its
+        (shape, dtype), finite, and `sound` by the solver's own assumptions. A chunk that fails is deleted,
+        so it is solved again and rewritten."""
         path = self.path(tile, chunk)
         if existing_kind(path) is None:
             return None
-        tensors = self.verified(path, tile, chunk, shapes)
-        if tensors is None:
+        tensors = self.verified(path, tile, chunk, layout)
+        if tensors is None or not sound(tensors):
             remove(path)
+            return None
         return tensors
 
-    def verified(self, path: Path, tile: int, chunk: int, shapes: dict | None) -> dict | None:
-        """The chunk's tensors if its stamp, shapes and values are sound; None for anything else."""
+    def verified(self, path: Path, tile: int, chunk: int, layout: dict) -> dict | None:
+        """The chunk's tensors if its stamp, shapes, dtypes and values are sound; None for anything else."""
         try:
             with safe_open(str(path), framework="pt") as handle:
                 metadata = handle.metadata() or {}
@@ -97,7 +101,7 @@ class Progress:
             return None
         if metadata != self.stamp(tile, chunk, tensors):
             return None
-        if shapes is not None and {name: tuple(value.shape) for name, value in tensors.items()} != shapes:
+        if {name: (tuple(value.shape), value.dtype) for name, value in tensors.items()} != layout:
             return None
         if any(value.is_floating_point() and not torch.isfinite(value).all() for value in tensors.values()):
             return None

@@ -18,7 +18,7 @@ from tqdm import tqdm
 
 import noisenerf
 from noisenerf.runtime.bundle import Bundle, secret_digest
-from noisenerf.runtime.errors import UserError
+from noisenerf.runtime.errors import InexactResult, UserError
 from noisenerf.runtime.files import check_output_path
 from noisenerf.runtime.limits import MAX_RAY_LAYOUT_SAMPLES, checked_image_size
 from noisenerf.runtime.metrics import tile_quality
@@ -31,11 +31,17 @@ from noisenerf.train.hide.solver import ChunkPool
 from noisenerf.train.scene.scene import Scene
 
 
+PAYLOAD_IS_EXACT = "a payload is revealed whole or not at all: --allow-inexact is for images"
+
+
 def hide(scene: Scene, secret: np.ndarray, output: Path, config: HideConfig, device: torch.device,
          force: bool = False, show_progress: bool = True, payload: dict | None = None,
-         workers: int | None = None) -> dict:
+         workers: int | None = None, allow_inexact: bool = False) -> dict:
     """Hide `secret` (H, W, 3) uint8 in the scene; write the bundle to `output`; return the report.
     payload: the bundle's payload object when the secret carries one (train.payload), else None.
+    A method that promises exactness (Solver.exact) and leaves a tile's pixels off raises InexactResult at
+    that tile, writing no bundle and keeping the solved chunks for a resume, unless allow_inexact (never for
+    a payload, which is revealed whole or not at all).
     workers: processes a CPU solve may spread its chunks over (None: every core this process may use);
     the bundle's bytes never depend on it. They are spawned, so a script that calls hide on a secret of
     several chunks guards its top level with `if __name__ == "__main__":`, as multiprocessing requires."""
@@ -48,6 +54,8 @@ def hide(scene: Scene, secret: np.ndarray, output: Path, config: HideConfig, dev
     scene.to(device)
     field = scene.render_field
     solver = METHODS[config.method]
+    if allow_inexact and payload is not None:
+        raise UserError(PAYLOAD_IS_EXACT)
     workers = (available_cores() if workers is None else workers) if device.type == "cpu" else 1
     with Progress(output, run_key(scene, secret, config)) as progress, ChunkPool(workers) as pool:
         tiles, reports = [], []
@@ -62,9 +70,14 @@ def hide(scene: Scene, secret: np.ndarray, output: Path, config: HideConfig, dev
             with solver.threads(device):  # the check below is a few large passes, for every core
                 solved = solver.solve_tile(view, pixels, (h, w), config, progress, k, bar, pool)
             colors = view.render_all(solved.noise, pass_samples_for(device))
+            quality = tile_quality(colors.cpu().numpy(), pixels.cpu().numpy(), (h, w))
+            if solver.exact and quality["inexact_pixels"] and not allow_inexact:
+                raise InexactResult(
+                    f"tile {k} (view {tile.view}, {w}x{h} px at x={x0}, y={y0}) has {quality['inexact_pixels']} "
+                    f"pixels off, by up to {quality['max_error']} levels; no bundle written (solved parts kept in "
+                    f"{progress.directory} for a resume; --allow-inexact writes the bundle anyway)")
             tiles.append(dataclasses.replace(tile, noise=solved.stored_noise, frame=solved.frame))
-            reports.append({"rect": list(tile.rect), "view": tile.view,
-                            **tile_quality(colors.cpu().numpy(), pixels.cpu().numpy(), (h, w)),
+            reports.append({"rect": list(tile.rect), "view": tile.view, **quality,
                             **solved.report, "seconds": round(time.perf_counter() - tile_start, 2)})
         bar.close()
         bundle = Bundle(model_fingerprint=scene.fingerprint(), width=secret.shape[1], height=secret.shape[0],

@@ -108,6 +108,7 @@ class Solver:
     layouts: ClassVar[tuple[str, ...]]  # noise layouts it can write, the default first
     default_samples: ClassVar[int]  # samples per ray of its secret view
     default_network: ClassVar[str | None] = None  # None: the scene's render network
+    exact: ClassVar[bool] = False  # whether it promises every 8-bit value: run.hide then refuses to write less
 
     def check(self, config: HideConfig) -> None:
         """Refuse settings this method cannot honour (UserError)."""
