@@ -36,6 +36,7 @@ from noisenerf.runtime.model import METADATA_KEY as MODEL_KEY
 from noisenerf.train.hide import exact_solver, progress as progress_module
 from noisenerf.train.scene.procedural import write_procedural_dataset
 from test_datasets import write_llff
+from helpers import Result, run_main
 from test_reveal_cli import raw_bundle, write_reveal_inputs
 
 PEAK_MB = 400  # what an allocation case may cost at most, interpreter and libraries included
@@ -72,24 +73,6 @@ def world(tmp_path_factory) -> World:
         patch.setattr(progress_module.Progress, "clear", lambda self: None)
         assert noisenerf_main([str(a) for a in hide_args(incomplete, directory / "kept.bundle")]) == 0
     return World(**{**incomplete.__dict__, "hidden": (directory / "kept.bundle").read_bytes()})
-
-
-@dataclass(frozen=True)
-class Result:
-    code: int
-    out: str
-    err: str
-
-
-def run_main(main, args, capfd) -> Result:
-    """A CLI's main in-process, its exit code and what reached file descriptors 1 and 2."""
-    capfd.readouterr()
-    try:
-        code = main([str(a) for a in args])
-    except SystemExit as exit_:
-        code = exit_.code
-    out, err = capfd.readouterr()
-    return Result(code, out, err)
 
 
 def assert_refused(result: Result, output: Path | None, message: str) -> None:

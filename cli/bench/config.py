@@ -34,5 +34,6 @@ class BenchConfig:
     view_photos: int = 5  # photos (the first of `photos`) hidden at each of those views
     view_width: int | None = 128  # their width there (None: native; 8 × 5 native photos take ~15 min on 2 cores)
     contention_width: int = 256  # the contention experiment's secret: several chunks, so the hide's workers take part
+    coverage_size: int = 24  # the coverage experiment's hard secrets (square): 10 of them at every camera
     experiments: tuple[str, ...] = EXPERIMENTS
     seed: int = 0

@@ -6,7 +6,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable
 
-from noisenerf.cli.bench import exact_cost, exact_scale, paper, payload
+from noisenerf.cli.bench import coverage, exact_cost, exact_scale, paper, payload
 from noisenerf.cli.bench.context import BenchContext, Measured, Section
 
 
@@ -43,6 +43,8 @@ REGISTRY = (
                exact_scale.plot_views),
     Experiment("contention", "Hide on a busy machine", exact_scale.measure_contention, exact_scale.describe_contention),
     Experiment("twok", "2K secrets as tiles", exact_scale.measure_twok, exact_scale.describe_twok),
+    Experiment("coverage", "Exact everywhere: hard secrets at every camera", coverage.measure_coverage,
+               coverage.describe_coverage),
     Experiment("payload", "File payloads, plain and sealed", payload.measure_payload, payload.describe_payload),
 )
 EXPERIMENTS = tuple(experiment.name for experiment in REGISTRY)

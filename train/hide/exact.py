@@ -34,6 +34,7 @@ The paper's own method lives in paper.py; exact_solver.py runs this solver over 
 
 from __future__ import annotations
 
+import dataclasses
 import itertools
 from dataclasses import dataclass
 from typing import Callable, ClassVar
@@ -440,6 +441,35 @@ def solve_from(view: SolverView, index: torch.Tensor, pixels: torch.Tensor, spac
                   generator, counts, observe)
 
 
+RESCUE_ROUNDS = 6  # further solves a pixel left unfinished gets (rescue), each from another start
+
+
+def rescue(view: SolverView, index: torch.Tensor, pixels: torch.Tensor, space: NoiseSpace, params: torch.Tensor,
+           done: torch.Tensor, settings: ExactSettings, generator: torch.Generator, counts: SolveCounts
+           ) -> tuple[torch.Tensor, torch.Tensor]:
+    """Pixels that a solve left unfinished, solved again in `space` from other starts until they round right:
+    round 0 continues from their own params, round r ≥ 1 starts from the params of the r-th finished pixel
+    nearest in target colour (whose ray is lifted and whose colour is near), jittered by r·jitter; every
+    round has twice the iterations. Saturated colours far from every colour the view renders need this:
+    their first solve ends in a basin without the colour, or with the density unlifted.
+    index (m,), pixels (m, 3) uint8, params (m, P), done (m,) bool -> params, done."""
+    params, done = params.clone(), done.clone()
+    goal = logit(bin_targets(pixels))
+    longer = dataclasses.replace(settings, max_iters=2 * settings.max_iters)
+    for r in range(RESCUE_ROUNDS):
+        left, finished = (~done).nonzero()[:, 0], done.nonzero()[:, 0]
+        if left.numel() == 0:
+            break
+        start = params[left]
+        if r and finished.numel():
+            nearest = torch.cdist(goal[left], goal[finished]).topk(min(r, finished.numel()), largest=False).indices
+            start = params[finished[nearest[:, -1]]]
+            start = start + r * settings.jitter * torch.randn(start.shape, generator=generator).to(start.device)
+        solved, ok = solve_from(view, index[left], pixels[left], space, space.store(start), longer, generator, counts)
+        params[left[ok]], done[left[ok]] = solved[ok], True
+    return params, done
+
+
 def solve_exact(view: SolverView, index: torch.Tensor, pixels: torch.Tensor, space: NoiseSpace,
                 settings: ExactSettings, generator: torch.Generator, observe: Observer | None = None) -> ChunkResult:
     """Bring pixels `index` (m,) of a single-sample view to their 8-bit values `pixels` (m, 3) uint8, with
@@ -477,3 +507,13 @@ def solve_exact(view: SolverView, index: torch.Tensor, pixels: torch.Tensor, spa
     params, done = refine(view, index, criteria.goal, space, params, criteria.rounds_right, space.store, settings,
                           generator, counts, observe)
     return ChunkResult(params, done, counts)
+
+
+def solve_exact_everywhere(view: SolverView, index: torch.Tensor, pixels: torch.Tensor, space: NoiseSpace,
+                           settings: ExactSettings, generator: torch.Generator) -> ChunkResult:
+    """solve_exact, then rescue for the pixels it leaves."""
+    result = solve_exact(view, index, pixels, space, settings, generator)
+    if bool(result.done.all()):
+        return result
+    return ChunkResult(*rescue(view, index, pixels, space, result.params, result.done, settings, generator,
+                               result.counts), result.counts)

@@ -12,7 +12,9 @@ import torch
 from noisenerf.runtime.bundle import Frame, noise_shape
 from noisenerf.runtime.errors import UserError
 from noisenerf.train.hide.compact import CompactSettings, in_basis, solver_view, tile_space
-from noisenerf.train.hide.exact import ExactSettings, NoiseSpace, chunk_pixels_for, is_lifted, solve_exact
+from noisenerf.train.hide.exact import (
+    ExactSettings, NoiseSpace, chunk_pixels_for, is_lifted, rescue, solve_exact, solve_exact_everywhere,
+)
 from noisenerf.train.hide.secret_view import BranchView, SecretView
 from noisenerf.train.hide.solver import ChunkPool, Solver, TileSolution, chunk_seed, storage_dtype
 
@@ -57,7 +59,7 @@ def solve_chunk(view: SecretView, index: torch.Tensor, pixels: torch.Tensor, spa
     generator = torch.Generator().manual_seed(seed)
     settings = config.get(ExactSettings)
     if space.basis is None:
-        result = solve_exact(view, index, pixels, space, settings, generator)
+        result = solve_exact_everywhere(view, index, pixels, space, settings, generator)
         return {"noise": result.params, "counts": torch.tensor(dataclasses.astuple(result.counts))}
     solving = solver_view(view, space)
     # a ray the tile's shared γ(x) leaves unlifted can only escape: no basis solve for it
@@ -67,14 +69,14 @@ def solve_chunk(view: SecretView, index: torch.Tensor, pixels: torch.Tensor, spa
                          generator)
     params, done = space.zeros(len(index), view.noise_dims, index.device), torch.zeros_like(index, dtype=torch.bool)
     params[tried], done[tried] = result.params, result.done
-    left = (~done).nonzero()[:, 0]
     escape_noise = torch.zeros(len(index), view.noise_dims, device=index.device)
-    counts = torch.tensor(dataclasses.astuple(result.counts))
-    if left.numel():
-        full = solve_exact(view, index[left], pixels[left], NoiseSpace(ESCAPE_DTYPE), settings, generator)
-        escape_noise[left] = full.params
-        counts += torch.tensor(dataclasses.astuple(full.counts))
-    return {"noise": params, "counts": counts, "escaped": (~done).to(torch.uint8), "escape_noise": escape_noise}
+    if not done.all():  # escapes start from their own compact noise (it keeps the tile's density lift); the
+        # finished pixels' compact noise are the rescue's donors
+        full, _ = rescue(view, index, pixels, NoiseSpace(ESCAPE_DTYPE), space.expand(params)[:, 0], done, settings,
+                         generator, result.counts)
+        escape_noise[~done] = full[~done]
+    return {"noise": params, "counts": torch.tensor(dataclasses.astuple(result.counts)),
+            "escaped": (~done).to(torch.uint8), "escape_noise": escape_noise}
 
 
 def sound_chunk(saved: dict[str, torch.Tensor], space: NoiseSpace) -> bool:
