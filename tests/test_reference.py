@@ -2,13 +2,14 @@
 
 The references were first written by main at e98c111, before train/ was split into layers (issue 9),
 and are rewritten (`python tests/test_reference.py`) only by a change that means to alter what is
-written, whose commit says why: last when compact bundles moved their basis into γ(d) with a shared
-γ(x) that lifts the density, solved through the view branch alone (issue 11).
+written, whose commit says why: last when the ONNX graph came to be written from runtime/graph.py
+instead of traced (issue 25: the model file's bytes changed, every bundle stayed byte-identical).
 `exact_compact.bundle` is the small exact bundle itself, and `digests.json` holds the SHA-256 of every
 artifact below (bundles of each method and layout, a plain and a sealed payload, a fitted scene's files
 and an exported ONNX file). Each artifact is rebuilt here from seeds alone and must match byte for byte.
 Torch runs one thread, so the bytes do not depend on the machine's core count; the ONNX file also
-depends on torch's exporter, so that comparison skips under another torch than the reference's.
+depends on the onnx package's serialisation, so that comparison skips under another torch than the
+reference's.
 """
 
 from __future__ import annotations
