@@ -191,13 +191,8 @@ def load_model(path: str | os.PathLike, device: str = "cpu", threads: int | None
     file = parse_model(data, source)
     metadata = ModelMetadata.from_metadata_props(file.metadata_props, source)
     check_weights(check_graph(file, expected_graph(metadata, source), source), metadata, source)
-    field = OnnxField(data, device=device, threads=threads, source=source)
-    if metadata.noise_dims != field.noise_dims:
-        raise UserError(f"{field.source}: metadata says {metadata.noise_dims} noise dims, "
-                        f"the graph takes {field.noise_dims}")
-    if field.has_fine != (metadata.hierarchy is not None):
-        raise UserError(f"{field.source}: metadata and graph disagree on whether there is a fine network")
-    return Model(metadata, field)
+    # the graph check above has made the ports, and so the noise width and the fine network, the metadata's
+    return Model(metadata, OnnxField(data, device=device, threads=threads, source=source))
 
 
 def expected_graph(metadata: ModelMetadata, source: str) -> FieldGraph:

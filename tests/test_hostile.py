@@ -290,7 +290,7 @@ MODELS = {  # case: (edit(props), message)
     "grid aabb NaN": (meta_set("grid", "aabb", 0, NAN), "grid aabb"),
     "grid aabb inverted": (meta_set("grid", "aabb", [1, 1, 1, -1, -1, -1]), "min < max"),
     "noise_dims 2.5": (meta_set("noise_dims", 2.5), "must be an integer"),
-    "noise_dims not the graph's": (meta_set("noise_dims", 91), "the graph takes 90"),
+    "noise_dims not the graph's": (meta_set("noise_dims", 91), "expected [('points', ('n', 3)), ('viewdirs', ('n', 3)), ('noise', ('n', 91))]"),
     "format version 1": (lambda props: props.update(noisenerf_format_version="1"), "model format version"),
     "metadata not JSON": (lambda props: props.update({MODEL_KEY: "{"}), "not valid JSON"),
     "metadata 100000 deep": (lambda props: props.update({MODEL_KEY: "[" * 100_000 + "]" * 100_000}),
@@ -320,16 +320,16 @@ def toy_graph(rgb_shape=("n", 3), batch="n", sigma_shape=("n",), rgb_source="poi
     return helper.make_model(graph, opset_imports=[helper.make_opsetid("", 13)], ir_version=8)
 
 
-GRAPHS = {  # case: (graph, message)
-    "rgb declared (n, 6)": (toy_graph(rgb_shape=("n", 6), rgb_source="both"), "rgb has shape"),
-    "a fixed batch of 7": (toy_graph(batch=7, rgb_shape=(7, 3), sigma_shape=(7,)), "points has shape"),
-    "sigma declared (n, 1)": (toy_graph(sigma_shape=("n", 1)), "sigma has shape"),
-    "rgb (n, 6) declared (n, 3)": (toy_graph(rgb_source="both"), "expected"),
+GRAPHS = {  # case: (graph, message): each is refused by runtime/graph.check_graph before any session
+    "rgb declared (n, 6)": (toy_graph(rgb_shape=("n", 6), rgb_source="both"), "its outputs are"),
+    "a fixed batch of 7": (toy_graph(batch=7, rgb_shape=(7, 3), sigma_shape=(7,)), "its inputs are"),
+    "sigma declared (n, 1)": (toy_graph(sigma_shape=("n", 1)), "its outputs are"),
+    "rgb (n, 6) declared (n, 3)": (toy_graph(rgb_source="both"), "the model's graph is not the one its scene exports"),
     "no noise input": (helper.make_model(helper.make_graph(
         [helper.make_node("Identity", ["points"], ["rgb"]), helper.make_node("Identity", ["points"], ["sigma"])],
         "toy", [helper.make_tensor_value_info("points", TensorProto.FLOAT, ["n", 3])],
         [helper.make_tensor_value_info(n, TensorProto.FLOAT, ["n", 3]) for n in ("rgb", "sigma")]),
-        opset_imports=[helper.make_opsetid("", 13)], ir_version=8), "not a noisenerf field"),
+        opset_imports=[helper.make_opsetid("", 13)], ir_version=8), "its inputs are"),
 }
 
 
