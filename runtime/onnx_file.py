@@ -171,15 +171,6 @@ class ModelFile:
     ir_version: int = 0
     unexpected: tuple[str, ...] = ()  # fields a noisenerf graph never has ("graph field 13", ...)
 
-    def weights(self, source: str) -> dict[str, np.ndarray]:
-        """Initializer name -> float32 array, refusing duplicate names."""
-        arrays = {}
-        for record in self.initializers:
-            if record.name in arrays:
-                raise UserError(f"{source}: initializer {record.name!r} appears twice")
-            arrays[record.name] = record.array(source)
-        return arrays
-
 
 def refuse_unsupported(message: str, number: int, source: str) -> None:
     """Refuse field `number` of a `message` kind that is in UNSUPPORTED."""
