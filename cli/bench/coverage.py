@@ -16,7 +16,6 @@ import numpy as np
 
 from noisenerf.runtime.bundle import load_bundle
 from noisenerf.runtime.images import load_secret, resize_image, to_uint8
-from noisenerf.runtime.metrics import exact_fraction
 from noisenerf.runtime.reveal import reveal
 from noisenerf.train.hide.plan import HideConfig
 

@@ -454,7 +454,7 @@ def rescue(view: SolverView, index: torch.Tensor, pixels: torch.Tensor, space: N
     their first solve ends in a basin without the colour, or with the density unlifted.
     index (m,), pixels (m, 3) uint8, params (m, P), done (m,) bool -> params, done."""
     params, done = params.clone(), done.clone()
-    goal = logit(bin_targets(pixels))
+    goal = Criteria(pixels, settings).goal
     longer = dataclasses.replace(settings, max_iters=2 * settings.max_iters)
     for r in range(RESCUE_ROUNDS):
         left, finished = (~done).nonzero()[:, 0], done.nonzero()[:, 0]
@@ -508,12 +508,3 @@ def solve_exact(view: SolverView, index: torch.Tensor, pixels: torch.Tensor, spa
                           generator, counts, observe)
     return ChunkResult(params, done, counts)
 
-
-def solve_exact_everywhere(view: SolverView, index: torch.Tensor, pixels: torch.Tensor, space: NoiseSpace,
-                           settings: ExactSettings, generator: torch.Generator) -> ChunkResult:
-    """solve_exact, then rescue for the pixels it leaves."""
-    result = solve_exact(view, index, pixels, space, settings, generator)
-    if bool(result.done.all()):
-        return result
-    return ChunkResult(*rescue(view, index, pixels, space, result.params, result.done, settings, generator,
-                               result.counts), result.counts)

@@ -12,9 +12,7 @@ import torch
 from noisenerf.runtime.bundle import Frame, noise_shape
 from noisenerf.runtime.errors import UserError
 from noisenerf.train.hide.compact import CompactSettings, in_basis, solver_view, tile_space
-from noisenerf.train.hide.exact import (
-    ExactSettings, NoiseSpace, chunk_pixels_for, is_lifted, rescue, solve_exact, solve_exact_everywhere,
-)
+from noisenerf.train.hide.exact import ExactSettings, NoiseSpace, chunk_pixels_for, is_lifted, rescue, solve_exact
 from noisenerf.train.hide.secret_view import BranchView, SecretView
 from noisenerf.train.hide.solver import ChunkPool, Solver, TileSolution, chunk_seed, storage_dtype
 
@@ -59,8 +57,9 @@ def solve_chunk(view: SecretView, index: torch.Tensor, pixels: torch.Tensor, spa
     generator = torch.Generator().manual_seed(seed)
     settings = config.get(ExactSettings)
     if space.basis is None:
-        result = solve_exact_everywhere(view, index, pixels, space, settings, generator)
-        return {"noise": result.params, "counts": torch.tensor(dataclasses.astuple(result.counts))}
+        result = solve_exact(view, index, pixels, space, settings, generator)
+        params, _ = rescue(view, index, pixels, space, result.params, result.done, settings, generator, result.counts)
+        return {"noise": params, "counts": torch.tensor(dataclasses.astuple(result.counts))}
     solving = solver_view(view, space)
     # a ray the tile's shared γ(x) leaves unlifted can only escape: no basis solve for it
     tried = (is_lifted(solving.density[index], settings.density_floor) if isinstance(solving, BranchView)
