@@ -33,7 +33,7 @@ from noisenerf.runtime.errors import UserError
 from noisenerf.runtime.files import atomic_output, check_output_path
 from noisenerf.runtime.fingerprint import weights_fingerprint
 from noisenerf.runtime.model import ModelMetadata
-from noisenerf.runtime.onnx_file import parse_model
+from noisenerf.runtime.onnx_file import ModelFile, parse_model
 from noisenerf.runtime.graph import IR_VERSION, OPSET, Port, check_graph, field_graph
 from noisenerf.runtime.session import OnnxField
 from noisenerf.train.scene.field import NeRFField
@@ -150,11 +150,10 @@ def probe_parity(field: NeRFField, onnx_field: OnnxField, aabb, seed: int, netwo
     return tuple(cases)
 
 
-def check_as_runtime(data: bytes, metadata: ModelMetadata) -> None:
+def check_as_runtime(file: ModelFile, metadata: ModelMetadata) -> None:
     """Refuse a model that the runtime would refuse: its graph, read back, is not field_graph's, or its
     weights miss the scene fingerprint."""
-    source = "the exported graph"
-    weights = check_graph(parse_model(data, source), field_graph(metadata.architecture, metadata.noise_dims), source)
+    weights = check_graph(file, field_graph(metadata.architecture, metadata.noise_dims), file.source)
     if weights_fingerprint(weights, metadata.architecture) != metadata.fingerprint:
         raise UserError("export refused: the graph's initializers do not reproduce the scene's weights")
 
@@ -172,7 +171,8 @@ def export_scene(scene_dir: str | os.PathLike, out_path: str | os.PathLike, prob
     attach_metadata(model, metadata)
     onnx.checker.check_model(model, full_check=True)
     data = model.SerializeToString()
-    onnx_field = OnnxField(data, threads=1)
+    file = parse_model(data, "the exported graph")
+    onnx_field = OnnxField(file, threads=1)
     probe = [case for name, field in scene.fields().items()
              for case in probe_parity(field, onnx_field.network(name), scene.config.aabb, probe_seed, name)]
     for case in probe:
@@ -180,7 +180,7 @@ def export_scene(scene_dir: str | os.PathLike, out_path: str | os.PathLike, prob
             raise UserError(f"export refused: on the '{case.name}' noise probe of the {case.network} network "
                             f"onnxruntime is off by {case.onnx_error:.3g}, torch float32 by "
                             f"{case.torch_error:.3g} (allowed: {PROBE_TOLERANCE:g} + {FLOAT32_SLACK:g}x torch's)")
-    check_as_runtime(data, metadata)
+    check_as_runtime(file, metadata)
     with atomic_output(out_path) as tmp:
         tmp.write_bytes(data)
     return {"model": str(out_path), "fingerprint": scene.fingerprint(), "bytes": len(data),

@@ -46,8 +46,9 @@ from noisenerf.runtime.limits import (
     MAX_CAMERAS, MAX_COMPACT_COEFFICIENTS, MAX_IMAGE_SIDE, MAX_NOISE_DIMS, MAX_RAY_LAYOUT_SAMPLES, MAX_TILES,
     MAX_XZ_MEMORY, checked_float, checked_image_size, checked_int, checked_list,
 )
+from noisenerf.runtime.networks import NETWORKS
 from noisenerf.runtime.payload import checked_payload
-from noisenerf.runtime.sampling import NETWORKS, SamplingConfig
+from noisenerf.runtime.sampling import SamplingConfig
 
 BUNDLE_FORMAT_VERSION = 2
 METADATA_KEY = "noisenerf_bundle"

@@ -43,10 +43,10 @@ from noisenerf.runtime.graph import FieldGraph, check_graph, field_graph
 from noisenerf.runtime.limits import (
     MAX_CAMERAS, MAX_GRID_RESOLUTION, MAX_NOISE_DIMS, checked_float, checked_int, checked_list,
 )
-from noisenerf.runtime.onnx_file import parse_model
+from noisenerf.runtime.occupancy import OccupancyGrid
+from noisenerf.runtime.pdf import Hierarchy
 from noisenerf.runtime.render import CoarseNetwork, RenderConfig
-from noisenerf.runtime.sampling import NETWORKS, Hierarchy, OccupancyGrid
-from noisenerf.runtime.session import OnnxField, read_model_bytes
+from noisenerf.runtime.session import OnnxField, read_model_file
 
 MODEL_FORMAT_VERSION = 2
 METADATA_KEY = "noisenerf"
@@ -161,7 +161,7 @@ class Model:
 
     def fields(self) -> dict[str, OnnxField]:
         """Network name ("coarse", and "fine" where the scene has one) -> its field."""
-        return {name: self.field.network(name) for name in NETWORKS if name == "coarse" or self.field.has_fine}
+        return {name: self.field.network(name) for name in self.field.networks}
 
     @property
     def coarse(self) -> CoarseNetwork | None:
@@ -187,12 +187,11 @@ def check_weights(weights: dict[str, np.ndarray], metadata: ModelMetadata, sourc
 def load_model(path: str | os.PathLike, device: str = "cpu", threads: int | None = None) -> Model:
     """Load a model file for rendering; refuses non-ONNX, truncated, external-data, foreign or modified
     files (external data and weights are checked before onnxruntime sees the bytes)."""
-    data, source = read_model_bytes(path)
-    file = parse_model(data, source)
-    metadata = ModelMetadata.from_metadata_props(file.metadata_props, source)
-    check_weights(check_graph(file, expected_graph(metadata, source), source), metadata, source)
+    file = read_model_file(path)
+    metadata = ModelMetadata.from_metadata_props(file.metadata_props, file.source)
+    check_weights(check_graph(file, expected_graph(metadata, file.source), file.source), metadata, file.source)
     # the graph check above has made the ports, and so the noise width and the fine network, the metadata's
-    return Model(metadata, OnnxField(data, device=device, threads=threads, source=source))
+    return Model(metadata, OnnxField(file, device=device, threads=threads))
 
 
 def expected_graph(metadata: ModelMetadata, source: str) -> FieldGraph:

@@ -26,6 +26,7 @@ looks. Everything here is bounded by the file's own size.
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 from typing import Iterator
 
@@ -160,8 +161,11 @@ def read_tensor(data: memoryview) -> TensorRecord:
 
 @dataclass(frozen=True)
 class ModelFile:
-    """What the runtime reads from a model's bytes: metadata_props and the graph's initializers."""
+    """A model's bytes, read once: metadata_props, the graph's initializers, nodes and ports. Holding one
+    means its bytes keep no tensor in external data, so onnxruntime may be given them."""
 
+    data: bytes = dataclasses.field(repr=False)
+    source: str  # the model's name in messages
     metadata_props: dict[str, str]
     initializers: tuple[TensorRecord, ...]
     nodes: tuple[Node, ...] = ()
@@ -287,5 +291,5 @@ def parse_model(data: bytes, source: str) -> ModelFile:
     if external:
         raise UserError(f"{source} keeps tensor {external[0]!r} in external data; a noisenerf model must be "
                         "one self-contained .onnx file")
-    return ModelFile(props, tuple(initializers), tuple(nodes), tuple(ports[11]), tuple(ports[12]), tuple(opsets),
+    return ModelFile(data, source, props, tuple(initializers), tuple(nodes), tuple(ports[11]), tuple(ports[12]), tuple(opsets),
                      ir_version, tuple(unexpected))

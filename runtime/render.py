@@ -1,26 +1,30 @@
-"""Rendering a view from any field backend (onnxruntime, or torch behind a numpy callback).
+"""The numpy render pipeline, for any field backend (onnxruntime, or torch behind a numpy callback).
 
-The field is a callback `field(points (m, 3), viewdirs (m, 3)) -> rgb (m, 3), sigma (m,)`; everything
-around it — rays, NDC, sample positions, skipping, compositing — is this module's, so two backends
-rendering the same view differ only by their field evaluation. One pipeline: sampler (uniform, or
-coarse → sample_pdf for scenes with a fine network) → field callback (march_rays) → compositor.
+One pipeline: sampler (uniform, or coarse → sample_pdf for scenes with a fine network) → field callback
+(runtime.field_callbacks, evaluated by runtime.marching.march_rays) → compositor (runtime.compositing);
+and one loop over a camera's pixels in chunks, `render_in_chunks`, which ordinary renders (render_view)
+and reveals (runtime.reveal.render_tile) both run, so two backends rendering the same view differ only by
+their field evaluation.
 """
 
 from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass
+from typing import Callable
 
 import numpy as np
 
-from noisenerf.runtime.camera import Camera, NDCSpace, ndc_rays, normalize_directions, pixel_rays
+from noisenerf.runtime.camera import Camera, NDCSpace
 from noisenerf.runtime.compositing import composite, render_weights
 from noisenerf.runtime.errors import UserError
+from noisenerf.runtime.field_callbacks import FieldFn, SampleFieldFn, plain
 from noisenerf.runtime.limits import checked_float, checked_list
-from noisenerf.runtime.sampling import (
-    FieldFn, Hierarchy, OccupancyGrid, SampleFieldFn, SamplingConfig, march_rays, plain, sample_along, sample_pdf,
-    sample_positions,
-)
+from noisenerf.runtime.marching import march_rays
+from noisenerf.runtime.occupancy import OccupancyGrid
+from noisenerf.runtime.pdf import Hierarchy, sample_pdf
+from noisenerf.runtime.rays import RayBatch, pixel_range_rays
+from noisenerf.runtime.sampling import SamplingConfig, sample_along, sample_positions
 
 # the one chunking policy of a render: rays per chunk such that a chunk holds at most CHUNK_SAMPLES samples
 # (~60 MB of buffers with a reveal's 90 float32 noise values each), and at most CHUNK_RAYS rays
@@ -58,26 +62,6 @@ class RenderConfig:
             )
         except KeyError as error:
             raise UserError(f"malformed render config: missing {error}") from None
-
-
-@dataclass(frozen=True)
-class RayBatch:
-    """Rays in the space the field lives in (NDC for forward-facing scenes). All (n_rays, 3) float32."""
-
-    origins: np.ndarray
-    directions: np.ndarray
-    viewdirs: np.ndarray
-
-    def __len__(self) -> int:
-        return self.origins.shape[0]
-
-
-def prepare_rays(config: RenderConfig, rays_o: np.ndarray, rays_d: np.ndarray) -> RayBatch:
-    """View directions from the world rays, then NDC if the scene is forward-facing (nerf-pytorch order)."""
-    viewdirs = normalize_directions(rays_d)
-    if config.ndc is not None:
-        rays_o, rays_d = ndc_rays(config.ndc, rays_o, rays_d)
-    return RayBatch(rays_o.astype(np.float32), rays_d.astype(np.float32), viewdirs)
 
 
 @dataclass(frozen=True)
@@ -121,13 +105,13 @@ def importance_positions(config: RenderConfig, rays: RayBatch, coarse: CoarseNet
     return np.sort(both, axis=-1), stats
 
 
-def render_rays(config: RenderConfig, rays: RayBatch, field: FieldFn, grid: OccupancyGrid | None,
+def render_rays(config: RenderConfig, rays: RayBatch, field: SampleFieldFn, grid: OccupancyGrid | None,
                 early_stop: float | None = None, coarse: CoarseNetwork | None = None
                 ) -> tuple[np.ndarray, RenderStats]:
     """Colours of rays (n_rays, 3).
 
-    Uniform samples (config.sampling) through `field`, with empty-space skipping (grid) and early ray
-    termination; or, given the `coarse` network, nerf-pytorch's hierarchical render with `field` as the
+    Uniform samples (config.sampling) through the callback `field`, with empty-space skipping (grid) and
+    early ray termination; or, given the `coarse` network, nerf-pytorch's hierarchical render with `field` as the
     fine network. Hierarchical renders never skip (grid and early_stop are ignored): every coarse weight
     moves the fine samples, so a skipped coarse sample would move them, and nerf-pytorch evaluates all.
     Only rays whose transmittance is exactly 0 in float32 stop, where nothing behind counts anyway.
@@ -137,7 +121,7 @@ def render_rays(config: RenderConfig, rays: RayBatch, field: FieldFn, grid: Occu
         early_stop = config.early_stop if early_stop is None else early_stop
     else:
         (t_vals, before), grid, early_stop = importance_positions(config, rays, coarse), None, 0.0
-    weights, rgbs, stats = render_samples(rays, t_vals, plain(field), grid, early_stop)
+    weights, rgbs, stats = render_samples(rays, t_vals, field, grid, early_stop)
     return composite(weights, rgbs, np.asarray(config.background)), RenderStats(
         len(rays), before.n_samples_dense + stats.n_samples_dense,
         before.n_samples_evaluated + stats.n_samples_evaluated)
@@ -149,13 +133,22 @@ def rays_per_chunk(n_samples: int, most_rays: int = CHUNK_RAYS) -> int:
     return max(1, min(most_rays, CHUNK_SAMPLES // n_samples))
 
 
-def view_rays(camera: Camera, config: RenderConfig, start: int, stop: int) -> RayBatch:
-    """Rays of pixels start..stop (row-major) in the field's space: the same rays as camera_rays gives for
-    the whole image, computed a chunk at a time so a large camera never holds all its rays at once."""
-    index = np.arange(start, stop)
-    px = (index % camera.width).astype(np.float32) + config.pixel_center
-    py = (index // camera.width).astype(np.float32) + config.pixel_center
-    return prepare_rays(config, *pixel_rays(camera, px, py))
+ChunkRenderer = Callable[[int, int], tuple[np.ndarray, RenderStats]]  # (start, stop) -> colours (m, 3), counts
+
+
+def render_in_chunks(n_rays: int, chunk_rays: int, render_chunk: ChunkRenderer, progress=None
+                     ) -> tuple[np.ndarray, RenderStats]:
+    """The one render loop: colours (n_rays, 3) float32 of rays 0..n_rays, `chunk_rays` at a time, so a
+    render holds one chunk's rays, samples and noise at once; `progress` (tqdm-like) counts rays."""
+    colors = np.empty((n_rays, 3), dtype=np.float32)
+    stats = RenderStats(0, 0, 0)
+    for start in range(0, n_rays, chunk_rays):
+        stop = min(start + chunk_rays, n_rays)
+        colors[start:stop], chunk_stats = render_chunk(start, stop)
+        stats = stats + chunk_stats
+        if progress is not None:
+            progress.update(stop - start)
+    return colors, stats
 
 
 def render_view(camera: Camera, config: RenderConfig, field: FieldFn, grid: OccupancyGrid | None,
@@ -163,17 +156,9 @@ def render_view(camera: Camera, config: RenderConfig, field: FieldFn, grid: Occu
                 coarse: CoarseNetwork | None = None) -> tuple[np.ndarray, RenderStats]:
     """An ordinary (noise-free) render of a camera: image (height, width, 3) float32 and counts. With the
     `coarse` network, hierarchical (see render_rays)."""
-    n_rays = camera.width * camera.height
-    per_ray = (config.sampling.n_samples if coarse is None
-               else coarse.hierarchy.n_coarse + coarse.hierarchy.n_importance)
-    chunk = rays_per_chunk(per_ray, chunk_rays)
-    image = np.empty((n_rays, 3), dtype=np.float32)
-    stats = RenderStats(0, 0, 0)
-    for start in range(0, n_rays, chunk):
-        stop = min(start + chunk, n_rays)
-        image[start:stop], chunk_stats = render_rays(config, view_rays(camera, config, start, stop), field, grid,
-                                                     early_stop, coarse)
-        stats = stats + chunk_stats
-        if progress is not None:
-            progress.update(stop - start)
-    return image.reshape(camera.height, camera.width, 3), stats
+    per_ray = config.sampling.n_samples if coarse is None else coarse.hierarchy.samples_per_ray
+    colors, stats = render_in_chunks(
+        camera.width * camera.height, rays_per_chunk(per_ray, chunk_rays),
+        lambda start, stop: render_rays(config, pixel_range_rays(camera, config, start, stop), plain(field), grid,
+                                        early_stop, coarse), progress)
+    return colors.reshape(camera.height, camera.width, 3), stats

@@ -8,43 +8,35 @@ samples, never hierarchical, since the noise was trained on exactly those sample
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 from typing import Mapping
 
 import numpy as np
 
 from noisenerf.runtime.bundle import Bundle, Tile, secret_digest
-from noisenerf.runtime.camera import camera_rays
-from noisenerf.runtime.compositing import composite
 from noisenerf.runtime.errors import UserError
+from noisenerf.runtime.field_callbacks import NoisyFieldFn, noisy
 from noisenerf.runtime.images import to_uint8
-from noisenerf.runtime.render import RayBatch, RenderConfig, prepare_rays, rays_per_chunk, render_samples
-from noisenerf.runtime.sampling import NoisyFieldFn, noisy, render_network, sample_positions
-
-
-def tile_rays(tile: Tile, config: RenderConfig) -> RayBatch:
-    """The tile's rays, row-major, in the field's space."""
-    return prepare_rays(config, *camera_rays(tile.camera, config.pixel_center))
+from noisenerf.runtime.networks import render_network
+from noisenerf.runtime.rays import camera_ray_batch
+from noisenerf.runtime.render import RenderConfig, rays_per_chunk, render_in_chunks, render_rays
 
 
 def render_tile(tile: Tile, config: RenderConfig, field: NoisyFieldFn, progress=None) -> np.ndarray:
-    """A tile's secret view: (height, width, 3) float32. The render pipeline's, every sample evaluated
-    (no grid; early_stop 0 passes over only what is fully behind opaque matter, where weights are 0)."""
-    rays = tile_rays(tile, config)
-    t_vals = sample_positions(tile.sampling)
-    chunk_rays = rays_per_chunk(tile.sampling.n_samples)
-    background = np.asarray(config.background)
-    colors = []
-    for start in range(0, len(rays), chunk_rays):
-        stop = min(start + chunk_rays, len(rays))
-        chunk = RayBatch(rays.origins[start:stop], rays.directions[start:stop], rays.viewdirs[start:stop])
+    """A tile's secret view: (height, width, 3) float32. The render pipeline's, at the tile's sampling, every
+    sample evaluated (no grid; early_stop 0 passes over only what is fully behind opaque matter, where
+    weights are 0), on the rays the hide solved on (runtime.rays.camera_ray_batch)."""
+    rays = camera_ray_batch(tile.camera, config)
+    tile_config = dataclasses.replace(config, sampling=tile.sampling)
+
+    def render_chunk(start: int, stop: int):
         noise = tile.noise_rows(start, stop)
         noise = noise[:, None, :] if noise.ndim == 2 else noise  # (m, 1 or n_samples, dims)
-        weights, rgbs, _ = render_samples(chunk, t_vals, noisy(field, noise), None, 0.0)
-        colors.append(composite(weights, rgbs, background))
-        if progress is not None:
-            progress.update(stop - start)
-    return np.concatenate(colors).reshape(tile.camera.height, tile.camera.width, 3)
+        return render_rays(tile_config, rays.rows(start, stop), noisy(field, noise), None, early_stop=0.0)
+
+    colors, _ = render_in_chunks(len(rays), rays_per_chunk(tile.sampling.n_samples), render_chunk, progress)
+    return colors.reshape(tile.camera.height, tile.camera.width, 3)
 
 
 @dataclass(frozen=True)

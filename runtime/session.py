@@ -19,11 +19,12 @@ from pathlib import Path
 import numpy as np
 import onnxruntime as ort
 
+from noisenerf.runtime.cores import available_cores
 from noisenerf.runtime.errors import UserError
 from noisenerf.runtime.graph import COARSE_OUTPUT_NAMES, INPUT_NAMES, OUTPUT_NAMES
 from noisenerf.runtime.limits import MAX_NOISE_DIMS
-from noisenerf.runtime.onnx_file import parse_model
-from noisenerf.runtime.sampling import NETWORKS
+from noisenerf.runtime.networks import NETWORKS, network_names, render_network
+from noisenerf.runtime.onnx_file import ModelFile, parse_model
 
 DEVICES = {"cpu": "CPUExecutionProvider", "cuda": "CUDAExecutionProvider"}
 DEFAULT_CHUNK = 16384  # points per run: as fast as larger chunks on CPU, ~16 MB per 256-wide activation
@@ -40,11 +41,6 @@ def onnxruntime_logging(verbose: bool) -> None:
     ort.set_default_logger_severity(log_severity)
 # The shapes a noisenerf field declares; a str is a free (symbolic) batch size, an int a fixed width.
 PORT_SHAPES = {"points": ("n", 3), "viewdirs": ("n", 3), "noise": ("n", None), "rgb": ("n", 3), "sigma": ("n",)}
-
-
-def available_cores() -> int:
-    """CPUs this process may run on (honours taskset / cgroup affinity where the OS exposes it)."""
-    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
 
 
 def providers_for(device: str) -> list[str]:
@@ -84,14 +80,14 @@ def load_failure(source: str, error: Exception) -> UserError:
     return UserError(f"{source} is not a loadable ONNX model (not ONNX, or truncated): {detail[:200]}")
 
 
-def read_model_bytes(model: str | os.PathLike | bytes) -> tuple[bytes, str]:
-    """The model's bytes and a name for messages."""
+def read_model_file(model: str | os.PathLike | bytes) -> ModelFile:
+    """A model file's bytes, parsed once (runtime.onnx_file refuses external data and malformed bytes)."""
     if isinstance(model, bytes):
-        return model, "model"
+        return parse_model(model, "model")
     path = Path(model)
     if not path.is_file():
         raise UserError(f"model not found: {path}")
-    return path.read_bytes(), str(path)
+    return parse_model(path.read_bytes(), str(path))
 
 
 def port_shape_matches(shape: list, expected: tuple) -> bool:
@@ -128,39 +124,39 @@ class OnnxField:
     """field(points (n, 3), viewdirs (n, 3), noise (n, noise_dims) | None) -> rgb (n, 3), sigma (n,).
 
     The render network; `network(name)` gives either network of the same session. Satisfies both
-    runtime.sampling.FieldFn (no noise) and runtime.sampling.NoisyFieldFn; inputs are run in chunks of at
-    most `chunk` points so that memory stays bounded whatever the caller passes.
+    runtime.field_callbacks.FieldFn (no noise) and NoisyFieldFn; inputs are run in chunks of at most `chunk`
+    points so that memory stays bounded whatever the caller passes. Made from a parsed ModelFile, so
+    onnxruntime never sees bytes with external data (read_model_file reads and parses a path).
     """
 
-    def __init__(self, model: str | os.PathLike | bytes, device: str = "cpu", threads: int | None = None,
-                 chunk: int = DEFAULT_CHUNK, source: str | None = None):
+    def __init__(self, file: ModelFile, device: str = "cpu", threads: int | None = None,
+                 chunk: int = DEFAULT_CHUNK):
         if chunk < 1:
             raise UserError(f"chunk must be at least 1 point, got {chunk}")
-        data, name = read_model_bytes(model)
-        self.source = source or name
-        parse_model(data, self.source)  # refuses external data before onnxruntime could resolve it
+        self.source = file.source
         options, providers = session_options(threads), providers_for(device)
         try:
-            self.session = ort.InferenceSession(data, options, providers=providers)
+            self.session = ort.InferenceSession(file.data, options, providers=providers)
         except Exception as error:  # onnxruntime's pybind errors share no base class but Exception
             raise load_failure(self.source, error) from None
         self.noise_dims = check_ports(self.session, self.source)
-        self.has_fine = set(COARSE_OUTPUT_NAMES) <= {node.name for node in self.session.get_outputs()}
+        has_fine = set(COARSE_OUTPUT_NAMES) <= {node.name for node in self.session.get_outputs()}
+        self.networks = network_names(has_fine)
         self.outputs = OUTPUT_NAMES
         self.run_options = ort.RunOptions()
         self.run_options.only_execute_path_to_fetches = True  # the coarse outputs alone skip the fine network
         self.chunk = chunk
 
     def network(self, name: str) -> "OnnxField":
-        """The same session answering for the `coarse` or `fine` network; a model without a fine network
-        has its coarse one on the render outputs."""
+        """The same session answering for the `coarse` or `fine` network: the render network is on the
+        outputs rgb, sigma (runtime.graph), the other one on rgb_coarse, sigma_coarse."""
         if name not in NETWORKS:
             raise UserError(f"unknown network {name!r} (expected one of {', '.join(NETWORKS)})")
-        if name == "fine" and not self.has_fine:
-            raise UserError(f"{self.source} has no fine network")
-        view = copy.copy(self)
-        view.outputs = COARSE_OUTPUT_NAMES if name == "coarse" and self.has_fine else OUTPUT_NAMES
-        return view
+        if name not in self.networks:
+            raise UserError(f"{self.source} has no {name} network")
+        network = copy.copy(self)
+        network.outputs = OUTPUT_NAMES if name == render_network(self.networks) else COARSE_OUTPUT_NAMES
+        return network
 
     def __call__(self, points: np.ndarray, viewdirs: np.ndarray, noise: np.ndarray | None = None
                  ) -> tuple[np.ndarray, np.ndarray]:

@@ -52,7 +52,7 @@ def make_tiny_scene(seed: int = 0, **kwargs):
     """A tiny scene with seeded random weights and a full occupancy grid."""
     import torch
 
-    from noisenerf.runtime.sampling import OccupancyGrid
+    from noisenerf.runtime.occupancy import OccupancyGrid
     from noisenerf.train.scene.scene import Scene, build_fields
 
     config = tiny_scene_config(**kwargs)

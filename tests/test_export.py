@@ -13,12 +13,12 @@ from noisenerf.runtime.bundle import Tile
 from noisenerf.runtime.errors import UserError
 from noisenerf.runtime.fingerprint import weights_fingerprint
 from noisenerf.runtime.graph import field_graph
-from noisenerf.runtime.model import grid_from_dict, grid_to_dict, load_model
-from noisenerf.runtime.render import render_view
 from noisenerf.runtime.images import to_uint8
+from noisenerf.runtime.model import grid_from_dict, grid_to_dict, load_model
+from noisenerf.runtime.occupancy import OccupancyGrid
+from noisenerf.runtime.render import render_view
 from noisenerf.runtime.reveal import render_tile
-from noisenerf.runtime.sampling import OccupancyGrid
-from noisenerf.runtime.session import OnnxField
+from noisenerf.runtime.session import OnnxField, read_model_file
 from noisenerf.train.scene.render import numpy_field
 
 KINDS = {"plain": {}, "ndc": {"ndc": True}, "fine": {"fine": True}}
@@ -103,7 +103,7 @@ def test_grid_bits_round_trip_for_any_resolution():
 
 def test_field_outputs_match_torch(exported):
     scene, path, _ = exported
-    onnx_field = OnnxField(path, threads=1)
+    onnx_field = OnnxField(read_model_file(path), threads=1)
     for name, field in scene.fields().items():
         cases = {case.name: case for case in probe_parity(field, onnx_field.network(name), scene.config.aabb, 7)}
         assert cases["zero"].max_abs_diff <= 1e-5 and cases["normal"].max_abs_diff <= 1e-5
@@ -124,7 +124,7 @@ def test_noisy_renders_match_torch(exported, layout):
     noise = np.random.default_rng(2).normal(size=shape + (scene.render_field.config.noise_dims,))
     tile = Tile((0, 0, camera.width, camera.height), camera, config.sampling, noise.astype(np.float32))
     reference = render_tile(tile, config, numpy_field(scene.render_field))
-    image = render_tile(tile, config, OnnxField(path, threads=1))
+    image = render_tile(tile, config, OnnxField(read_model_file(path), threads=1))
     assert np.abs(image - reference).max() <= 1e-5
     np.testing.assert_array_equal(to_uint8(image), to_uint8(reference))
 
@@ -142,7 +142,7 @@ def test_skipping_render_evaluates_the_same_samples(exported):
 
 def test_chunked_and_noise_free_calls_agree(exported):
     _, path, _ = exported
-    field, small = OnnxField(path, threads=1), OnnxField(path, threads=1, chunk=7)
+    field, small = OnnxField(read_model_file(path), threads=1), OnnxField(read_model_file(path), threads=1, chunk=7)
     rng = np.random.default_rng(4)
     points, viewdirs = rng.normal(size=(50, 3)).astype(np.float32), rng.normal(size=(50, 3)).astype(np.float32)
     zeros = np.zeros((50, field.noise_dims), np.float32)

@@ -24,7 +24,7 @@ from noisenerf.export.onnx_export import export_scene
 from noisenerf.runtime.camera import camera_rays
 from noisenerf.runtime.errors import UserError
 from noisenerf.runtime.images import read_image
-from noisenerf.runtime.render import prepare_rays
+from noisenerf.runtime.rays import field_space_rays
 from noisenerf.runtime.sampling import SamplingConfig, sample_positions
 from noisenerf.train.scene.import_nerf_pytorch import (
     import_nerf_pytorch, llff_world_bounds, load_fields, parse_config_text, read_checkpoint, read_config,
@@ -359,7 +359,7 @@ def imported_view(scene, index: int) -> np.ndarray:
     """The scene's hierarchical render of a dataset camera (runtime rays -> TorchRays -> render_hierarchical)."""
     config = scene.config
     camera = config.cameras[index]
-    rays = TorchRays.from_batch(prepare_rays(config.render, *camera_rays(camera, config.render.pixel_center)), "cpu")
+    rays = TorchRays.from_batch(field_space_rays(config.render, *camera_rays(camera, config.render.pixel_center)), "cpu")
     sampling = config.render.sampling
     t_vals = torch.from_numpy(sample_positions(SamplingConfig(sampling.near, sampling.far, config.n_coarse)))
     background = torch.tensor(config.render.background, dtype=torch.float32)

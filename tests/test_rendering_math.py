@@ -6,7 +6,8 @@ import torch
 
 from noisenerf.runtime import compositing as np_render
 from noisenerf.runtime.encoding import positional_encoding as np_encoding
-from noisenerf.runtime.sampling import LAST_DELTA, sample_pdf
+from noisenerf.runtime.pdf import sample_pdf
+from noisenerf.runtime.sampling import LAST_DELTA
 from noisenerf.train.scene import render as torch_render
 from noisenerf.train.scene.field import positional_encoding as torch_encoding
 
@@ -65,7 +66,7 @@ def test_encoding_matches_between_numpy_and_torch_and_has_nerf_pytorch_layout():
 
 
 def test_occupancy_box_is_closed_so_the_ndc_far_plane_sample_is_kept():
-    from noisenerf.runtime.sampling import OccupancyGrid
+    from noisenerf.runtime.occupancy import OccupancyGrid
 
     occupied = np.zeros((4, 4, 4), dtype=bool)
     occupied[3, 3, 3] = occupied[0, 0, 0] = True

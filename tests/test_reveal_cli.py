@@ -15,15 +15,14 @@ from safetensors.numpy import save_file
 
 from conftest import make_tiny_scene
 from noisenerf.export.onnx_export import export_scene
-from noisenerf.train.scene.render import numpy_fields
 from noisenerf.runtime.bundle import METADATA_KEY, Bundle, Tile, load_bundle, secret_digest
 from noisenerf.runtime.images import read_image, read_native
 from noisenerf.runtime.model import load_model
-from noisenerf.runtime.camera import camera_rays
-from noisenerf.runtime.render import prepare_rays
-from noisenerf.runtime.sampling import sample_along
+from noisenerf.runtime.rays import camera_ray_batch
 from noisenerf.runtime.reveal import reveal
+from noisenerf.runtime.sampling import sample_along
 from noisenerf.runtime.sampling import sample_positions
+from noisenerf.train.scene.render import numpy_fields
 from noisenerf.train.scene.scene import load_scene
 
 
@@ -114,7 +113,7 @@ def test_view_render_skips_and_no_skip_does_not(inputs, tmp_path):
         reports[bool(flags)] = json.loads(result.stdout)
     # without skipping, every sample inside the scene's box is evaluated (outside it the scene is empty)
     loaded = load_model(model)
-    rays = prepare_rays(loaded.render_config, *camera_rays(loaded.camera(3), loaded.render_config.pixel_center))
+    rays = camera_ray_batch(loaded.camera(3), loaded.render_config)
     points, _ = sample_along(rays.origins, rays.directions, sample_positions(loaded.render_config.sampling))
     assert reports[True]["samples_dense"] == 16 * 12 * 24
     assert reports[True]["samples"] == int(loaded.grid.contains(points).sum()) > 0

@@ -21,13 +21,15 @@ from noisenerf.runtime import compositing
 from noisenerf.runtime.bundle import load_bundle
 from noisenerf.runtime.camera import normalize_directions
 from noisenerf.runtime.errors import UserError
+from noisenerf.runtime.field_callbacks import plain
 from noisenerf.runtime.model import load_model
-from noisenerf.runtime.render import RayBatch, RenderConfig, render_rays
+from noisenerf.runtime.rays import RayBatch
+from noisenerf.runtime.render import RenderConfig, render_rays
 from noisenerf.runtime.reveal import reveal
 from noisenerf.runtime.sampling import LAST_DELTA, SamplingConfig
-from noisenerf.train.scene import render as rendering
 from noisenerf.train.hide.plan import HideConfig
 from noisenerf.train.hide.run import hide
+from noisenerf.train.scene import render as rendering
 from noisenerf.train.scene.render import numpy_field
 
 FULL = os.environ.get("NOISENERF_STRESS") == "full"
@@ -97,8 +99,8 @@ def test_extreme_near_far_grazing_and_axis_aligned_rays_render_alike(exported, n
     scene, _, model, _ = exported
     config = dataclasses.replace(scene.config.render, sampling=SamplingConfig(near, far, 64))
     rays = rays_through_box(GRAZING, origin_distance=3.0)
-    ours, _ = render_rays(config, rays, numpy_field(scene.render_field), scene.grid)
-    theirs, _ = render_rays(config, rays, model.field, model.grid)
+    ours, _ = render_rays(config, rays, plain(numpy_field(scene.render_field)), scene.grid)
+    theirs, _ = render_rays(config, rays, plain(model.field), model.grid)
     assert np.isfinite(ours).all() and np.isfinite(theirs).all()
     assert np.abs(ours - theirs).max() <= 1e-5
 

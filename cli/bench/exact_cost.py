@@ -12,10 +12,10 @@ import torch
 
 from noisenerf.runtime.bundle import load_bundle
 from noisenerf.runtime.metrics import psnr
+from noisenerf.runtime.networks import render_network
 from noisenerf.runtime.render import render_view
 from noisenerf.runtime.reveal import reveal
-from noisenerf.runtime.sampling import render_network
-from noisenerf.runtime.session import OnnxField
+from noisenerf.runtime.session import OnnxField, read_model_file
 from noisenerf.train.hide.exact import ExactSettings
 from noisenerf.train.hide.paper import recipe
 from noisenerf.train.hide.plan import HideConfig
@@ -100,7 +100,7 @@ def measure_throughput(context: BenchContext) -> Measured:
     rows = []
     for threads in config.threads:
         peak = matmul_peak(threads)
-        backends = {"onnxruntime": OnnxField(context.model_path, threads=threads),
+        backends = {"onnxruntime": OnnxField(read_model_file(context.model_path), threads=threads),
                     "torch": numpy_field(scene.render_field)}
         for name, field_fn in backends.items():
             torch.set_num_threads(threads)

@@ -11,8 +11,8 @@ from pathlib import Path
 
 import numpy as np
 
+from noisenerf.runtime.cores import available_cores
 from noisenerf.runtime.images import load_secret, resize_image, to_uint8
-from noisenerf.runtime.session import available_cores
 from noisenerf.train.hide.plan import HideConfig
 
 from noisenerf.cli.bench.context import BenchContext, Measured, size_of, small_secret

@@ -12,8 +12,8 @@ import onnxruntime
 import torch
 
 import noisenerf
+from noisenerf.runtime.cores import available_cores
 from noisenerf.runtime.files import atomic_output
-from noisenerf.runtime.session import available_cores
 
 from noisenerf.cli.bench.context import Section
 

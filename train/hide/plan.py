@@ -12,7 +12,8 @@ import numpy as np
 from noisenerf import __version__
 from noisenerf.runtime.bundle import LAYOUT_DTYPES, LAYOUTS, Tile, secret_digest
 from noisenerf.runtime.errors import UserError
-from noisenerf.runtime.sampling import NETWORKS, SamplingConfig, render_network
+from noisenerf.runtime.networks import NETWORKS, render_network
+from noisenerf.runtime.sampling import SamplingConfig
 from noisenerf.train.hide.methods import METHODS
 from noisenerf.train.hide.tiling import DEFAULT_TILE_SIZE, tile_camera, tile_rects
 from noisenerf.train.scene.scene import Scene

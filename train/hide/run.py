@@ -18,11 +18,11 @@ from tqdm import tqdm
 
 import noisenerf
 from noisenerf.runtime.bundle import Bundle, secret_digest
+from noisenerf.runtime.cores import available_cores
 from noisenerf.runtime.errors import InexactResult, UserError
 from noisenerf.runtime.files import check_output_path
 from noisenerf.runtime.limits import MAX_RAY_LAYOUT_SAMPLES, checked_image_size
 from noisenerf.runtime.metrics import tile_quality
-from noisenerf.runtime.session import available_cores
 from noisenerf.train.hide.methods import METHODS
 from noisenerf.train.hide.plan import HideConfig, plan, run_key
 from noisenerf.train.hide.progress import Progress

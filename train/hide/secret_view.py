@@ -13,8 +13,8 @@ import numpy as np
 import torch
 
 from noisenerf.runtime.bundle import Tile
+from noisenerf.runtime.rays import camera_ray_batch
 from noisenerf.runtime.render import RenderConfig
-from noisenerf.runtime.reveal import tile_rays
 from noisenerf.runtime.sampling import sample_along, sample_positions
 from noisenerf.train.scene.field import NeRFField
 from noisenerf.train.scene.render import composite, render_weights
@@ -42,7 +42,7 @@ class SecretView:
     the batch, not the view."""
 
     def __init__(self, field: NeRFField, tile: Tile, render: RenderConfig, device: torch.device):
-        rays = tile_rays(tile, render)
+        rays = camera_ray_batch(tile.camera, render)
         points, deltas = sample_along(rays.origins, rays.directions, sample_positions(tile.sampling))
         self.field, self.device = field, device
         self.points = torch.from_numpy(np.ascontiguousarray(points)).to(device)  # (n_rays, n_samples, 3)

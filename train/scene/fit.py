@@ -26,15 +26,16 @@ import torch
 from safetensors.torch import load_file, save_file
 from tqdm import tqdm
 
+from noisenerf.runtime import render as numpy_render
 from noisenerf.runtime.camera import camera_rays
 from noisenerf.runtime.errors import UserError
+from noisenerf.runtime.field_callbacks import plain
 from noisenerf.runtime.files import atomic_output, check_output_directory, read_json, write_json
 from noisenerf.runtime.metrics import psnr, ssim
-from noisenerf.runtime import render as numpy_render
-from noisenerf.runtime.render import RenderConfig, prepare_rays, render_view
-from noisenerf.runtime.sampling import (
-    OccupancyGrid, SamplingConfig, jitter_positions, sample_positions,
-)
+from noisenerf.runtime.occupancy import OccupancyGrid
+from noisenerf.runtime.rays import camera_ray_batch, field_space_rays
+from noisenerf.runtime.render import RenderConfig, render_view
+from noisenerf.runtime.sampling import SamplingConfig, jitter_positions, sample_positions
 from noisenerf.train.scene.field import FieldConfig
 from noisenerf.train.scene.occupancy import OccupancyConfig, OccupancyTracker, build_occupancy_grid, carve, cell_points
 from noisenerf.train.scene.render import (TorchRays, numpy_coarse, numpy_field, render_hierarchical, render_rays,
@@ -116,7 +117,7 @@ def training_rays(dataset: Dataset, render: RenderConfig, config: FitConfig, dev
     offset = 0
     for index in dataset.splits["train"]:
         camera = dataset.cameras[index]
-        batch = prepare_rays(render, *camera_rays(camera, render.pixel_center))
+        batch = camera_ray_batch(camera, render)
         origins.append(batch.origins)
         directions.append(batch.directions)
         viewdirs.append(batch.viewdirs)
@@ -304,8 +305,8 @@ def curve_psnr(scene: Scene, dataset: Dataset, views: list[int], rays_per_view: 
         chosen = rng.choice(camera.width * camera.height, min(rays_per_view, camera.width * camera.height),
                             replace=False)
         rays_o, rays_d = camera_rays(camera, scene.config.render.pixel_center)
-        rays = prepare_rays(scene.config.render, rays_o[chosen], rays_d[chosen])
-        colors, _ = numpy_render.render_rays(scene.config.render, rays, field, scene.grid, coarse=coarse)
+        rays = field_space_rays(scene.config.render, rays_o[chosen], rays_d[chosen])
+        colors, _ = numpy_render.render_rays(scene.config.render, rays, plain(field), scene.grid, coarse=coarse)
         errors.append((colors - dataset.images[index].reshape(-1, 3)[chosen]) ** 2)
     return float(-10 * np.log10(max(np.mean(np.concatenate(errors)), 1e-10)))
 

@@ -15,7 +15,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from noisenerf.runtime.sampling import OccupancyGrid
+from noisenerf.runtime.occupancy import OccupancyGrid
 from noisenerf.train.scene.field import NeRFField
 
 

@@ -14,8 +14,13 @@ import numpy as np
 import torch
 
 from noisenerf.runtime.compositing import MAX_OPTICAL_DEPTH
-from noisenerf.runtime.render import CoarseNetwork, RayBatch
-from noisenerf.runtime.sampling import LAST_DELTA, Hierarchy, NoisyFieldFn, OccupancyGrid, grid_candidates
+from noisenerf.runtime.field_callbacks import NoisyFieldFn
+from noisenerf.runtime.marching import grid_candidates
+from noisenerf.runtime.occupancy import OccupancyGrid
+from noisenerf.runtime.pdf import Hierarchy
+from noisenerf.runtime.rays import RayBatch
+from noisenerf.runtime.render import CoarseNetwork
+from noisenerf.runtime.sampling import LAST_DELTA
 from noisenerf.train.scene.field import NeRFField
 
 
@@ -95,7 +100,7 @@ def sample_points(rays: TorchRays, t_vals: torch.Tensor) -> torch.Tensor:
 
 def skip_mask(field: NeRFField, rays: TorchRays, t_vals: torch.Tensor, grid: OccupancyGrid,
               early_stop: float) -> torch.Tensor:
-    """The skipping sampler: samples worth evaluating are in occupied cells (runtime.sampling's
+    """The skipping sampler: samples worth evaluating are in occupied cells (runtime.marching's
     grid_candidates) and, by a density-only pass without gradients, before the ray's transmittance drops
     below early_stop (0: no early termination). t_vals: (n_rays, n_samples) -> bool mask."""
     points = sample_points(rays, t_vals)

@@ -23,8 +23,10 @@ from noisenerf.runtime.camera import Camera
 from noisenerf.runtime.errors import UserError
 from noisenerf.runtime.files import atomic_output, check_output_directory, read_json, write_json
 from noisenerf.runtime.fingerprint import weights_fingerprint
+from noisenerf.runtime.networks import render_network
+from noisenerf.runtime.occupancy import OccupancyGrid
+from noisenerf.runtime.pdf import Hierarchy
 from noisenerf.runtime.render import RenderConfig
-from noisenerf.runtime.sampling import Hierarchy, OccupancyGrid
 from noisenerf.train.scene.field import FieldConfig, NeRFField
 
 SCENE_FORMAT_VERSION = 1
@@ -131,8 +133,9 @@ def build_fields(config: SceneConfig) -> tuple[NeRFField, NeRFField | None]:
 
 
 def render_field(coarse: NeRFField, fine: NeRFField | None) -> NeRFField:
-    """The network a scene renders (and hides, and exports as `rgb`/`sigma`) with: the fine one where there is one."""
-    return fine if fine is not None else coarse
+    """The network a scene renders (and hides, and exports as `rgb`/`sigma`) with (runtime.networks)."""
+    fields = named_fields(coarse, fine)
+    return fields[render_network(fields)]
 
 
 def named_fields(coarse: NeRFField, fine: NeRFField | None) -> dict[str, NeRFField]:
