@@ -33,7 +33,7 @@ from typing import Iterator
 import numpy as np
 
 from noisenerf.runtime.errors import UserError
-from noisenerf.runtime.graph import FLOAT, INT64, Node, Port
+from noisenerf.runtime.graph import FLOAT, Node, Port
 
 EXTERNAL = 1  # TensorProto.DataLocation.EXTERNAL
 VARINT, FIXED64, LENGTH, FIXED32 = 0, 1, 2, 5

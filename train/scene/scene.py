@@ -10,7 +10,6 @@ architecture config: a bundle hidden in one scene is refused by any other.
 
 from __future__ import annotations
 
-import dataclasses
 from dataclasses import dataclass
 from pathlib import Path
 
