@@ -69,7 +69,7 @@ def secret_digest(pixels: np.ndarray) -> str:
 
 
 @dataclass(frozen=True)
-class Frame:
+class CompactBasis:
     """A compact tile's basis: a pixel's noise is offset + (coefficients · scale) basisᵀ."""
 
     basis: np.ndarray  # (dims, k) float32
@@ -79,14 +79,14 @@ class Frame:
     escape_noise: np.ndarray  # (e, dims) float16
 
 
-def expand_coefficients(coefficients: np.ndarray, frame: Frame, start: int = 0) -> np.ndarray:
+def expand_coefficients(coefficients: np.ndarray, basis: CompactBasis, start: int = 0) -> np.ndarray:
     """Noise of compact pixels start.. start+m in float32, as the solver computed it
     (train/hide/exact.NoiseSpace.expand: one float32 multiply by the scale, then the matmul), with the
     escaped pixels' stored noise. coefficients: (m, k) int -> (m, dims) float32."""
-    params = coefficients.astype(np.float32) * np.float32(frame.scale)
-    noise = frame.offset + params @ frame.basis.T
-    first, last = np.searchsorted(frame.escapes, [start, start + len(coefficients)])
-    noise[frame.escapes[first:last] - start] = frame.escape_noise[first:last]
+    params = coefficients.astype(np.float32) * np.float32(basis.scale)
+    noise = basis.offset + params @ basis.basis.T
+    first, last = np.searchsorted(basis.escapes, [start, start + len(coefficients)])
+    noise[basis.escapes[first:last] - start] = basis.escape_noise[first:last]
     return noise
 
 
@@ -116,37 +116,70 @@ def unpack_coefficients(packed: np.ndarray, shape: tuple[int, int, int], dtype: 
 
 
 @dataclass(frozen=True)
+class VectorNoise:
+    """The ray and sample layouts' noise, as stored: float vectors, (h, w, dims) one per ray or
+    (h, w, n_samples, dims) one per sample."""
+
+    values: np.ndarray
+
+    @property
+    def stored(self) -> np.ndarray:
+        """The array the file holds, whose shape and dtype the bundle header states."""
+        return self.values
+
+    def rows(self, start: int, stop: int) -> np.ndarray:
+        """Float32 noise of pixels start..stop (row-major): (m, 1 or n_samples, dims)."""
+        flat = self.values.reshape(-1, *self.values.shape[2:])[start:stop].astype(np.float32)
+        return flat[:, None, :] if flat.ndim == 2 else flat
+
+    def tensors(self, name: str) -> dict[str, np.ndarray]:
+        """What the file stores for this noise under `name`."""
+        return {name: np.ascontiguousarray(self.values)}
+
+
+@dataclass(frozen=True)
+class CompactNoise:
+    """The compact layout's noise: per pixel k integer coefficients (h, w, k) of the tile's basis."""
+
+    coefficients: np.ndarray
+    basis: CompactBasis
+
+    @property
+    def stored(self) -> np.ndarray:
+        return self.coefficients
+
+    def rows(self, start: int, stop: int) -> np.ndarray:
+        """Float32 noise of pixels start..stop (row-major), expanded: (m, 1, dims)."""
+        flat = self.coefficients.reshape(-1, self.coefficients.shape[-1])[start:stop]
+        return expand_coefficients(flat, self.basis, start)[:, None, :]
+
+    def tensors(self, name: str) -> dict[str, np.ndarray]:
+        return {name: pack_coefficients(self.coefficients), f"{name}_basis": np.ascontiguousarray(self.basis.basis),
+                f"{name}_offset": np.ascontiguousarray(self.basis.offset),
+                f"{name}_escapes": np.ascontiguousarray(self.basis.escapes),
+                f"{name}_escape_noise": np.ascontiguousarray(self.basis.escape_noise)}
+
+
+TileNoise = VectorNoise | CompactNoise
+
+
+@dataclass(frozen=True)
 class Tile:
     """One piece of the secret: where it goes, the view it is hidden in, and its noise."""
 
     rect: tuple[int, int, int, int]  # x0, y0, width, height in the final image
     camera: Camera  # width × height equal to the rect's
     sampling: SamplingConfig
-    noise: np.ndarray  # (h, w, dims) ray, (h, w, n_samples, dims) sample, (h, w, k) compact coefficients
-    view: int | None = None  # the scene camera it was derived from, if any
+    noise: TileNoise | None  # None only in a hide's plan, before the tile is solved
+    view: int | None = None  # the index of the scene camera it was derived from, if any
     network: str | None = None  # coarse | fine; None: the scene's render network
-    frame: Frame | None = None  # the compact layout's basis
 
     def metadata(self, tensor_name: str) -> dict:
         return {"rect": list(self.rect), "camera": self.camera.to_dict(), "view": self.view,
                 "sampling": {"near": self.sampling.near, "far": self.sampling.far,
                              "n_samples": self.sampling.n_samples}, "tensor": tensor_name,
                 **({"network": self.network} if self.network is not None else {}),
-                **({"scale": self.frame.scale} if self.frame is not None else {})}
-
-    def tensors(self, name: str) -> dict[str, np.ndarray]:
-        """What the file stores for this tile under `name`."""
-        if self.frame is None:
-            return {name: np.ascontiguousarray(self.noise)}
-        return {name: pack_coefficients(self.noise), f"{name}_basis": np.ascontiguousarray(self.frame.basis),
-                f"{name}_offset": np.ascontiguousarray(self.frame.offset),
-                f"{name}_escapes": np.ascontiguousarray(self.frame.escapes),
-                f"{name}_escape_noise": np.ascontiguousarray(self.frame.escape_noise)}
-
-    def noise_rows(self, start: int, stop: int) -> np.ndarray:
-        """Float32 noise of the tile's pixels start..stop (row-major): (m, dims) or (m, n_samples, dims)."""
-        flat = self.noise.reshape(-1, *self.noise.shape[2:])[start:stop]
-        return flat.astype(np.float32) if self.frame is None else expand_coefficients(flat, self.frame, start)
+                **({"scale": self.noise.basis.scale} if isinstance(self.noise, CompactNoise) else {})}
 
 
 @dataclass(frozen=True)
@@ -178,7 +211,8 @@ class Bundle:
     def save(self, path: str | Path) -> None:
         """Validate, then write atomically."""
         validate(self)
-        tensors = {name: value for i, tile in enumerate(self.tiles) for name, value in tile.tensors(f"tile_{i:04d}").items()}
+        tensors = {name: value for i, tile in enumerate(self.tiles)
+                   for name, value in tile.noise.tensors(f"tile_{i:04d}").items()}
         with atomic_output(path) as tmp:
             save_file(tensors, str(tmp), metadata={METADATA_KEY: json.dumps(self.metadata(), sort_keys=True)})
 
@@ -194,26 +228,24 @@ def expected_noise_shape(tile: Tile, bundle: "Bundle") -> tuple[int, ...]:
     return noise_shape(bundle.layout, tile.rect[3], tile.rect[2], tile.sampling.n_samples, per_vector)
 
 
-def validate_frame(i: int, tile: Tile, bundle: "Bundle") -> None:
+def validate_basis(i: int, tile: Tile, bundle: "Bundle") -> None:
     """A compact tile's basis (dims, k), offset (dims,) float32 and escape noise (e, dims) float16, all
     finite; its scale > 0; its escapes (e,) int32 strictly increasing inside the tile."""
-    frame, dims, k = tile.frame, bundle.noise_dims, bundle.coefficients
-    if frame is None:
-        raise UserError(f"bundle: tile {i} of the compact layout has no basis")
-    escapes = frame.escapes
+    basis, dims, k = tile.noise.basis, bundle.noise_dims, bundle.coefficients
+    escapes = basis.escapes
     if escapes.ndim != 1 or escapes.dtype != np.int32:
         raise UserError(f"bundle: tile {i} escapes are {escapes.dtype} {escapes.shape}, expected int32 (e,)")
     if len(escapes) and (escapes[0] < 0 or escapes[-1] >= tile.rect[2] * tile.rect[3] or (np.diff(escapes) <= 0).any()):
         raise UserError(f"bundle: tile {i} escapes must be strictly increasing pixel indices inside the tile")
-    for what, value, shape, dtype in (("basis", frame.basis, (dims, k), np.float32),
-                                      ("offset", frame.offset, (dims,), np.float32),
-                                      ("escape noise", frame.escape_noise, (len(escapes), dims), np.float16)):
+    for what, value, shape, dtype in (("basis", basis.basis, (dims, k), np.float32),
+                                      ("offset", basis.offset, (dims,), np.float32),
+                                      ("escape noise", basis.escape_noise, (len(escapes), dims), np.float16)):
         if value.shape != shape or value.dtype != dtype:
             raise UserError(f"bundle: tile {i} {what} is {value.dtype} {value.shape}, expected "
                             f"{np.dtype(dtype)} {shape}")
         if not np.isfinite(value).all():
             raise UserError(f"bundle: tile {i} {what} holds NaN or Inf")
-    checked_float(frame.scale, f"bundle: tile {i} scale", low=np.finfo(np.float32).tiny,
+    checked_float(basis.scale, f"bundle: tile {i} scale", low=np.finfo(np.float32).tiny,
                   high=float(np.finfo(np.float32).max))
 
 
@@ -233,15 +265,17 @@ def validate_tile(i: int, tile: Tile, bundle: Bundle) -> None:
     if bundle.layout != "sample" and tile.sampling.n_samples > MAX_RAY_LAYOUT_SAMPLES:
         raise UserError(f"bundle: tile {i} asks for {tile.sampling.n_samples} samples per ray; the {bundle.layout} "
                         f"layout allows at most {MAX_RAY_LAYOUT_SAMPLES}")
-    shape = expected_noise_shape(tile, bundle)
-    if tile.noise.shape != shape or tile.noise.dtype != DTYPES[bundle.dtype]:
-        raise UserError(f"bundle: tile {i} noise is {tile.noise.dtype} {tile.noise.shape}, "
+    kind = CompactNoise if bundle.layout == "compact" else VectorNoise
+    if not isinstance(tile.noise, kind):
+        raise UserError(f"bundle: tile {i} noise is {type(tile.noise).__name__}; the {bundle.layout} layout "
+                        f"stores {kind.__name__}")
+    shape, stored = expected_noise_shape(tile, bundle), tile.noise.stored
+    if stored.shape != shape or stored.dtype != DTYPES[bundle.dtype]:
+        raise UserError(f"bundle: tile {i} noise is {stored.dtype} {stored.shape}, "
                         f"expected {bundle.dtype} {shape}")
     if bundle.layout == "compact":
-        validate_frame(i, tile, bundle)
-    elif tile.frame is not None:
-        raise UserError(f"bundle: tile {i} has a basis, which only the compact layout uses")
-    if not np.isfinite(tile.noise).all():
+        validate_basis(i, tile, bundle)
+    if not np.isfinite(stored).all():
         raise UserError(f"bundle: tile {i} noise holds NaN or Inf")
 
 
@@ -302,17 +336,17 @@ def tile_tensor(tensors: dict[str, np.ndarray], name: str, what: str, dtype=None
     return value
 
 
-def compact_tile(name: str, data: dict, tensors: dict[str, np.ndarray], shape: tuple[int, int, int], dtype: str,
-                 what: str) -> tuple[np.ndarray, Frame]:
+def compact_noise(name: str, data: dict, tensors: dict[str, np.ndarray], shape: tuple[int, int, int], dtype: str,
+                  what: str) -> CompactNoise:
     """A compact tile's coefficients (h, w, k), decompressed only once the header and rect are known
-    good (so at most h·w·k values), and its frame."""
-    frame = Frame(basis=tile_tensor(tensors, f"{name}_basis", what), offset=tile_tensor(tensors, f"{name}_offset", what),
+    good (so at most h·w·k values), and its basis."""
+    basis = CompactBasis(basis=tile_tensor(tensors, f"{name}_basis", what), offset=tile_tensor(tensors, f"{name}_offset", what),
                   scale=checked_float(data.get("scale"), f"{what} scale", low=float(np.finfo(np.float32).tiny),
                                       high=float(np.finfo(np.float32).max)),
                   escapes=tile_tensor(tensors, f"{name}_escapes", what),
                   escape_noise=tile_tensor(tensors, f"{name}_escape_noise", what))
     packed = tile_tensor(tensors, name, what, dtype=np.uint8, ndim=1)
-    return unpack_coefficients(packed, shape, dtype, what), frame
+    return CompactNoise(unpack_coefficients(packed, shape, dtype, what), basis)
 
 
 def parse_tile(i: int, data, tensors: dict[str, np.ndarray], header: dict) -> Tile:
@@ -322,18 +356,16 @@ def parse_tile(i: int, data, tensors: dict[str, np.ndarray], header: dict) -> Ti
     name = data.get("tensor")
     if not isinstance(name, str):
         raise UserError(f"bundle: tile {i} tensor {name!r:.40} is missing")
-    frame = None
     if header["layout"] == "compact":
-        noise, frame = compact_tile(name, data, tensors, (height, width, header["coefficients"]), header["dtype"],
-                                    f"bundle: tile {i}")
+        noise = compact_noise(name, data, tensors, (height, width, header["coefficients"]), header["dtype"],
+                              f"bundle: tile {i}")
     else:
-        noise = tile_tensor(tensors, name, f"bundle: tile {i}")
+        noise = VectorNoise(tile_tensor(tensors, name, f"bundle: tile {i}"))
     view = data.get("view")
     return Tile(rect=(x0, y0, width, height), camera=Camera.from_dict(data.get("camera")),
                 sampling=SamplingConfig.from_dict(data.get("sampling")), noise=noise,
                 view=None if view is None else checked_int(view, f"bundle: tile {i} view", 0, MAX_CAMERAS),
-                network=None if data.get("network") is None else checked_text(data["network"], f"bundle: tile {i} network"),
-                frame=frame)
+                network=None if data.get("network") is None else checked_text(data["network"], f"bundle: tile {i} network"))
 
 
 def checked_text(value, what: str) -> str:

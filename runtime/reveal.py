@@ -31,9 +31,8 @@ def render_tile(tile: Tile, config: RenderConfig, field: NoisyFieldFn, progress=
     tile_config = dataclasses.replace(config, sampling=tile.sampling)
 
     def render_chunk(start: int, stop: int):
-        noise = tile.noise_rows(start, stop)
-        noise = noise[:, None, :] if noise.ndim == 2 else noise  # (m, 1 or n_samples, dims)
-        return render_rays(tile_config, rays.rows(start, stop), noisy(field, noise), None, early_stop=0.0)
+        noise = noisy(field, tile.noise.rows(start, stop))
+        return render_rays(tile_config, rays.rows(start, stop), noise, None, early_stop=0.0)
 
     colors, _ = render_in_chunks(len(rays), rays_per_chunk(tile.sampling.n_samples), render_chunk, progress)
     return colors.reshape(tile.camera.height, tile.camera.width, 3)

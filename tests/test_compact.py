@@ -14,7 +14,7 @@ from safetensors import safe_open
 from safetensors.numpy import save_file
 
 from noisenerf.export.onnx_export import export_scene
-from noisenerf.runtime.bundle import (METADATA_KEY, Frame, expand_coefficients, load_bundle, pack_coefficients,
+from noisenerf.runtime.bundle import (METADATA_KEY, CompactBasis, expand_coefficients, load_bundle, pack_coefficients,
                                      unpack_coefficients)
 from noisenerf.runtime.errors import UserError
 from noisenerf.runtime.images import write_image
@@ -62,14 +62,14 @@ def test_compact_bundle_reveals_exactly_through_onnxruntime(demo):
     assert result.returncode == 0, result.stderr
     assert json.loads(result.stdout)["exact"] is True
     bundle = load_bundle(folder / "compact.bundle")
-    assert bundle.layout == "compact" and bundle.dtype == "int16" and bundle.tiles[0].noise.dtype == np.int16
+    assert bundle.layout == "compact" and bundle.dtype == "int16" and bundle.tiles[0].noise.coefficients.dtype == np.int16
 
 
 def test_a_tampered_coefficient_is_not_exact_and_a_corrupt_stream_is_refused(demo):
     folder, _, _ = demo
     bundle = load_bundle(folder / "compact.bundle")
     tile = bundle.tiles[0]
-    coefficients = tile.noise.copy()
+    coefficients = tile.noise.coefficients.copy()
     coefficients[3, 5, 0] += 300  # one pixel moved ~9 noise units along the first basis direction
 
     def tamper(tensors):
@@ -128,8 +128,8 @@ def test_expansion_matches_the_solver_and_puts_escapes_in_place():
     space = NoiseSpace(torch.int16, torch.from_numpy(basis), torch.from_numpy(offset), float(np.float32(1 / 32)))
     params = space.store(torch.from_numpy(rng.normal(scale=50, size=(64, 5)).astype(np.float32)))
     escape_noise = rng.normal(size=(2, 90)).astype(np.float16)
-    frame = Frame(basis, offset, space.scale, np.array([3, 40], np.int32), escape_noise)
-    expanded = expand_coefficients(space.integers(params).numpy()[2:50], frame, start=2)
+    compact_basis = CompactBasis(basis, offset, space.scale, np.array([3, 40], np.int32), escape_noise)
+    expanded = expand_coefficients(space.integers(params).numpy()[2:50], compact_basis, start=2)
     solver = space.expand(params)[2:50, 0].numpy()
     np.testing.assert_allclose(np.delete(expanded, [1, 38], axis=0), np.delete(solver, [1, 38], axis=0), atol=2e-5)
     np.testing.assert_array_equal(expanded[[1, 38]], escape_noise.astype(np.float32))

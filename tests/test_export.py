@@ -9,7 +9,7 @@ import pytest
 from conftest import make_tiny_scene
 from noisenerf.export import onnx_export
 from noisenerf.export.onnx_export import export_scene, probe_parity
-from noisenerf.runtime.bundle import Tile
+from noisenerf.runtime.bundle import Tile, VectorNoise
 from noisenerf.runtime.errors import UserError
 from noisenerf.runtime.fingerprint import weights_fingerprint
 from noisenerf.runtime.graph import field_graph
@@ -122,7 +122,7 @@ def test_noisy_renders_match_torch(exported, layout):
     config, camera = scene.config.render, scene.config.cameras[1]
     shape = (camera.height, camera.width) + ((config.sampling.n_samples,) if layout == "sample" else ())
     noise = np.random.default_rng(2).normal(size=shape + (scene.render_field.config.noise_dims,))
-    tile = Tile((0, 0, camera.width, camera.height), camera, config.sampling, noise.astype(np.float32))
+    tile = Tile((0, 0, camera.width, camera.height), camera, config.sampling, VectorNoise(noise.astype(np.float32)))
     reference = render_tile(tile, config, numpy_field(scene.render_field))
     image = render_tile(tile, config, OnnxField(read_model_file(path), threads=1))
     assert np.abs(image - reference).max() <= 1e-5

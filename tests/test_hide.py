@@ -47,7 +47,7 @@ def test_exact_hide_recovers_every_value_and_leaves_weights_unchanged(scene, tmp
     assert report["exact"] and report["exact_fraction"] == 1.0
     assert [t["rect"] for t in report["tiles"]] == [list(r) for r in tile_rects(30, 20, 16)]
     bundle = load_bundle(tmp_path / "s.bundle")
-    assert bundle.layout == layout and bundle.dtype == dtype and bundle.tiles[0].noise.shape == (16, 16, stored)
+    assert bundle.layout == layout and bundle.dtype == dtype and bundle.tiles[0].noise.stored.shape == (16, 16, stored)
     revealed = reveal(bundle, scene.config.render, numpy_fields(scene.fields()))
     np.testing.assert_array_equal(revealed.pixels, secret)
     assert revealed.exact
@@ -121,7 +121,7 @@ def test_paper_method_runs_with_sample_layout_and_records_table3_points(scene, t
     records = report["tiles"][0]["records"]
     assert [r["iteration"] for r in records] == [2, 6]
     assert records[1]["loss"] < records[0]["loss"]
-    assert load_bundle(tmp_path / "p.bundle").tiles[0].noise.shape == (12, 12, 4, 90)
+    assert load_bundle(tmp_path / "p.bundle").tiles[0].noise.values.shape == (12, 12, 4, 90)
 
 
 @pytest.mark.parametrize("kwargs, message", [

@@ -196,7 +196,7 @@ def test_crafted_bundle_is_refused(world, tmp_path, capfd, case):
 def bf16_bundle(path: Path, source: Path) -> None:
     """The valid bundle with its noise stored as bfloat16 (numpy has no such type)."""
     bundle = load_bundle(source)
-    tensors = {f"tile_{i:04d}": torch.from_numpy(t.noise.copy()).to(torch.bfloat16) for i, t in enumerate(bundle.tiles)}
+    tensors = {f"tile_{i:04d}": torch.from_numpy(t.noise.values.copy()).to(torch.bfloat16) for i, t in enumerate(bundle.tiles)}
     save_torch_file(tensors, str(path), metadata={METADATA_KEY: json.dumps(bundle.metadata())})
 
 

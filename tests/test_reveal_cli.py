@@ -15,7 +15,7 @@ from safetensors.numpy import save_file
 
 from conftest import make_tiny_scene
 from noisenerf.export.onnx_export import export_scene
-from noisenerf.runtime.bundle import METADATA_KEY, Bundle, Tile, load_bundle, secret_digest
+from noisenerf.runtime.bundle import METADATA_KEY, Bundle, Tile, VectorNoise, load_bundle, secret_digest
 from noisenerf.runtime.images import read_image, read_native
 from noisenerf.runtime.model import load_model
 from noisenerf.runtime.rays import camera_ray_batch
@@ -35,7 +35,7 @@ def two_tile_bundle(scene, layout: str = "ray", seed: int = 0, network: str | No
     for i, camera in enumerate(scene.config.cameras[:2]):
         shape = (camera.height, camera.width) + ((config.sampling.n_samples,) if layout == "sample" else ())
         noise = rng.normal(size=shape + (dims,)).astype(np.float32)
-        tiles.append(Tile((i * camera.width, 0, camera.width, camera.height), camera, config.sampling, noise, i,
+        tiles.append(Tile((i * camera.width, 0, camera.width, camera.height), camera, config.sampling, VectorNoise(noise), i,
                           network))
     width, height = sum(t.rect[2] for t in tiles), tiles[0].rect[3]
     bundle = Bundle(scene.fingerprint(), width, height, "0" * 64, layout, dims, "float32", tuple(tiles), {})
@@ -125,7 +125,7 @@ def raw_bundle(path: Path, source: Path, edit) -> Path:
     """Write a bundle whose metadata and tensors `edit(meta, tensors)` has tampered with, bypassing validation."""
     bundle = load_bundle(source)
     meta = bundle.metadata()
-    tensors = {f"tile_{i:04d}": tile.noise.copy() for i, tile in enumerate(bundle.tiles)}
+    tensors = {f"tile_{i:04d}": tile.noise.values.copy() for i, tile in enumerate(bundle.tiles)}
     edit(meta, tensors)
     save_file(tensors, str(path), metadata={METADATA_KEY: json.dumps(meta)})
     return path

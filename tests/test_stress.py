@@ -133,7 +133,7 @@ def test_tiny_and_many_tile_secrets_hide_and_reveal_exactly(exported, tmp_path, 
                   show_progress=False)
     assert report["exact"]
     bundle = load_bundle(tmp_path / "s.bundle")
-    assert all(np.isfinite(t.noise.astype(np.float32)).all() for t in bundle.tiles)
+    assert all(np.isfinite(t.noise.stored.astype(np.float32)).all() for t in bundle.tiles)
     revealed = reveal(bundle, model.render_config, model.fields())
     assert revealed.exact
     np.testing.assert_array_equal(revealed.pixels, secret)

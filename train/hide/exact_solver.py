@@ -9,7 +9,7 @@ from typing import TYPE_CHECKING
 
 import torch
 
-from noisenerf.runtime.bundle import Frame, noise_shape
+from noisenerf.runtime.bundle import CompactBasis, CompactNoise, TileNoise, VectorNoise, noise_shape
 from noisenerf.runtime.errors import UserError
 from noisenerf.train.hide.compact import CompactSettings, in_basis, solver_view, tile_space
 from noisenerf.train.hide.exact import ExactSettings, NoiseSpace, chunk_pixels_for, is_lifted, rescue, solve_exact
@@ -34,18 +34,18 @@ def exact_space(view: SecretView, config: HideConfig, k: int, pixels: torch.Tens
 
 
 def stored_noise(space: NoiseSpace, params: torch.Tensor, escaped: torch.Tensor, escape_noise: torch.Tensor,
-                 shape: tuple[int, ...]) -> tuple:
-    """What a tile's bundle entry holds for solved params (n, P): the noise (shape, its last entry −1 for
-    P) in the storage dtype (integer coefficients for a compact space, 0 where a pixel escaped) and the
-    compact frame, with the escaped pixels (n,) bool and their float16 noise (n, dims) (zero elsewhere)."""
+                 shape: tuple[int, ...]) -> TileNoise:
+    """What a tile's bundle entry holds for solved params (n, P), of shape `shape` (its last entry −1 for P)
+    in the storage dtype: float noise, or for a compact space integer coefficients (0 where a pixel
+    escaped) and the basis, with the escaped pixels (n,) bool and their float16 noise (n, dims)."""
     if space.basis is None:
-        return params.reshape(shape).to(space.storage).cpu().numpy(), None
+        return VectorNoise(params.reshape(shape).to(space.storage).cpu().numpy())
     escapes = escaped.nonzero()[:, 0]
-    frame = Frame(basis=space.basis.cpu().numpy(), offset=space.offset.cpu().numpy(), scale=space.scale,
-                  escapes=escapes.to(torch.int32).cpu().numpy(),
-                  escape_noise=escape_noise[escapes].to(torch.float16).cpu().numpy())
+    basis = CompactBasis(basis=space.basis.cpu().numpy(), offset=space.offset.cpu().numpy(), scale=space.scale,
+                         escapes=escapes.to(torch.int32).cpu().numpy(),
+                         escape_noise=escape_noise[escapes].to(torch.float16).cpu().numpy())
     coefficients = torch.where(escaped[:, None], 0, space.integers(params))
-    return coefficients.reshape(shape).cpu().numpy(), frame
+    return CompactNoise(coefficients.reshape(shape).cpu().numpy(), basis)
 
 
 def solve_chunk(view: SecretView, index: torch.Tensor, pixels: torch.Tensor, space: NoiseSpace, config: HideConfig,
@@ -158,5 +158,5 @@ class ExactSolver(Solver):
             progress.save(k, unsolved[i], saved)
             absorb(chunks[unsolved[i]], saved)
         noise = torch.where(escaped[:, None, None], escape_noise[:, None, :], space.expand(params))
-        stored, frame = stored_noise(space, params, escaped, escape_noise, noise_shape(config.layout, *shape, 1, -1))
-        return TileSolution(noise, {**totals, "escaped": int(escaped.sum())}, stored, frame)
+        stored = stored_noise(space, params, escaped, escape_noise, noise_shape(config.layout, *shape, 1, -1))
+        return TileSolution(noise, {**totals, "escaped": int(escaped.sum())}, stored)

@@ -8,7 +8,7 @@ from typing import TYPE_CHECKING
 
 import torch
 
-from noisenerf.runtime.bundle import noise_shape
+from noisenerf.runtime.bundle import VectorNoise, noise_shape
 from noisenerf.runtime.metrics import tile_quality
 from noisenerf.train.hide.paper import PaperSettings, recipe, recorded_points, solve_blocks, survey
 from noisenerf.train.hide.secret_view import SecretView, pass_samples_for
@@ -61,4 +61,4 @@ class PaperSolver(Solver):
         records = [{"iteration": t, "loss": float(((colors[i] - target) ** 2).sum(-1).mean()),
                     **tile_quality(colors[i].numpy(), pixels.cpu().numpy(), shape)} for i, t in enumerate(points)]
         report = {"records": records, "dead_rays": int((~clean.alive).sum())}
-        return TileSolution(noise, report, noise.reshape(stored_shape).numpy())
+        return TileSolution(noise, report, VectorNoise(noise.reshape(stored_shape).numpy()))

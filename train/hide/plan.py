@@ -104,7 +104,7 @@ def plan(scene: Scene, secret: np.ndarray, config: HideConfig) -> HidePlan:
         raise UserError(f"the scene has no {network} network")
     sampling = SamplingConfig(scene.config.render.sampling.near, scene.config.render.sampling.far, config.n_samples)
     tiles = tuple(Tile(rect=rect, camera=tile_camera(scene.config.cameras, config.view, k, rect), sampling=sampling,
-                       noise=np.zeros(0, np.float32), view=(config.view + k) % n_cameras, network=network)
+                       noise=None, view=(config.view + k) % n_cameras, network=network)
                   for k, rect in enumerate(tile_rects(width, height, config.tile_size)))
     return HidePlan(tiles, secret)
 

@@ -76,7 +76,7 @@ def hide(scene: Scene, secret: np.ndarray, output: Path, config: HideConfig, dev
                     f"tile {k} (view {tile.view}, {w}x{h} px at x={x0}, y={y0}) has {quality['inexact_pixels']} "
                     f"pixels off, by up to {quality['max_error']} levels; no bundle written (solved parts kept in "
                     f"{progress.directory} for a resume; --allow-inexact writes the bundle anyway)")
-            tiles.append(dataclasses.replace(tile, noise=solved.stored_noise, frame=solved.frame))
+            tiles.append(dataclasses.replace(tile, noise=solved.stored))
             reports.append({"rect": list(tile.rect), "view": tile.view, **quality,
                             **solved.report, "seconds": round(time.perf_counter() - tile_start, 2)})
         bar.close()
@@ -85,7 +85,7 @@ def hide(scene: Scene, secret: np.ndarray, output: Path, config: HideConfig, dev
                         noise_dims=field.config.noise_dims, dtype=config.dtype, tiles=tuple(tiles),
                         extra={"method": config.method, "noisenerf": noisenerf.__version__,
                                "config": config.to_dict()}, payload=payload,
-                        coefficients=tiles[0].noise.shape[-1] if config.layout == "compact" else None)
+                        coefficients=tiles[0].noise.stored.shape[-1] if config.layout == "compact" else None)
         bundle.save(output)
         progress.clear()
     n_pixels = secret.shape[0] * secret.shape[1]

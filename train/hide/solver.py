@@ -21,7 +21,7 @@ from typing import TYPE_CHECKING, Callable, ClassVar, Iterator
 import numpy as np
 import torch
 
-from noisenerf.runtime.bundle import Frame
+from noisenerf.runtime.bundle import TileNoise
 from noisenerf.train.hide.secret_view import SecretView
 
 if TYPE_CHECKING:
@@ -32,12 +32,11 @@ if TYPE_CHECKING:
 @dataclass(frozen=True)
 class TileSolution:
     """One solved tile: the noise as a reveal expands it (n, 1 or n_samples, dims) float32, what the
-    method reports about it, and what the bundle stores (noise in the storage dtype, compact frame)."""
+    method reports about it, and what the bundle stores (in the storage dtype, of the layout's kind)."""
 
     noise: torch.Tensor
     report: dict
-    stored_noise: np.ndarray
-    frame: Frame | None = None
+    stored: TileNoise
 
 
 def storage_dtype(name: str) -> torch.dtype:
