@@ -18,7 +18,6 @@ import signal
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Callable, ClassVar, Iterator
 
-import numpy as np
 import torch
 
 from noisenerf.runtime.bundle import TileNoise
