@@ -241,7 +241,7 @@ def checkpoint_shapes(field: NeRFField, output_channels: int) -> dict[str, tuple
             "output_linear.weight": (output_channels, width), "output_linear.bias": (output_channels,)}
 
 
-def field_weights(state: object, field: NeRFField, output_channels: int, label: str) -> dict[str, torch.Tensor]:
+def checked_state_dict(state: object, field: NeRFField, output_channels: int, label: str) -> dict[str, torch.Tensor]:
     """A checkpoint state dict checked against the field's architecture -> the field's float32 state dict.
 
     label names the state dict in messages; the first missing, unexpected or misshapen parameter is refused.
@@ -285,7 +285,7 @@ def load_fields(checkpoint: dict, config: NerfPytorchConfig, path: Path) -> tupl
             continue
         field = NeRFField(field_config)
         label = f"{path}: {CHECKPOINT_FIELDS[role]}"
-        field.load_state_dict(field_weights(checkpoint[CHECKPOINT_FIELDS[role]], field, output_channels, label))
+        field.load_state_dict(checked_state_dict(checkpoint[CHECKPOINT_FIELDS[role]], field, output_channels, label))
         fields.append(field.eval().requires_grad_(False))
     return fields[0], fields[1]
 
