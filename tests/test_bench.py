@@ -1,7 +1,9 @@
 """`noisenerf bench` end to end on a tiny scene: every experiment runs and the report, CSVs and plots
 are written with the figures the experiments measured."""
 
+import ast
 import csv
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -9,7 +11,7 @@ import pytest
 from conftest import make_tiny_scene
 from noisenerf.runtime.errors import UserError
 from noisenerf.runtime.images import write_image
-from noisenerf.cli.bench import EXPERIMENTS, BenchConfig, field_flops, run_bench
+from noisenerf.cli.bench import EXPERIMENTS, BenchConfig, config, field_flops, run_bench
 from noisenerf.cli.bench.report import verdict
 
 
@@ -92,3 +94,11 @@ def test_a_goal_reached_exactly_is_met():
 def test_unknown_experiment_is_refused(tmp_path):
     with pytest.raises(UserError, match="unknown experiments"):
         run_bench(BenchConfig(scene="x", secret="y", experiments=("magic",)), tmp_path / "o", False, "")
+
+
+def test_bench_config_is_a_leaf():
+    """config.py imports no other bench module: every bench module may import it without a circle."""
+    tree = ast.parse(Path(config.__file__).read_text())
+    imported = [node.module for node in ast.walk(tree) if isinstance(node, ast.ImportFrom)]
+    imported += [alias.name for node in ast.walk(tree) if isinstance(node, ast.Import) for alias in node.names]
+    assert [name for name in imported if name.startswith("noisenerf.cli")] == []

@@ -7,7 +7,6 @@ import contextlib
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
@@ -21,8 +20,7 @@ from noisenerf.train.hide.run import hide
 from noisenerf.train.hide.secret_view import SecretView
 from noisenerf.train.scene.scene import Scene
 
-if TYPE_CHECKING:  # config.py imports the registry, which imports the experiments, which import this module
-    from noisenerf.cli.bench.config import BenchConfig
+from noisenerf.cli.bench.config import BenchConfig
 
 
 @dataclass(frozen=True)

@@ -6,6 +6,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable
 
+from noisenerf.runtime.errors import UserError
+
 from noisenerf.cli.bench import coverage, exact_cost, exact_scale, paper, payload
 from noisenerf.cli.bench.context import BenchContext, Measured, Section
 
@@ -48,3 +50,13 @@ REGISTRY = (
     Experiment("payload", "File payloads, plain and sealed", payload.measure_payload, payload.describe_payload),
 )
 EXPERIMENTS = tuple(experiment.name for experiment in REGISTRY)
+
+
+def selected(names: tuple[str, ...] | None) -> tuple[Experiment, ...]:
+    """The experiments named (BenchConfig.experiments; None: all of them), in the registry's order."""
+    if names is None:
+        return REGISTRY
+    unknown = set(names) - set(EXPERIMENTS)
+    if unknown:
+        raise UserError(f"unknown experiments {sorted(unknown)} (choose from {', '.join(EXPERIMENTS)})")
+    return tuple(experiment for experiment in REGISTRY if experiment.name in names)

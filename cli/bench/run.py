@@ -15,7 +15,7 @@ from noisenerf.train.scene.scene import load_scene
 
 from noisenerf.cli.bench.config import BenchConfig
 from noisenerf.cli.bench.context import BenchContext, Section, timed
-from noisenerf.cli.bench.registry import EXPERIMENTS, REGISTRY
+from noisenerf.cli.bench.registry import REGISTRY, selected
 from noisenerf.cli.bench.report import write_csv, write_report
 
 
@@ -23,9 +23,7 @@ def run_bench(config: BenchConfig, out: Path, run_stress: bool, command: str, pr
     """Run the configured experiments; write OUT/BENCHMARKS.md, CSVs and plots. Returns the sections."""
     from noisenerf.export.onnx_export import export_scene
 
-    unknown = set(config.experiments) - set(EXPERIMENTS)
-    if unknown:
-        raise UserError(f"unknown experiments {sorted(unknown)} (choose from {', '.join(EXPERIMENTS)})")
+    experiments = selected(config.experiments)
     if not out.parent.is_dir():
         raise UserError(f"output folder does not exist: {out.parent}")
     out.mkdir(exist_ok=True)
@@ -36,7 +34,7 @@ def run_bench(config: BenchConfig, out: Path, run_stress: bool, command: str, pr
         model_path = Path(tmp) / "model.onnx"
         export_scene(config.scene, model_path)
         context = BenchContext(config, scene, secret, Path(tmp), model_path, load_model(model_path))
-        for experiment in (experiment for experiment in REGISTRY if experiment.name in config.experiments):
+        for experiment in experiments:
             progress(f"bench: {experiment.name}")
             section, seconds = timed(experiment.run, context)
             section.lines.append(f"\n_(experiment wall time {seconds:.0f} s)_")
