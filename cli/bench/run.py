@@ -1,4 +1,5 @@
-"""A whole bench run: the selected experiments in the registry's order, then CSVs, plots and the report."""
+"""A whole bench run: the selected experiments and those they need, in the registry's order, then CSVs,
+plots and the report."""
 
 from __future__ import annotations
 
@@ -20,7 +21,8 @@ from noisenerf.cli.bench.report import write_csv, write_report
 
 
 def run_bench(config: BenchConfig, out: Path, run_stress: bool, command: str, progress=print) -> list[Section]:
-    """Run the configured experiments; write OUT/BENCHMARKS.md, CSVs and plots. Returns the sections."""
+    """Run the configured experiments and those they need (registry.selected); write OUT/BENCHMARKS.md, CSVs
+    and plots. Returns the sections."""
     from noisenerf.export.onnx_export import export_scene
 
     experiments = selected(config.experiments)
@@ -34,9 +36,12 @@ def run_bench(config: BenchConfig, out: Path, run_stress: bool, command: str, pr
         model_path = Path(tmp) / "model.onnx"
         export_scene(config.scene, model_path)
         context = BenchContext(config, scene, secret, Path(tmp), model_path, load_model(model_path))
+        measured = {}  # the runner's own: an experiment gets a read-only view of its needs only
         for experiment in experiments:
-            progress(f"bench: {experiment.name}")
-            section, seconds = timed(experiment.run, context)
+            dependents = [other.name for other in experiments if experiment.name in other.needs]
+            asked = config.experiments is None or experiment.name in config.experiments
+            progress(f"bench: {experiment.name}" + ("" if asked else f" (needed by {', '.join(dependents)})"))
+            (measured[experiment.name], section), seconds = timed(experiment.run, context, measured)
             section.lines.append(f"\n_(experiment wall time {seconds:.0f} s)_")
             sections.append(section)
     if run_stress:
