@@ -13,10 +13,11 @@ from conftest import make_tiny_scene
 from noisenerf.runtime.errors import UserError
 from noisenerf.runtime.images import write_image
 from noisenerf.cli.bench import (EXPERIMENTS, REGISTRY, BenchConfig, BenchContext, Experiment, config, field_flops,
-                                  run_bench)
+                                  run_bench, stress)
 from noisenerf.cli.bench.context import Measured
 from noisenerf.cli.bench.registry import selected
 from noisenerf.cli.bench.report import verdict
+from noisenerf.cli.bench.run import stress_section
 
 
 @pytest.fixture(scope="module")
@@ -149,3 +150,15 @@ def test_an_experiment_sees_only_what_it_needs_and_cannot_change_it():
     experiment = Experiment("c", "C", measure, lambda context, measured: ["described"], needs=("b",))
     measured, section = experiment.run(BenchContext(None, None, None, None, None, None), earlier)
     assert measured.rows == section.rows == [{"y": 3}] and section.lines == ["described"]
+
+
+def test_bench_stress_reports_a_failed_case_and_runs_the_others(monkeypatch):
+    def not_negative(stressed, value):
+        if value < 0:
+            raise AssertionError("negative")
+
+    monkeypatch.setattr(stress, "STRESS_CHECKS", (stress.StressCheck(not_negative, full=((-1,), (1,)), fast=()),))
+    section = stress_section()
+    assert [row["passed"] for row in section.rows] == [False, True]
+    assert "**1 of 2 passed**" in section.lines[0]
+    assert section.lines[-1] == "- failed: `not_negative(-1)`: AssertionError: negative"
