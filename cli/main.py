@@ -271,7 +271,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--paper-iters", type=int, default=300, help="paper-mode iterations (the paper's 300)")
     p.add_argument("--twok-rows", type=int, default=1, help="tile rows of the 2048² secret actually hidden (1-4)")
     p.add_argument("--payload-bytes", type=int, default=1 << 20, help="size of the payload experiment's file")
-    p.add_argument("--only", help="comma-separated experiments (default: all)")
+    p.add_argument("--only", help="comma-separated experiments, run with those they need (default: all)")
     add_device(p)
     p.add_argument("--stress", action="store_true", help="also run the full numerical stress suite")
     p.add_argument("-o", "--output", default="bench", help="folder for BENCHMARKS.md, CSVs and plots")
