@@ -19,7 +19,7 @@ from noisenerf.train.hide.tiling import MIN_TILE_SIZE
 from noisenerf.train.scene.field import NeRFField
 from noisenerf.train.scene.scene import Scene
 
-from noisenerf.cli.bench.context import PaperNoise, Stopwatch, synchronized_time
+from noisenerf.cli.bench.context import Stopwatch, synchronized_time
 
 
 def secret_view(scene: Scene, secret: np.ndarray, view: int, n_samples: int, device: torch.device = torch.device("cpu"),
@@ -59,6 +59,15 @@ def exact_curve(scene: Scene, secret: np.ndarray, view: int, settings: ExactSett
     result = solve_exact(tile_view, index, pixels, NoiseSpace(torch.float16), settings, torch.Generator().manual_seed(0),
                          observe)
     return rows, {"seconds": watch.elapsed(), **dataclasses.asdict(result.counts)}
+
+
+@dataclass(frozen=True)
+class PaperNoise:
+    """Paper-mode noise over a whole secret view, as the solver left it."""
+
+    noise: torch.Tensor  # (n, k, dims) float32 on the CPU
+    view: SecretView
+    secret: np.ndarray  # the secret it hides, uint8 (h, w, 3)
 
 
 @dataclass
