@@ -46,10 +46,13 @@ from noisenerf.train.hide.secret_view import BranchView, SecretView
 
 SolverView = SecretView | BranchView  # what the solver renders: the whole field, or its view branch alone
 
+CPU_CHUNK_PIXELS = 16384  # chunk_pixels_for a CPU, and HideConfig's default
+
+
 def chunk_pixels_for(device: torch.device) -> int:
     """Pixels solved together: a GPU needs large batches to be busy (its Jacobians of 4 × 90 per pixel
     stay well under a GiB at 2^18); on a CPU smaller chunks resume at a finer grain and cost the same."""
-    return 1 << 18 if device.type == "cuda" else 16384
+    return 1 << 18 if device.type == "cuda" else CPU_CHUNK_PIXELS
 
 
 END_PULL_BINS = 0.2  # targets for 0 and 255 sit this far inside, where a sigmoid can arrive

@@ -12,7 +12,7 @@ import torch
 from noisenerf.runtime.bundle import Frame, noise_shape
 from noisenerf.runtime.errors import UserError
 from noisenerf.train.hide.compact import CompactSettings, in_basis, solver_view, tile_space
-from noisenerf.train.hide.exact import ExactSettings, NoiseSpace, chunk_pixels_for, is_lifted, rescue, solve_exact
+from noisenerf.train.hide.exact import ExactSettings, NoiseSpace, is_lifted, rescue, solve_exact
 from noisenerf.train.hide.secret_view import BranchView, SecretView
 from noisenerf.train.hide.solver import ChunkPool, Solver, TileSolution, chunk_seed, storage_dtype
 
@@ -95,9 +95,6 @@ class ExactSolver(Solver):
     def check(self, config: HideConfig) -> None:
         if config.n_samples != 1:
             raise UserError("--method exact renders its secret view with one sample per ray (--samples 1)")
-
-    def chunk_pixels(self, device: torch.device) -> int:
-        return chunk_pixels_for(device)
 
     @contextlib.contextmanager
     def threads(self, device: torch.device):
