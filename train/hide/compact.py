@@ -36,7 +36,7 @@ import torch
 from noisenerf.runtime.errors import UserError
 from noisenerf.runtime.limits import MAX_COMPACT_COEFFICIENTS
 from noisenerf.train.hide.secret_view import BranchView, SecretView
-from noisenerf.train.hide.exact import INTEGER_LIMITS, ExactSettings, NoiseSpace, is_lifted, solve_exact
+from noisenerf.train.hide.exact import INTEGER_LIMITS, ChunkProblem, ExactSettings, NoiseSpace, is_lifted, solve_exact
 
 @dataclass(frozen=True)
 class CompactSettings:
@@ -138,7 +138,7 @@ def tile_space(view: SecretView, pixels: torch.Tensor, settings: CompactSettings
         branch = BranchView(part, xyz_noise)
         if float(is_lifted(branch.density, exact.density_floor).float().mean()) >= MIN_LIFTED:
             return direction_basis(branch, pixels[sample], xyz_noise, settings, exact, storage, scale, generator)
-    solved = solve_exact(view, sample, pixels[sample], NoiseSpace(torch.float32), exact, generator)
+    solved = solve_exact(ChunkProblem(view, sample, pixels[sample], NoiseSpace(torch.float32), exact, generator))
     offset, basis = principal_basis(solved.params, settings.coefficients)
     return NoiseSpace(storage, basis, offset, scale)
 
@@ -153,9 +153,9 @@ def direction_basis(branch: BranchView, pixels: torch.Tensor, xyz_noise: torch.T
     every = torch.arange(branch.n_rays, device=pixels.device)
     directions = direction_space(torch.float32, xyz_noise, xyz_noise.new_zeros(dir_dims),
                                  torch.eye(dir_dims, device=xyz_noise.device))
-    solved = solve_exact(branch, every, pixels, directions, exact, generator)
+    solved = solve_exact(ChunkProblem(branch, every, pixels, directions, exact, generator))
     first = direction_space(torch.float32, xyz_noise, *principal_basis(solved.params[solved.done], k))
-    trial = solve_exact(branch, every, pixels, first, in_basis(exact, settings), generator)
+    trial = solve_exact(ChunkProblem(branch, every, pixels, first, in_basis(exact, settings), generator))
     weights = torch.where(trial.done, 1, settings.missed_weight) * solved.done
     return direction_space(storage, xyz_noise, *principal_basis(solved.params.repeat_interleave(weights, 0), k),
                            scale)
