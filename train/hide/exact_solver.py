@@ -130,7 +130,8 @@ class ExactSolver(Solver):
         chunks = [torch.arange(start, min(start + config.chunk_pixels, n), device=pixels.device)
                   for start in range(0, n, config.chunk_pixels)]
 
-        def absorb(index: torch.Tensor, saved: dict[str, torch.Tensor]) -> None:
+        def merge_chunk(index: torch.Tensor, saved: dict[str, torch.Tensor]) -> None:
+            """A solved chunk's params, escapes and counts into the tile's; the bar advances."""
             nonlocal totals
             params[index] = saved["noise"].to(params.device)
             if "escaped" in saved:
@@ -150,12 +151,12 @@ class ExactSolver(Solver):
             if saved is None:
                 unsolved.append(c)
             else:
-                absorb(index, saved)
+                merge_chunk(index, saved)
         jobs = [(view.subset(chunks[c]), torch.arange(len(chunks[c]), device=pixels.device), pixels[chunks[c]],
                  space, config, chunk_seed(config, k, c)) for c in unsolved]
         for i, saved in pool.solve_all(solve_chunk, jobs):
             progress.save(k, unsolved[i], saved)
-            absorb(chunks[unsolved[i]], saved)
+            merge_chunk(chunks[unsolved[i]], saved)
         noise = torch.where(escaped[:, None, None], escape_noise[:, None, :], space.expand(params))
         stored, frame = stored_noise(space, params, escaped, escape_noise, noise_shape(config.layout, *shape, 1, -1))
         return TileSolution(noise, {**totals, "escaped": int(escaped.sum())}, stored, frame)
