@@ -9,17 +9,17 @@ is the minimum-norm Levenberg–Marquardt one, δ += Jᵀ(JJᵀ + λI)⁻¹r, wi
 J is exact (the field's hand-written four-row reverse pass), and a pixel retires as soon as it is
 finished, so later iterations only pay for the few left. Every 16th pixel is solved first; the others
 start from the noise of the solved seed nearest in target colour, moved by a few Gauss–Newton steps
-with that seed's Jacobian (chord_start: forward passes only; ~20 % fewer Jacobians on lego photos).
+with that seed's Jacobian (chord_start: forward passes only, which spare Jacobians of their own).
 
 Two phases: the first solves in float32 until every channel sits within `tolerance_bins` of its bin's
 centre; the second rounds to the storage dtype and polishes, judging only storable noise, until every
 channel rounds to its 8-bit value with `margin_bins` to spare (far more than the torch ↔ onnxruntime
-disagreement, ~1e-6 in colour). Between the phases, a compact tile's integer lattice (each of its 6
-coefficients in steps of CompactSettings.coefficient_range / 32767) is entered by round_to_lattice, a
-search among nearby lattice points predicted by the Jacobian: with a basis in the whole noise a step of
-1/32 moved a colour by more than a bin, and plain rounding then LM on the lattice took ~3× the
-Jacobians. In a compact tile's γ(d) basis (compact.py) steps move colours less, and radius 1 with 2
-tries was as good as 2 and 3, in less time.
+disagreement). Between the phases, a compact tile's integer lattice (each of its 6 coefficients in
+steps of CompactSettings.coefficient_range / 32767) is entered by round_to_lattice, a search among nearby
+lattice points predicted by the Jacobian: one lattice step can move a colour by more than a bin, so plain
+rounding would leave many pixels to LM on the lattice, which costs far more Jacobians than rendering a
+few predicted points. In a compact tile's γ(d) basis (compact.py) steps move colours less, so a small
+radius and few tries suffice.
 
 A solve is one ChunkProblem, what stays fixed over it (the view and its pixels, the noise space,
 settings, generator and counts), which every step takes; what Levenberg–Marquardt changes from one
@@ -436,8 +436,8 @@ def chord_start(problem: ChunkProblem, which: torch.Tensor, params: torch.Tensor
     """Warm starts for pixels `which` (w,) refined without Jacobians of their own: from params (w, P) (a
     solved seed's), take settings.chord_steps Gauss–Newton steps with that seed's Jacobian jac (w, 4, P)
     (the chord method), keeping each pixel's best. The seed's Jacobian is only a rough guide to the
-    pixel's (on lego they differ by ~40–90 %), but three steps bring ~80 % of a photo's pixels within 10
-    bins, where LM's own steps take over. -> params (w, P)."""
+    pixel's, but a few steps bring most pixels near enough for LM's own steps to take over at less cost:
+    forward passes only. -> params (w, P)."""
     settings, goal = problem.settings, problem.goal[which]
     best = params
     outputs = problem.outputs(which, params)
@@ -532,8 +532,8 @@ def solve_exact(problem: ChunkProblem) -> ChunkResult:
     its space (the full 90 values, or a tile's compact basis).
 
     Every seed_stride-th pixel is solved first from zero params; every other pixel then starts from the
-    params of the solved seed nearest in target colour, which is most of the way there (it measured
-    ~40 % fewer Jacobians than starting all pixels from zero). Each group runs both phases; a last storage-phase pass over
+    params of the solved seed nearest in target colour, which is most of the way there, so it needs far
+    fewer Jacobians than a start from zero. Each group runs both phases; a last storage-phase pass over
     the whole chunk gives any pixel still left every finished pixel as a donor."""
     view, space = problem.view, problem.space
     if view.n_samples != 1:
