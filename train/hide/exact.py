@@ -281,7 +281,7 @@ class Refinement:
                           torch.zeros(m, dtype=torch.int64, device=device), every)
 
 
-@dataclass(frozen=True, eq=False)
+@dataclass(frozen=True, eq=False)  # tensors have no truth value: a problem equals only itself
 class ChunkProblem:
     """One solve's fixed part: pixels `index` (m,) of a single-sample view with 8-bit values `pixels` (m, 3)
     uint8, their noise sought in `space`, the settings, the generator every random start draws from and
