@@ -79,9 +79,9 @@ def one_iteration(monkeypatch):
     Patched in this process only, so the hides below run with --workers 1."""
     real_refine = exact.refine
 
-    def refine(view, index, goal, space, noise, finished, store, settings, *args, **kwargs):
-        return real_refine(view, index, goal, space, noise, finished, store,
-                           dataclasses.replace(settings, max_iters=1), *args, **kwargs)
+    def refine(problem, *args, **kwargs):
+        return real_refine(dataclasses.replace(problem, settings=dataclasses.replace(problem.settings, max_iters=1)),
+                           *args, **kwargs)
 
     monkeypatch.setattr(exact, "refine", refine)
 

@@ -16,7 +16,6 @@ from noisenerf.runtime.networks import render_network
 from noisenerf.runtime.render import render_view
 from noisenerf.runtime.reveal import reveal
 from noisenerf.runtime.session import OnnxField, read_model_file
-from noisenerf.train.hide.exact import ExactSettings
 from noisenerf.train.hide.paper import recipe
 from noisenerf.train.hide.plan import HideConfig
 from noisenerf.train.scene.datasets import load_dataset
@@ -162,9 +161,9 @@ def measure_skipping(context: BenchContext) -> Skipping:
             rows.append({"experiment": "ordinary render", "variant": name, "work": evaluated, "dense_work": dense,
                          "psnr": float(np.mean(scores)), "seconds": time.perf_counter() - started})
     small = small_secret(context.secret, 2 * config.small_width)
-    for retire in (True, False):
-        curve, counts = exact_curve(scene, small, config.view, ExactSettings(retire=retire))
-        rows.append({"experiment": "exact hide", "variant": "retiring" if retire else "no retiring",
+    for retiring in (True, False):
+        curve, counts = exact_curve(scene, small, config.view, retiring)
+        rows.append({"experiment": "exact hide", "variant": "retiring" if retiring else "no retiring",
                      "work": counts["jacobians"], "dense_work": counts["renders"], "psnr": curve[-1]["psnr"],
                      "seconds": counts["seconds"]})
     return Skipping(rows, size_of(small), test_views=len(views))

@@ -12,7 +12,8 @@ import torch
 from noisenerf.runtime.bundle import CompactBasis, CompactNoise, TileNoise, VectorNoise, noise_shape
 from noisenerf.runtime.errors import UserError
 from noisenerf.train.hide.compact import CompactSettings, in_basis, solver_view, tile_space
-from noisenerf.train.hide.exact import ExactSettings, NoiseSpace, chunk_pixels_for, is_lifted, rescue, solve_exact
+from noisenerf.train.hide.exact import (ChunkProblem, ExactSettings, NoiseSpace, SolveCounts, is_lifted, rescue,
+                                        solve_exact)
 from noisenerf.train.hide.secret_view import BranchView, SecretView
 from noisenerf.train.hide.solver import ChunkPool, Solver, TileSolution, chunk_seed, storage_dtype
 
@@ -54,27 +55,28 @@ def solve_chunk(view: SecretView, index: torch.Tensor, pixels: torch.Tensor, spa
     could not finish, `escaped` (m,) uint8, solved again in full float16 noise, `escape_noise` (m, dims)
     (zero where not escaped). Compact solves run at most CompactSettings.max_iters per phase: the few
     pixels its basis cannot reach escape sooner, and their float phase stops at CompactSettings.tolerance_bins."""
-    generator = torch.Generator().manual_seed(seed)
+    generator, counts = torch.Generator().manual_seed(seed), SolveCounts()
     settings = config.get(ExactSettings)
     if space.basis is None:
-        result = solve_exact(view, index, pixels, space, settings, generator)
-        params, _ = rescue(view, index, pixels, space, result.params, result.done, settings, generator, result.counts)
-        return {"noise": params, "counts": torch.tensor(dataclasses.astuple(result.counts))}
+        problem = ChunkProblem(view, index, pixels, space, settings, generator, counts)
+        result = solve_exact(problem)
+        params, _ = rescue(problem, result.params, result.done)
+        return {"noise": params, "counts": torch.tensor(dataclasses.astuple(counts))}
     solving = solver_view(view, space)
     # a ray the tile's shared γ(x) leaves unlifted can only escape: no basis solve for it
     tried = (is_lifted(solving.density[index], settings.density_floor) if isinstance(solving, BranchView)
              else torch.ones_like(index, dtype=torch.bool)).nonzero()[:, 0]
-    result = solve_exact(solving, index[tried], pixels[tried], space, in_basis(settings, config.get(CompactSettings)),
-                         generator)
+    result = solve_exact(ChunkProblem(solving, index[tried], pixels[tried], space,
+                                      in_basis(settings, config.get(CompactSettings)), generator, counts))
     params, done = space.zeros(len(index), view.noise_dims, index.device), torch.zeros_like(index, dtype=torch.bool)
     params[tried], done[tried] = result.params, result.done
     escape_noise = torch.zeros(len(index), view.noise_dims, device=index.device)
     if not done.all():  # escapes start from their own compact noise (it keeps the tile's density lift); the
         # finished pixels' compact noise are the rescue's donors
-        full, _ = rescue(view, index, pixels, NoiseSpace(ESCAPE_DTYPE), space.expand(params)[:, 0], done, settings,
-                         generator, result.counts)
+        escapes = ChunkProblem(view, index, pixels, NoiseSpace(ESCAPE_DTYPE), settings, generator, counts)
+        full, _ = rescue(escapes, space.expand(params)[:, 0], done)
         escape_noise[~done] = full[~done]
-    return {"noise": params, "counts": torch.tensor(dataclasses.astuple(result.counts)),
+    return {"noise": params, "counts": torch.tensor(dataclasses.astuple(counts)),
             "escaped": (~done).to(torch.uint8), "escape_noise": escape_noise}
 
 
@@ -95,9 +97,6 @@ class ExactSolver(Solver):
     def check(self, config: HideConfig) -> None:
         if config.n_samples != 1:
             raise UserError("--method exact renders its secret view with one sample per ray (--samples 1)")
-
-    def chunk_pixels(self, device: torch.device) -> int:
-        return chunk_pixels_for(device)
 
     @contextlib.contextmanager
     def threads(self, device: torch.device):
@@ -131,7 +130,8 @@ class ExactSolver(Solver):
         chunks = [torch.arange(start, min(start + config.chunk_pixels, n), device=pixels.device)
                   for start in range(0, n, config.chunk_pixels)]
 
-        def absorb(index: torch.Tensor, saved: dict[str, torch.Tensor]) -> None:
+        def merge_chunk(index: torch.Tensor, saved: dict[str, torch.Tensor]) -> None:
+            """A solved chunk's params, escapes and counts into the tile's; the bar advances."""
             nonlocal totals
             params[index] = saved["noise"].to(params.device)
             if "escaped" in saved:
@@ -151,12 +151,12 @@ class ExactSolver(Solver):
             if saved is None:
                 unsolved.append(c)
             else:
-                absorb(index, saved)
+                merge_chunk(index, saved)
         jobs = [(view.subset(chunks[c]), torch.arange(len(chunks[c]), device=pixels.device), pixels[chunks[c]],
                  space, config, chunk_seed(config, k, c)) for c in unsolved]
         for i, saved in pool.solve_all(solve_chunk, jobs):
             progress.save(k, unsolved[i], saved)
-            absorb(chunks[unsolved[i]], saved)
+            merge_chunk(chunks[unsolved[i]], saved)
         noise = torch.where(escaped[:, None, None], escape_noise[:, None, :], space.expand(params))
         stored = stored_noise(space, params, escaped, escape_noise, noise_shape(config.layout, *shape, 1, -1))
         return TileSolution(noise, {**totals, "escaped": int(escaped.sum())}, stored)
