@@ -79,7 +79,7 @@ def test_entering_the_lattice_keeps_more_pixels_exact_than_rounding(compact_view
 
 def test_a_compact_tile_lifts_its_density_once_and_moves_only_the_view_direction(compact_view):
     problem = compact_view[0]
-    view, index, space = problem.view, problem.index, problem.space
+    view, index, space = problem.secret_view, problem.index, problem.space
     xyz_dims = view.field.config.xyz_dims
     assert not space.basis[:xyz_dims].any() and space.basis[xyz_dims:].any()
     density = view.field.trunk_outputs(view.encodings(index)[:, 0, :xyz_dims] + space.offset[:xyz_dims])[0]
@@ -90,7 +90,7 @@ def test_a_compact_tile_lifts_its_density_once_and_moves_only_the_view_direction
 
 
 def test_lift_density_reaches_its_margin_on_every_sampled_ray(compact_view):
-    view, index = compact_view[0].view, compact_view[0].index
+    view, index = compact_view[0].secret_view, compact_view[0].index
     xyz_dims = view.field.config.xyz_dims
     clean = view.field.trunk_outputs(view.encodings(index)[:, 0, :xyz_dims])[0]
     assert float(clean.min()) < 1.0  # the demo view's single samples start below the floor
@@ -100,7 +100,7 @@ def test_lift_density_reaches_its_margin_on_every_sampled_ray(compact_view):
 
 def test_the_view_branch_renders_what_the_whole_field_renders(compact_view):
     problem, converged, done = compact_view
-    view, index, space = problem.view, problem.index, problem.space
+    view, index, space = problem.secret_view, problem.index, problem.space
     branch = solver_view(view, space)
     noise = space.expand(converged + torch.randn(converged.shape, generator=torch.Generator().manual_seed(4)))
     which = index[done]

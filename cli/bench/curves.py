@@ -85,7 +85,7 @@ class PaperNoise:
     """Paper-mode noise over a whole secret view, as the solver left it."""
 
     noise: torch.Tensor  # (n, k, dims) float32 on the CPU
-    view: SecretView
+    secret_view: SecretView
     secret: np.ndarray  # the secret it hides, uint8 (h, w, 3)
 
 

@@ -198,10 +198,10 @@ def describe_skipping(context: BenchContext, measured: Skipping) -> list[str]:
 
 def stored_quality(kept: PaperNoise, dtype: str) -> dict:
     """Exact fraction and PSNR of paper-mode noise once stored as `dtype` (float32 or float16)."""
-    index = torch.arange(kept.view.n_rays, device=kept.view.device)
+    index = torch.arange(kept.secret_view.n_rays, device=kept.secret_view.device)
     with torch.no_grad():
         stored = kept.noise.to(getattr(torch, dtype)).float().to(index.device)
-        quality = secret_quality(kept.view.render(index, stored), kept.secret)
+        quality = secret_quality(kept.secret_view.render(index, stored), kept.secret)
     return {"exact_fraction": quality["exact_fraction"], "psnr": quality["psnr"]}
 
 

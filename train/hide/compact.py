@@ -85,13 +85,13 @@ LIFT_ROUNDS = 8
 MIN_LIFTED = 0.99
 
 
-def lift_density(view: SecretView, floor: float) -> torch.Tensor:
+def lift_density(secret_view: SecretView, floor: float) -> torch.Tensor:
     """One γ(x) noise vector (xyz_dims,) shared by a single-sample view's rays that lifts their raw
     densities towards LIFT_MARGIN · floor: from zero, steps along the mean density gradient of the rays
     still below, each of the LIFT_STEPS length that most raises Σ min(density, goal) over every ray, until
     all are there or no step helps; on a trained scene one step usually lifts every ray."""
-    field, xyz_dims = view.field, view.field.config.xyz_dims
-    encoded = view.encodings(torch.arange(view.n_rays, device=view.device))[:, 0, :xyz_dims]
+    field, xyz_dims = secret_view.field, secret_view.field.config.xyz_dims
+    encoded = secret_view.encodings(torch.arange(secret_view.n_rays, device=secret_view.device))[:, 0, :xyz_dims]
     goal = LIFT_MARGIN * floor
 
     def density(noise: torch.Tensor) -> torch.Tensor:
@@ -100,7 +100,7 @@ def lift_density(view: SecretView, floor: float) -> torch.Tensor:
     def progress(noise: torch.Tensor) -> float:
         return float(torch.clamp_max(density(noise), goal).sum())
 
-    noise = torch.zeros(xyz_dims, device=view.device)
+    noise = torch.zeros(xyz_dims, device=secret_view.device)
     with torch.no_grad():
         best = progress(noise)
     for _ in range(LIFT_ROUNDS):
@@ -121,7 +121,7 @@ def lift_density(view: SecretView, floor: float) -> torch.Tensor:
     return noise
 
 
-def tile_space(view: SecretView, pixels: torch.Tensor, settings: CompactSettings, exact: ExactSettings,
+def tile_space(secret_view: SecretView, pixels: torch.Tensor, settings: CompactSettings, exact: ExactSettings,
                storage: torch.dtype, seed: int) -> NoiseSpace:
     """The compact NoiseSpace of one tile with int8/int16 coefficients, from `basis_pixels` of its pixels
     (n, 3) uint8 drawn with `seed`. A field with a view branch gets a shared γ(x) noise that lifts the
@@ -129,15 +129,15 @@ def tile_space(view: SecretView, pixels: torch.Tensor, settings: CompactSettings
     more than 1 − MIN_LIFTED of the sample unlifted; then, as for a field without a view branch, the
     offset and basis come from the sample solved in the full noise."""
     generator = torch.Generator().manual_seed(seed)
-    sample = torch.randperm(view.n_rays, generator=generator)[:settings.basis_pixels].to(pixels.device)
+    sample = torch.randperm(secret_view.n_rays, generator=generator)[:settings.basis_pixels].to(pixels.device)
     scale = float(np.float32(settings.coefficient_range / INTEGER_LIMITS[storage]))
-    if view.field.config.use_viewdirs:
-        part = view.subset(sample)
+    if secret_view.field.config.use_viewdirs:
+        part = secret_view.subset(sample)
         xyz_noise = lift_density(part, exact.density_floor)
         branch = BranchView(part, xyz_noise)
         if float(is_lifted(branch.density, exact.density_floor).float().mean()) >= MIN_LIFTED:
             return direction_basis(branch, pixels[sample], xyz_noise, settings, exact, storage, scale, generator)
-    solved = solve_exact(ChunkProblem(view, sample, pixels[sample], NoiseSpace(torch.float32), exact, generator))
+    solved = solve_exact(ChunkProblem(secret_view, sample, pixels[sample], NoiseSpace(torch.float32), exact, generator))
     offset, basis = principal_basis(solved.params, settings.coefficients)
     return NoiseSpace(storage, basis, offset, scale)
 
@@ -168,10 +168,10 @@ def direction_space(storage: torch.dtype, xyz_noise: torch.Tensor, dir_offset: t
                       torch.cat([xyz_noise, dir_offset]), scale)
 
 
-def solver_view(view: SecretView, space: NoiseSpace) -> SecretView | BranchView:
+def solver_view(secret_view: SecretView, space: NoiseSpace) -> SecretView | BranchView:
     """What the exact solver renders for a chunk in `space`: the view branch alone where the space's noise
     leaves γ(x) at its offset (tile_space, fields with a view branch), else the whole field."""
-    xyz_dims = view.field.config.xyz_dims
-    if space.basis is not None and view.field.config.use_viewdirs and not space.basis[:xyz_dims].any():
-        return BranchView(view, space.offset[:xyz_dims])
-    return view
+    xyz_dims = secret_view.field.config.xyz_dims
+    if space.basis is not None and secret_view.field.config.use_viewdirs and not space.basis[:xyz_dims].any():
+        return BranchView(secret_view, space.offset[:xyz_dims])
+    return secret_view

@@ -161,9 +161,9 @@ class NoiseSpace:
         return torch.zeros(m, dims if self.basis is None else self.basis.shape[1], device=device)
 
 
-def sample_outputs(view: SolverView, index: torch.Tensor, noise: torch.Tensor) -> torch.Tensor:
+def sample_outputs(secret_view: SolverView, index: torch.Tensor, noise: torch.Tensor) -> torch.Tensor:
     """Raw colour and raw density of each ray's single sample. index: (m,), noise: (m, 1, dims) -> (m, 4)."""
-    raw_rgb, raw_density = view.raw(index, noise)
+    raw_rgb, raw_density = secret_view.raw(index, noise)
     return torch.cat([raw_rgb[:, 0], raw_density[:, :1]], dim=-1)
 
 
@@ -292,7 +292,7 @@ class ChunkProblem:
     refine moves the pixels with `step` and keeps in the batch those `batch` returns: a subclass may
     watch or vary an iteration without the solver knowing."""
 
-    view: SolverView
+    secret_view: SolverView
     index: torch.Tensor
     pixels: torch.Tensor
     space: NoiseSpace
@@ -316,12 +316,12 @@ class ChunkProblem:
         """sample_outputs of pixels `which` (a,) at params (a, P), without gradients, counted. -> (a, 4)."""
         self.counts.renders += which.numel()
         with torch.no_grad():
-            return sample_outputs(self.view, self.index[which], self.space.expand(params))
+            return sample_outputs(self.secret_view, self.index[which], self.space.expand(params))
 
     def outputs_and_jacobian(self, which: torch.Tensor, params: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Outputs (a, 4) of pixels `which` (a,) at params (a, P) and their Jacobian in the params (a, 4, P),
         counted."""
-        outputs, jac = self.view.outputs_and_jacobian(self.index[which], self.space.expand(params))
+        outputs, jac = self.secret_view.outputs_and_jacobian(self.index[which], self.space.expand(params))
         self.counts.jacobians += which.numel()
         return outputs, self.space.chain(jac)
 
@@ -535,13 +535,14 @@ def solve_exact(problem: ChunkProblem) -> ChunkResult:
     params of the solved seed nearest in target colour, which is most of the way there, so it needs far
     fewer Jacobians than a start from zero. Each group runs both phases; a last storage-phase pass over
     the whole chunk gives any pixel still left every finished pixel as a donor."""
-    view, space = problem.view, problem.space
-    if view.n_samples != 1:
+    secret_view, space = problem.secret_view, problem.space
+    if secret_view.n_samples != 1:
         raise ValueError("the exact solver needs a secret view with one sample per ray")
     m, device = len(problem.index), problem.pixels.device
     if m == 0:  # e.g. a chunk whose rays all escape (exact_solver.solve_chunk)
-        return ChunkResult(space.zeros(0, view.noise_dims, device), torch.zeros(0, dtype=torch.bool, device=device))
-    params = space.zeros(m, view.noise_dims, device)
+        return ChunkResult(space.zeros(0, secret_view.noise_dims, device),
+                           torch.zeros(0, dtype=torch.bool, device=device))
+    params = space.zeros(m, secret_view.noise_dims, device)
     is_seed = torch.arange(m, device=device) % problem.settings.seed_stride == 0
     seeds, rest = is_seed.nonzero()[:, 0], (~is_seed).nonzero()[:, 0]
     params[seeds] = solve_from(problem.subset(seeds), params[seeds])[0]
