@@ -6,7 +6,7 @@ import csv
 import numpy as np
 import pytest
 
-from conftest import make_tiny_scene
+from helpers import make_tiny_scene
 from noisenerf.runtime.errors import UserError
 from noisenerf.runtime.images import write_image
 from noisenerf.cli.bench import EXPERIMENTS, BenchConfig, field_flops, run_bench

@@ -17,8 +17,7 @@ import numpy as np
 import pytest
 import torch
 
-from conftest import make_tiny_scene
-from helpers import run_main
+from helpers import make_tiny_scene, run_main
 from noisenerf.cli.bench.coverage import hard_secrets
 from noisenerf.cli.main import main as noisenerf_main
 from noisenerf.export.onnx_export import export_scene

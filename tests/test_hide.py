@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import torch
 
-from conftest import interrupted_after_saves, make_tiny_scene
+from helpers import interrupted_after_saves, make_tiny_scene
 from noisenerf.runtime.bundle import load_bundle
 from noisenerf.runtime.errors import UserError
 from noisenerf.runtime.images import to_uint8

@@ -16,7 +16,7 @@ import onnx
 import pytest
 from onnx import numpy_helper
 
-from conftest import make_tiny_scene
+from helpers import make_tiny_scene
 from noisenerf.export.onnx_export import export_scene
 from noisenerf.runtime.bundle import load_bundle
 from noisenerf.runtime.errors import UserError

@@ -15,7 +15,7 @@ import onnx
 import pytest
 from onnx import helper, numpy_helper
 
-from conftest import make_tiny_scene
+from helpers import make_tiny_scene
 from noisenerf.export.onnx_export import export_scene
 from noisenerf.runtime import session as session_module
 from noisenerf.runtime.errors import UserError

@@ -3,7 +3,7 @@
 import pytest
 import torch
 
-from conftest import interrupted_after_saves
+from helpers import interrupted_after_saves
 from noisenerf.runtime.errors import UserError
 from noisenerf.runtime.metrics import ssim
 from noisenerf.runtime.images import to_uint8

@@ -13,7 +13,7 @@ import onnx
 import pytest
 from safetensors.numpy import save_file
 
-from conftest import make_tiny_scene
+from helpers import make_tiny_scene
 from noisenerf.export.onnx_export import export_scene
 from noisenerf.train.scene.render import numpy_fields
 from noisenerf.runtime.bundle import METADATA_KEY, Bundle, Tile, load_bundle, secret_digest

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import torch
 
-from conftest import make_tiny_scene
+from helpers import make_tiny_scene
 from noisenerf.runtime.errors import UserError
 from noisenerf.train.scene.scene import load_scene
 
