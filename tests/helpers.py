@@ -7,9 +7,13 @@ this where torch is not installed, so the torch side is imported inside the help
 from __future__ import annotations
 
 import contextlib
+import json
+import math
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
+import OpenImageIO as oiio
 import pytest
 
 
@@ -95,3 +99,75 @@ def interrupted_after_saves(n: int):
     with pytest.MonkeyPatch.context() as patch:
         patch.setattr(progress_module.Progress, "save", save_then_die)
         yield
+
+
+# ---- images and dataset folders -------------------------------------------------------------------
+
+def write_raw(path: Path, pixels: np.ndarray, pixel_type: str = "uint8", unassociated: bool = False) -> Path:
+    """Pixels written with OpenImageIO directly, independent of write_image (`unassociated`: straight alpha)."""
+    spec = oiio.ImageSpec(pixels.shape[1], pixels.shape[0], pixels.shape[2], pixel_type)
+    if unassociated:
+        spec.attribute("oiio:UnassociatedAlpha", 1)
+    out = oiio.ImageOutput.create(str(path))
+    assert out.open(str(path), spec), out.geterror()
+    assert out.write_image(pixels)
+    out.close()
+    return path
+
+
+def read_raw(path: Path) -> np.ndarray:
+    """Pixels as stored (alpha not premultiplied), read with OpenImageIO directly."""
+    config = oiio.ImageSpec()
+    config.attribute("oiio:UnassociatedAlpha", 1)
+    image = oiio.ImageInput.open(str(path), config)
+    pixels = image.read_image(oiio.UNKNOWN)
+    image.close()
+    return pixels
+
+
+def write_png(path: Path, pixels: np.ndarray) -> Path:
+    """An 8-bit straight-alpha PNG, its folder made as needed."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    return write_raw(path, pixels, "uint8", unassociated=True)
+
+
+def write_blender(folder: Path, frames: dict[str, list], camera_angle_x: float, file_suffix: str = "") -> Path:
+    """A NeRF-Synthetic folder: per split, transforms_{split}.json and {split}/r_{k}.png for each
+    (pixels, c2w) frame; `file_suffix` is the extension the JSON's file paths carry (nerf-pytorch's have none)."""
+    for split, split_frames in frames.items():
+        entries = []
+        for k, (pixels, c2w) in enumerate(split_frames):
+            write_png(folder / split / f"r_{k}{file_suffix or '.png'}", pixels)
+            entries.append({"file_path": f"./{split}/r_{k}{file_suffix}", "rotation": 0.0,
+                            "transform_matrix": np.asarray(c2w).tolist()})
+        (folder / f"transforms_{split}.json").write_text(json.dumps({"camera_angle_x": camera_angle_x,
+                                                                     "frames": entries}))
+    return folder
+
+
+def write_llff(folder: Path, c2ws, hwf, bounds, factors, shade: int, extra_images: int = 0) -> np.ndarray:
+    """An LLFF folder: poses_bounds.npy (LLFF's [down, right, back, t | h, w, f] columns, then near and far)
+    for OpenGL camera-to-worlds `c2ws`, and per factor images_F/imageNNN.png, image k flat grey shade·k,
+    `extra_images` more than there are poses. Returns the poses_bounds array."""
+    folder.mkdir(parents=True, exist_ok=True)
+    rows = [np.concatenate([np.stack([-c2w[:3, 1], c2w[:3, 0], c2w[:3, 2], c2w[:3, 3], hwf], axis=1).ravel(), near_far])
+            for c2w, near_far in zip(c2ws, bounds)]
+    poses_bounds = np.asarray(rows)
+    np.save(folder / "poses_bounds.npy", poses_bounds)
+    height, width = int(hwf[0]), int(hwf[1])
+    for factor in factors:
+        for k in range(len(rows) + extra_images):
+            write_png(folder / f"images_{factor}" / f"image{k:03d}.png",
+                      np.full((height // factor, width // factor, 3), shade * k, np.uint8))
+    return poses_bounds
+
+
+def turning_llff(folder: Path, n: int = 9, full=(60, 80, 70.0), factors=(2, 4), extra_images: int = 0) -> np.ndarray:
+    """A small LLFF folder: n cameras turning 0.1 rad apart about y at seeded random centres, images 10·k grey."""
+    rng = np.random.default_rng(3)
+    c2ws = []
+    for k in range(n):
+        angle = 0.1 * k
+        right, up = np.array([math.cos(angle), 0.0, -math.sin(angle)]), np.array([0.0, 1.0, 0.0])
+        c2ws.append(np.stack([right, up, np.cross(right, up), rng.normal(size=3)], axis=1))
+    return write_llff(folder, c2ws, full, [[2.0 + 0.1 * k, 20.0] for k in range(n)], factors, 10, extra_images)

@@ -35,8 +35,7 @@ from noisenerf.runtime.images import write_image
 from noisenerf.runtime.model import METADATA_KEY as MODEL_KEY
 from noisenerf.train.hide import exact_solver, progress as progress_module
 from noisenerf.train.scene.procedural import write_procedural_dataset
-from test_datasets import write_llff
-from helpers import Result, run_main
+from helpers import Result, run_main, turning_llff
 from test_reveal_cli import raw_bundle, write_reveal_inputs
 
 PEAK_MB = 400  # what an allocation case may cost at most, interpreter and libraries included
@@ -607,7 +606,7 @@ def nan_frame(dataset: Path, folder: Path) -> Path:
 def degenerate_llff(folder: Path) -> Path:
     """An LLFF dataset whose poses have no rotation at all."""
     (folder / "llff").mkdir()
-    poses = write_llff(folder / "llff")
+    poses = turning_llff(folder / "llff")
     poses[:, [0, 1, 2, 5, 6, 7, 10, 11, 12]] = 0.0  # every rotation zero
     np.save(folder / "llff" / "poses_bounds.npy", poses)
     return folder / "llff"
