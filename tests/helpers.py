@@ -7,8 +7,12 @@ this where torch is not installed, so the torch side is imported inside the help
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import json
 import math
+import os
+import subprocess
+import sys
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -35,6 +39,38 @@ def run_main(main, args, capfd) -> Result:
         code = exit_.code
     out, err = capfd.readouterr()
     return Result(code, out, err)
+
+
+def run_reveal(*args, cwd: Path | None = None, passphrase: bytes | None = None) -> subprocess.CompletedProcess:
+    """`noisenerf-reveal ARGS` as a subprocess (python -m), stdin closed; NOISENERF_PASSPHRASE is `passphrase`
+    or unset."""
+    env = {key: value for key, value in os.environ.items() if key != "NOISENERF_PASSPHRASE"}
+    if passphrase is not None:
+        env["NOISENERF_PASSPHRASE"] = passphrase.decode()
+    return subprocess.run([sys.executable, "-m", "noisenerf.cli.reveal", *map(str, args)], capture_output=True,
+                          text=True, timeout=120, cwd=cwd, env=env, stdin=subprocess.DEVNULL)
+
+
+def assert_refused(result: Result | subprocess.CompletedProcess, output: Path | None, message: str,
+                   exact: bool = False, any_case: bool = False) -> None:
+    """A refusal: exit code 2, nothing on stdout, exactly one stderr line `PROG: error: TEXT` and no traceback,
+    TEXT holding `message` (being it, `exact`; in any case, `any_case`), and no `output` written (None: not
+    checked). PROG is noisenerf-reveal for a reveal subprocess, noisenerf[ COMMAND] or noisenerf-reveal for a
+    `Result`."""
+    progs = ("noisenerf", "noisenerf-reveal")
+    if isinstance(result, subprocess.CompletedProcess):
+        progs = ("noisenerf-reveal",) if "noisenerf.cli.reveal" in result.args else ("noisenerf",)
+        result = Result(result.returncode, result.stdout, result.stderr)
+    lines = result.err.splitlines()
+    assert result.code == 2, result
+    assert len(lines) == 1 and "Traceback" not in result.err, result.err
+    prog, _, text = lines[0].partition(": error: ")
+    assert prog.split(" ")[0] in progs and text, lines[0]
+    if any_case:
+        message, text = message.lower(), text.lower()
+    assert text == message if exact else message in text, lines[0]
+    assert result.out == ""
+    assert output is None or not os.path.lexists(output), output
 
 
 # ---- tiny scenes and the reveal's inputs ----------------------------------------------------------
@@ -99,6 +135,65 @@ def interrupted_after_saves(n: int):
     with pytest.MonkeyPatch.context() as patch:
         patch.setattr(progress_module.Progress, "save", save_then_die)
         yield
+
+
+def two_tile_bundle(scene, layout: str = "ray", seed: int = 0, network: str | None = None):
+    """Random noise in two views side by side, for `network` (None: no network field, as bundles made
+    before it existed); the digest is that of torch's render of this very noise."""
+    from noisenerf.runtime.bundle import Bundle, Tile, secret_digest
+    from noisenerf.runtime.reveal import reveal
+    from noisenerf.train.scene.render import numpy_fields
+
+    config, dims = scene.config.render, scene.render_field.config.noise_dims
+    rng = np.random.default_rng(seed)
+    tiles = []
+    for i, camera in enumerate(scene.config.cameras[:2]):
+        shape = (camera.height, camera.width) + ((config.sampling.n_samples,) if layout == "sample" else ())
+        noise = rng.normal(size=shape + (dims,)).astype(np.float32)
+        tiles.append(Tile((i * camera.width, 0, camera.width, camera.height), camera, config.sampling, noise, i,
+                          network))
+    width, height = sum(t.rect[2] for t in tiles), tiles[0].rect[3]
+    bundle = Bundle(scene.fingerprint(), width, height, "0" * 64, layout, dims, "float32", tuple(tiles), {})
+    pixels = reveal(bundle, config, numpy_fields(scene.fields())).pixels
+    return dataclasses.replace(bundle, secret_sha256=secret_digest(pixels))
+
+
+def write_reveal_inputs(directory: Path) -> tuple[Path, Path]:
+    """A tiny exported model and a two-tile bundle for it, in `directory` (its scene in directory/scene)."""
+    from noisenerf.export.onnx_export import export_scene
+
+    scene = make_tiny_scene(seed=4)
+    scene.save(directory / "scene")
+    export_scene(directory / "scene", directory / "model.onnx")
+    two_tile_bundle(scene).save(directory / "secret.bundle")
+    return directory / "model.onnx", directory / "secret.bundle"
+
+
+# ---- bundle files as an attacker writes them ------------------------------------------------------
+
+def bundle_contents(path: Path) -> tuple[dict, dict[str, np.ndarray]]:
+    """A bundle file's metadata (parsed JSON) and its tensors as stored, without any validation."""
+    from safetensors import safe_open
+
+    from noisenerf.runtime.bundle import METADATA_KEY
+
+    with safe_open(str(path), framework="numpy") as handle:
+        meta = json.loads(handle.metadata()[METADATA_KEY])
+        tensors = {name: handle.get_tensor(name) for name in handle.keys()}
+    return meta, tensors
+
+
+def rewrite_bundle(source: Path, target: Path, edit) -> Path:
+    """`source` written to `target` after edit(meta, tensors) changed its metadata and tensors in place,
+    bypassing validation."""
+    from safetensors.numpy import save_file
+
+    from noisenerf.runtime.bundle import METADATA_KEY
+
+    meta, tensors = bundle_contents(source)
+    edit(meta, tensors)
+    save_file(tensors, str(target), metadata={METADATA_KEY: json.dumps(meta)})
+    return target
 
 
 # ---- images and dataset folders -------------------------------------------------------------------

@@ -19,7 +19,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from helpers import write_blender, write_llff
+from helpers import run_reveal, write_blender, write_llff
 from noisenerf.export.onnx_export import export_scene
 from noisenerf.runtime.camera import camera_rays
 from noisenerf.runtime.errors import UserError
@@ -32,7 +32,6 @@ from noisenerf.train.scene.import_nerf_pytorch import (
 )
 from noisenerf.train.scene.render import TorchRays, render_hierarchical
 from noisenerf.train.scene.scene import load_scene, weights_fingerprint
-from test_reveal_cli import run_reveal
 
 TOLERANCE = 1e-5
 
