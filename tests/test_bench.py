@@ -9,15 +9,15 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from conftest import make_tiny_scene
-from noisenerf.runtime.errors import UserError
-from noisenerf.runtime.images import write_image
+from helpers import make_tiny_scene
 from noisenerf.cli.bench import (EXPERIMENTS, REGISTRY, BenchConfig, BenchContext, Experiment, config, field_flops,
                                   run_bench, stress)
 from noisenerf.cli.bench.context import Measured
 from noisenerf.cli.bench.registry import selected
 from noisenerf.cli.bench.report import verdict
 from noisenerf.cli.bench.run import stress_section
+from noisenerf.runtime.errors import UserError
+from noisenerf.runtime.images import write_image
 
 
 @pytest.fixture(scope="module")

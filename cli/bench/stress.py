@@ -24,23 +24,22 @@ import torch
 from noisenerf.export.onnx_export import FLOAT32_SLACK, PROBE_TOLERANCE, export_scene, scaled_error
 from noisenerf.runtime import compositing
 from noisenerf.runtime.bundle import load_bundle
-from noisenerf.runtime.camera import Camera, normalize_directions
+from noisenerf.runtime.camera import normalize_directions
 from noisenerf.runtime.errors import UserError
 from noisenerf.runtime.field_callbacks import plain
 from noisenerf.runtime.model import Model, load_model
-from noisenerf.runtime.occupancy import OccupancyGrid
 from noisenerf.runtime.rays import RayBatch
-from noisenerf.runtime.render import RenderConfig, render_rays
+from noisenerf.runtime.render import render_rays
 from noisenerf.runtime.reveal import reveal
 from noisenerf.runtime.sampling import LAST_DELTA, SamplingConfig
 from noisenerf.train.hide.paper import PaperSettings
 from noisenerf.train.hide.plan import HideConfig
 from noisenerf.train.hide.run import hide
 from noisenerf.train.scene import render as rendering
-from noisenerf.train.scene.field import FieldConfig, NeRFField
-from noisenerf.train.scene.procedural import look_at_origin
+from noisenerf.train.scene.field import NeRFField
 from noisenerf.train.scene.render import numpy_field
-from noisenerf.train.scene.scene import Scene, SceneConfig, build_fields
+from noisenerf.train.scene.random_scene import random_scene
+from noisenerf.train.scene.scene import Scene
 
 CPU = torch.device("cpu")
 GRAZING = [[1, 0, 0], [0, 1, 0], [0, 0, -1], [-1, 0, 0], [1, 1e-7, 0], [1, 0, 1e-30], [1, 1, 1], [3e-8, 1, 0]]
@@ -57,20 +56,8 @@ class Stressed:
 
 
 def stress_scene(folder: Path, seed: int = 7) -> Stressed:
-    """A small random-weight scene, saved and exported into `folder`: six 16×12 cameras on a ring of radius
-    4 looking at the origin, a 3-layer field 32 wide, a full occupancy grid."""
-    cameras = tuple(Camera.from_fov(look_at_origin(np.array([4 * np.sin(angle), -4 * np.cos(angle), 1.0])), 16, 12, 0.7)
-                    for angle in np.linspace(0, 2 * np.pi, 6, endpoint=False))
-    field = FieldConfig(depth=3, width=32, skips=(1,))
-    config = SceneConfig(coarse=field, fine=None, n_coarse=0, n_importance=0,
-                         render=RenderConfig(sampling=SamplingConfig(2.0, 6.0, 24)),
-                         aabb=(-1.5, -1.5, -1.5, 1.5, 1.5, 1.5), grid_resolution=16, cameras=cameras)
-    with torch.random.fork_rng(devices=[]):  # seeded weights without touching the caller's random state
-        torch.manual_seed(seed)
-        coarse, fine = build_fields(config)
-    scene = Scene(config, coarse, fine, OccupancyGrid(config.aabb, np.ones((config.grid_resolution,) * 3, dtype=bool)))
-    for network in scene.fields().values():
-        network.eval().requires_grad_(False)
+    """The default ring scene of train/scene/random_scene.py, saved and exported into `folder`."""
+    scene = random_scene(seed)
     scene.save(folder / "scene")
     export_scene(folder / "scene", folder / "model.onnx")
     return Stressed(scene, copy.deepcopy(scene.render_field).double(), load_model(folder / "model.onnx", threads=1),
