@@ -24,7 +24,7 @@ from noisenerf.runtime.images import read_native, write_image
 from noisenerf.runtime.payload import (
     INEXACT, MIN_BUCKET, Record, checked_payload, image_record, near_square, sealed_shape, unpack_record,
 )
-from noisenerf.runtime.sealing import MAC_KEY, WRONG, ScryptParams, Seal, new_seal
+from noisenerf.runtime.sealing import WRONG, ScryptParams, Seal, new_seal
 from noisenerf.train.hide.payload import hide_payload
 from noisenerf.train.hide.plan import HideConfig
 from noisenerf.train.scene.procedural import DEMO_SCENE
