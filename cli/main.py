@@ -172,6 +172,7 @@ def cmd_bench(args) -> None:
     config = BenchConfig(scene=args.scene, secret=args.secret, data=args.data, photos=tuple(args.photos),
                          view=args.view, small_width=args.small_width, twok_rows=args.twok_rows,
                          paper_width=args.paper_width, paper_iters=args.paper_iters, payload_bytes=args.payload_bytes,
+                         browser_size=args.browser_size,
                          device=str(resolve_device(args.device)),
                          experiments=tuple(args.only.split(",")) if args.only else None)
     command = "noisenerf " + " ".join(sys.argv[1:]) if sys.argv[0].endswith("noisenerf") else "noisenerf bench ..."
@@ -271,6 +272,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--paper-iters", type=int, default=300, help="paper-mode iterations (the paper's 300)")
     p.add_argument("--twok-rows", type=int, default=1, help="tile rows of the 2048² secret actually hidden (1-4)")
     p.add_argument("--payload-bytes", type=int, default=1 << 20, help="size of the payload experiment's file")
+    p.add_argument("--browser-size", type=int, default=2048, help="side of the browser experiment's tiled secret")
     p.add_argument("--only", help="comma-separated experiments, run with those they need (default: all)")
     add_device(p)
     p.add_argument("--stress", action="store_true", help="also run the full numerical stress suite")

@@ -12,6 +12,7 @@ import pytest
 from helpers import make_tiny_scene
 from noisenerf.cli.bench import (EXPERIMENTS, REGISTRY, BenchConfig, BenchContext, Experiment, config, field_flops,
                                   run_bench, stress)
+from noisenerf.cli.bench.browser import PAGES, browser_missing
 from noisenerf.cli.bench.context import Measured
 from noisenerf.cli.bench.registry import selected
 from noisenerf.cli.bench.report import verdict
@@ -30,7 +31,7 @@ def inputs(tmp_path_factory):
     config = BenchConfig(scene=str(folder / "scene"), secret=str(folder / "secret.png"),
                          photos=(str(folder / "secret.png"),), small_width=12, paper_samples=3, paper_iters=60, ablation_samples=2,
                          twok_size=32, twok_tile=16, twok_rows=1, threads=(1,), payload_bytes=200, view_width=12,
-                         contention_width=12)
+                         contention_width=12, browser_size=32)
     return folder, config
 
 
@@ -66,6 +67,18 @@ def test_views_spread_around_the_scene_and_contention_is_measured(report):
     layouts = {r["layout"]: r["file_bytes_per_pixel"] for r in sections["bundle_size"].rows}
     assert layouts["compact"] < layouts["ray"] < layouts["sample"]
     assert all("psnr" in r for r in sections["bundle_size"].rows if r["method"] == "paper")  # error_vs_time's noise
+
+
+def test_browser_reveals_the_bytes_python_reveals_or_says_why_it_could_not(report):
+    _, sections = report
+    rows = sections["browser"].rows
+    assert all(r["python_exact"] for r in rows) and {tuple(r["size"]) for r in rows} == {(16, 12), (32, 32)}
+    if browser_missing() is None:
+        assert {(r["page"], r["secret"]) for r in rows} == {(page, secret) for page in PAGES for secret in ("native", "32²")}
+        assert all(r["exact"] and r["sha256"] == r["python_sha256"] and r["peak_mib"] > 0 for r in rows)
+        assert [r["isolated"] for r in rows] == [False, False, True, True]
+    else:
+        assert [r["browser"] for r in rows] == [browser_missing()] * 2
 
 
 def test_exact_curve_ends_exact_and_photos_reveal_exactly(report):

@@ -27,6 +27,7 @@ class BenchConfig:
     twok_size: int = 2048
     twok_tile: int = 512
     twok_rows: int = 1  # tile rows of the 2048² secret hidden (of 4); the rest is extrapolated
+    browser_size: int = 2048  # the browser experiment's tiled secret (square, twok_tile tiles), hidden whole
     threads: tuple[int, ...] = (1, 2)
     payload_bytes: int = 1 << 20  # the file the payload experiment hides, plain and sealed (random bytes)
     views: int = 8  # views spread around the scene for the per-view hide times

@@ -10,7 +10,7 @@ from typing import Any, Callable, Mapping
 
 from noisenerf.runtime.errors import UserError
 
-from noisenerf.cli.bench import coverage, exact_cost, exact_scale, paper, payload
+from noisenerf.cli.bench import browser, coverage, exact_cost, exact_scale, paper, payload
 from noisenerf.cli.bench.context import BenchContext, Measured, Section
 
 
@@ -56,6 +56,7 @@ REGISTRY = (
     Experiment("coverage", "Exact everywhere: hard secrets at every camera", coverage.measure_coverage,
                coverage.describe_coverage),
     Experiment("payload", "File payloads, plain and sealed", payload.measure_payload, payload.describe_payload),
+    Experiment("browser", "Reveal in a browser", browser.measure_browser, browser.describe_browser),
 )
 EXPERIMENTS = tuple(experiment.name for experiment in REGISTRY)
 
