@@ -11,7 +11,8 @@ import torch
 from noisenerf.cli.demo import DEMO_VIEW
 from noisenerf.runtime.errors import UserError
 from noisenerf.train.hide.compact import LIFT_MARGIN, CompactSettings, lift_density, solver_view, tile_space
-from noisenerf.train.hide.exact import (ChunkProblem, ExactSettings, NoiseSpace, chord_start, lattice_candidates, refine,
+from noisenerf.train.hide.exact import (ChunkProblem, ExactSettings, NoiseSpace, chord_start, damped_step,
+                                        lattice_candidates, refine,
                                         residuals, round_to_lattice)
 from noisenerf.train.hide.plan import HideConfig, plan
 from noisenerf.train.hide.secret_view import BranchView, SecretView
@@ -131,6 +132,24 @@ def test_chord_start_is_never_worse_than_its_start(compact_view):
     assert bool((error(moved) <= error(start)).all())
     assert float(error(moved).median()) < float(error(start).median())
     assert np.isfinite(moved.numpy()).all()
+
+
+def test_a_step_whose_system_is_singular_in_float32_is_damped_not_refused():
+    """Dependent rows of J with λ far below float32's resolution: the hide once stopped here with
+    torch.linalg.solve's "input matrix is singular" (a payload in the tiny ring scene)."""
+    generator = torch.Generator().manual_seed(0)
+    row = torch.randn(1, 1, 90, generator=generator) * 100
+    jac = torch.cat([row, row, 2 * row, torch.randn(1, 1, 90, generator=generator)], dim=1)  # rank 2 of 4
+    healthy = torch.randn(1, 4, 90, generator=generator)
+    residual = torch.tensor([[1.0, 1.0, 2.0, 0.5], [0.3, -0.2, 0.1, 0.0]])
+    with pytest.raises(torch.linalg.LinAlgError):
+        torch.linalg.solve(jac @ jac.transpose(1, 2) + 1e-12 * torch.eye(4), residual[:1, :, None])
+    step = damped_step(torch.cat([jac, healthy]), residual, torch.tensor([1e-30, 1e-4]))
+    assert torch.isfinite(step).all()
+    reached = jac[0] @ step[0]  # the dependent rows' residual is in J's range: reached; the weak row moves
+    assert torch.allclose(reached[:3], residual[0, :3], atol=1e-3) and 0 < reached[3] < residual[0, 3]
+    alone = damped_step(healthy, residual[1:], torch.tensor([1e-4]))
+    assert torch.equal(step[1], alone[0])  # a pixel whose system is fine is solved exactly as before
 
 
 def test_rank_deficient_jacobians_give_finite_candidates():

@@ -167,6 +167,9 @@ def sample_outputs(secret_view: SolverView, index: torch.Tensor, noise: torch.Te
     return torch.cat([raw_rgb[:, 0], raw_density[:, :1]], dim=-1)
 
 
+SINGULAR_DAMPING = 1e-4  # λ for a system singular in float32: well above float32's ε, as small as the start λ
+
+
 def residuals(outputs: torch.Tensor, goal: torch.Tensor, density_floor: float) -> torch.Tensor:
     """What each equation still lacks: logit targets − raw colour, and the density shortfall (0 once the
     density is above the floor). outputs: (m, 4), goal: (m, 3) -> (m, 4)."""
@@ -175,11 +178,21 @@ def residuals(outputs: torch.Tensor, goal: torch.Tensor, density_floor: float) -
 
 def damped_step(jac: torch.Tensor, residual: torch.Tensor, damping: torch.Tensor) -> torch.Tensor:
     """Minimum-norm Levenberg–Marquardt step Jᵀ(JJᵀ + λ·(tr(JJᵀ)/k)·I)⁻¹ r.
-    jac: (m, k, P), residual: (m, k), damping: (m,) -> (m, P)."""
+    jac: (m, k, P), residual: (m, k), damping: (m,) -> (m, P).
+
+    A pixel whose rows of J are dependent (outputs that move together) while λ has shrunk below float32's
+    resolution of JJᵀ gets a singular system; it is solved again with λ at SINGULAR_DAMPING instead."""
     normal = jac @ jac.transpose(1, 2)
-    scale = damping * normal.diagonal(dim1=1, dim2=2).mean(-1) + 1e-12
-    normal = normal + scale[:, None, None] * torch.eye(jac.shape[1], dtype=jac.dtype, device=jac.device)
-    return (jac.transpose(1, 2) @ torch.linalg.solve(normal, residual[..., None]))[..., 0]
+    trace = normal.diagonal(dim1=1, dim2=2).mean(-1)
+    eye = torch.eye(jac.shape[1], dtype=jac.dtype, device=jac.device)
+    solution, info = torch.linalg.solve_ex(normal + (damping * trace + 1e-12)[:, None, None] * eye,
+                                           residual[..., None])
+    singular = info != 0
+    if singular.any():
+        floor = SINGULAR_DAMPING * trace[singular] + 1e-12
+        solution[singular] = torch.linalg.solve(normal[singular] + floor[:, None, None] * eye,
+                                                residual[singular][..., None])
+    return (jac.transpose(1, 2) @ solution)[..., 0]
 
 
 def colour_distance_bins(outputs: torch.Tensor, reference: torch.Tensor) -> torch.Tensor:
