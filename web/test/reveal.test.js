@@ -1,0 +1,95 @@
+// The JavaScript reveal against golden files written by the Python runtime (tests/test_web.py writes them and
+// runs these tests with NOISENERF_WEB_FIXTURES set; without it they skip). Rays and expanded noise must equal
+// Python's where the port is bit-exact (measured and reported otherwise); colours come from another onnxruntime
+// build (WASM), so they are compared within a tolerance and their largest difference reported; the revealed 8-bit
+// pixels must be Python's byte for byte, for every fixture, and every refusal must read as the CLI's.
+
+import { test } from "node:test";
+import assert from "node:assert/strict";
+import fs from "node:fs";
+import path from "node:path";
+import { reveal } from "../src/index.js";
+import { loadBundle, tileRows } from "../src/bundle.js";
+import { checkModel } from "../src/model.js";
+import { cameraRayBatch } from "../src/camera.js";
+import { OnnxField, renderTile, tileNetwork } from "../src/reveal.js";
+
+const root = process.env.NOISENERF_WEB_FIXTURES;
+const skip = root ? false : "NOISENERF_WEB_FIXTURES is not set (tests/test_web.py writes the fixtures and sets it)";
+const manifest = root ? JSON.parse(fs.readFileSync(path.join(root, "manifest.json"), "utf8")) : { fixtures: {}, tampered: [] };
+
+function golden(folder, entry) {
+  const bytes = fs.readFileSync(path.join(folder, entry.file));
+  const copy = new Uint8Array(bytes).buffer;
+  return entry.dtype === "float32" ? new Float32Array(copy) : new Uint8Array(copy);
+}
+
+function compare(got, want) {
+  assert.equal(got.length, want.length);
+  let maxDiff = 0, unequal = 0;
+  for (let i = 0; i < got.length; i++) {
+    const d = Math.abs(got[i] - want[i]);
+    if (!(d <= maxDiff)) maxDiff = Number.isNaN(d) ? Infinity : d;
+    if (got[i] !== want[i]) unequal++;
+  }
+  return { maxDiff, unequal, total: got.length };
+}
+
+const summary = {};
+
+for (const [name, fixture] of Object.entries(manifest.fixtures)) {
+  const folder = path.join(root ?? "", name);
+  test(`${name}: rays, noise and colours against Python`, { skip }, async (t) => {
+    const model = fs.readFileSync(path.join(folder, "model.onnx"));
+    const bundleBytes = fs.readFileSync(path.join(folder, "secret.bundle"));
+    const bundle = await loadBundle(new Uint8Array(bundleBytes));
+    const checked = checkModel(new Uint8Array(model));
+    assert.equal(checked.metadata.fingerprint, fixture.fingerprint);
+    const field = await OnnxField.create(new Uint8Array(model), checked.networks);
+    const stats = { rays: [], noise: [], colors: [] };
+    for (const [i, tile] of bundle.tiles.entries()) {
+      const want = fixture.tiles[i];
+      const rays = cameraRayBatch(tile.camera, checked.metadata.renderConfig);
+      for (const key of ["origins", "directions", "viewdirs"]) stats.rays.push(compare(rays[key], golden(folder, want[key])));
+      const n = tile.rect[2] * tile.rect[3];
+      stats.noise.push(compare(tileRows(tile, bundle, 0, n).values, golden(folder, want.noise)));
+      const colors = await renderTile(tile, bundle, checked.metadata.renderConfig, field, tileNetwork(tile, checked.networks));
+      stats.colors.push(compare(colors, golden(folder, want.colors)));
+    }
+    const reduce = (list) => list.reduce((a, b) => ({ maxDiff: Math.max(a.maxDiff, b.maxDiff), unequal: a.unequal + b.unequal,
+      total: a.total + b.total }), { maxDiff: 0, unequal: 0, total: 0 });
+    summary[name] = Object.fromEntries(Object.entries(stats).map(([k, v]) => [k, reduce(v)]));
+    t.diagnostic(`${name}: ${JSON.stringify(summary[name])}`);
+    assert.ok(summary[name].rays.maxDiff <= 1e-6, `rays differ by ${summary[name].rays.maxDiff}`);
+    assert.ok(summary[name].noise.maxDiff <= 1e-6, `noise differs by ${summary[name].noise.maxDiff}`);
+    assert.ok(summary[name].colors.maxDiff <= 1e-4, `colours differ by ${summary[name].colors.maxDiff}`);
+  });
+
+  test(`${name}: the revealed 8-bit pixels are Python's byte for byte`, { skip }, async () => {
+    const result = await reveal({ model: new Uint8Array(fs.readFileSync(path.join(folder, "model.onnx"))),
+      bundle: new Uint8Array(fs.readFileSync(path.join(folder, "secret.bundle"))) });
+    const want = golden(folder, fixture.pixels);
+    assert.equal(result.kind, "image");
+    assert.equal(result.width, fixture.width);
+    assert.equal(result.height, fixture.height);
+    assert.equal(result.exact, fixture.exact);
+    assert.ok(Buffer.from(result.pixels).equals(Buffer.from(want)), `${compare(result.pixels, want).unequal} 8-bit values differ`);
+    if (fixture.exact) assert.equal(result.sha256, fixture.sha256);
+    assert.deepEqual([...result.bytes.subarray(0, 8)], [137, 80, 78, 71, 13, 10, 26, 10]);
+  });
+}
+
+for (const tampered of manifest.tampered) {
+  test(`refused as noisenerf-reveal refuses it: ${tampered.case}`, { skip }, async () => {
+    const folder = path.join(root, tampered.folder);
+    await assert.rejects(reveal({ model: new Uint8Array(fs.readFileSync(path.join(folder, "model.onnx"))),
+      bundle: new Uint8Array(fs.readFileSync(path.join(folder, "secret.bundle"))) }), (error) => {
+      assert.equal(error.message, tampered.message);
+      return true;
+    });
+  });
+}
+
+test("summary of the measured differences", { skip }, (t) => {
+  for (const [name, stats] of Object.entries(summary)) t.diagnostic(`${name} ${JSON.stringify(stats)}`);
+});
