@@ -10,6 +10,7 @@ import {
   checkedFloat, checkedImageSize, checkedInt, checkedList,
 } from "./limits.js";
 import { cameraFromDict } from "./camera.js";
+import { fmaf32 } from "./float32.js";
 import { samplingFromDict } from "./sampling.js";
 
 const { XzReadableStream } = xz;
@@ -191,7 +192,9 @@ async function unpackCoefficients(packed, shape, dtype, what) {
 }
 
 /** expand_coefficients: noise of compact pixels start..start+m, float32 (one multiply by the scale, then the
- * matmul offset + params @ basisᵀ), escaped pixels' stored noise in place. -> Float32Array (m·dims). */
+ * matmul offset + params @ basisᵀ), escaped pixels' stored noise in place. -> Float32Array (m·dims).
+ * numpy's float32 matmul is OpenBLAS's sgemm, which on FMA hardware (Haswell and later) accumulates
+ * k = 0..K-1 with one fused multiply-add each: the order reproduced here (web/test checks it bit for bit). */
 export function expandCoefficients(coefficients, k, basis, start, stop) {
   const dims = basis.offset.length, m = stop - start;
   const out = new Float32Array(m * dims);
@@ -201,7 +204,7 @@ export function expandCoefficients(coefficients, k, basis, start, stop) {
     for (let c = 0; c < k; c++) params[c] = f32(coefficients[(start + p) * k + c] * scale);
     for (let d = 0; d < dims; d++) {
       let dot = 0;
-      for (let c = 0; c < k; c++) dot = f32(dot + f32(params[c] * basis.basis[d * k + c]));
+      for (let c = 0; c < k; c++) dot = fmaf32(params[c], basis.basis[d * k + c], dot);
       out[p * dims + d] = f32(basis.offset[d] + dot);
     }
   }

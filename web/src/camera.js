@@ -1,11 +1,12 @@
 // Mirrors runtime/camera.py (cameras, ray directions, pixel centres, NDC) and runtime/rays.py (rays in the
 // field's space: view directions, then NDC). numpy computes these in float32; here every float32 step is a
 // Math.fround in numpy's operation order. The one matmul, pixel_rays' `dirs @ c2w[:3, :3].T`, is numpy's
-// float32 matmul (BLAS); it is computed here as a float32 dot product in index order k = 0, 1, 2, which the
-// golden rays measure (see web/test).
+// float32 matmul, OpenBLAS's sgemm: on FMA hardware a fused multiply-add chain over k = 0, 1, 2, reproduced
+// here (fmaf32); the golden rays measure it (see web/test).
 
 import { UserError } from "./errors.js";
 import { checkedFloat, checkedImageSize, num } from "./limits.js";
+import { fmaf32 } from "./float32.js";
 
 const f32 = Math.fround;
 
@@ -61,7 +62,7 @@ export function cameraRays(camera, pixelCenter) {
       const d = [dx, dy, -1];
       const at = (j * width + i) * 3;
       for (let r = 0; r < 3; r++) {
-        directions[at + r] = f32(f32(f32(d[0] * R[r][0]) + f32(d[1] * R[r][1])) + f32(d[2] * R[r][2]));
+        directions[at + r] = fmaf32(d[2], R[r][2], fmaf32(d[1], R[r][1], f32(d[0] * R[r][0])));
         origins[at + r] = t[r];
       }
     }
