@@ -1,13 +1,14 @@
-"""Shared fixtures: the real data folder (skipped with a reason where absent) and tiny scenes."""
+"""Shared fixtures: the real data folder (skipped with a reason where absent), tiny scenes, the reveal's
+inputs and the demo scene. Plain helpers live in helpers.py."""
 
 from __future__ import annotations
 
-import contextlib
 import os
 from pathlib import Path
 
-import numpy as np
 import pytest
+
+from helpers import make_tiny_scene, write_reveal_inputs
 
 REPO = Path(__file__).resolve().parents[1]
 SHARED_DATA = Path(os.environ.get("NOISENERF_SHARED_DATA", REPO.parent / "shared" / "data"))
@@ -21,68 +22,33 @@ def shared_data() -> Path:
     return SHARED_DATA
 
 
-def tiny_scene_config(ndc: bool = False, fine: bool = False, width: int = 32, depth: int = 3):
-    """A small random-weight scene config looking at the origin from the sphere of radius 4."""
-    from noisenerf.runtime.camera import Camera, NDCSpace
-    from noisenerf.runtime.render import RenderConfig
-    from noisenerf.runtime.sampling import SamplingConfig
-    from noisenerf.train.scene.field import FieldConfig
-    from noisenerf.train.scene.scene import SceneConfig
-
-    cameras = []
-    for angle in np.linspace(0, 2 * np.pi, 6, endpoint=False):
-        eye = np.array([4 * np.sin(angle), -4 * np.cos(angle), 1.0])
-        forward = -eye / np.linalg.norm(eye)
-        right = np.cross(forward, [0, 0, 1.0])
-        right /= np.linalg.norm(right)
-        up = np.cross(right, forward)
-        c2w = np.eye(4)
-        c2w[:3, 0], c2w[:3, 1], c2w[:3, 2], c2w[:3, 3] = right, up, -forward, eye
-        cameras.append(Camera.from_fov(c2w, 16, 12, 0.7))
-    field = FieldConfig(depth=depth, width=width, skips=(1,))
-    sampling = SamplingConfig(0.0, 1.0, 16) if ndc else SamplingConfig(2.0, 6.0, 24)
-    render = RenderConfig(sampling=sampling, background=(1.0, 1.0, 1.0),
-                          ndc=NDCSpace(0.4, 0.3) if ndc else None, pixel_center=0.5)
-    return SceneConfig(coarse=field, fine=field if fine else None, n_coarse=16 if fine else 0, n_importance=16 if fine else 0,
-                       render=render, aabb=(-1.5, -1.5, -1.5, 1.5, 1.5, 1.5), grid_resolution=16,
-                       cameras=tuple(cameras))
-
-
-def make_tiny_scene(seed: int = 0, **kwargs):
-    """A tiny scene with seeded random weights and a full occupancy grid."""
-    import torch
-
-    from noisenerf.runtime.occupancy import OccupancyGrid
-    from noisenerf.train.scene.scene import Scene, build_fields
-
-    config = tiny_scene_config(**kwargs)
-    torch.manual_seed(seed)
-    coarse, fine = build_fields(config)
-    grid = OccupancyGrid(config.aabb, np.ones((config.grid_resolution,) * 3, dtype=bool))
-    scene = Scene(config, coarse, fine, grid)
-    for field in scene.fields().values():
-        field.eval().requires_grad_(False)
-    return scene
-
-
 @pytest.fixture
 def tiny_scene():
     return make_tiny_scene()
 
 
-@contextlib.contextmanager
-def interrupted_after_saves(n: int):
-    """Inside, a hide is interrupted (KeyboardInterrupt) right after its n-th saved chunk or block."""
-    from noisenerf.train.hide import progress as progress_module
+@pytest.fixture(scope="session")
+def reveal_inputs(tmp_path_factory) -> tuple[Path, Path, Path]:
+    """(folder, model, bundle): a tiny scene (folder/scene), its exported model and a two-tile bundle for it."""
+    folder = tmp_path_factory.mktemp("reveal")
+    return (folder, *write_reveal_inputs(folder))
 
-    original, saved = progress_module.Progress.save, []
 
-    def save_then_die(self, *args):
-        original(self, *args)
-        saved.append(args[:2])
-        if len(saved) == n:
-            raise KeyboardInterrupt
+@pytest.fixture(scope="session")
+def demo_model(tmp_path_factory) -> Path:
+    """The demo scene's exported model.onnx (in a folder of its own)."""
+    from noisenerf.export.onnx_export import export_scene
+    from noisenerf.train.scene.procedural import DEMO_SCENE
 
-    with pytest.MonkeyPatch.context() as patch:
-        patch.setattr(progress_module.Progress, "save", save_then_die)
-        yield
+    path = tmp_path_factory.mktemp("demo") / "model.onnx"
+    export_scene(DEMO_SCENE, path)
+    return path
+
+
+@pytest.fixture(scope="module")
+def demo_scene():
+    """The demo scene, loaded once per test module."""
+    from noisenerf.train.scene.procedural import DEMO_SCENE
+    from noisenerf.train.scene.scene import load_scene
+
+    return load_scene(DEMO_SCENE)

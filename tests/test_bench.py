@@ -1,20 +1,28 @@
 """`noisenerf bench` end to end on a tiny scene: every experiment runs and the report, CSVs and plots
 are written with the figures the experiments measured."""
 
+import ast
 import csv
+import dataclasses
+from pathlib import Path
 
 import numpy as np
 import pytest
 
-from conftest import make_tiny_scene
+from helpers import make_tiny_scene
+from noisenerf.cli.bench import (EXPERIMENTS, REGISTRY, BenchConfig, BenchContext, Experiment, config, field_flops,
+                                  run_bench, stress)
+from noisenerf.cli.bench.context import Measured
+from noisenerf.cli.bench.registry import selected
+from noisenerf.cli.bench.report import verdict
+from noisenerf.cli.bench.run import stress_section
 from noisenerf.runtime.errors import UserError
 from noisenerf.runtime.images import write_image
-from noisenerf.cli.bench import EXPERIMENTS, BenchConfig, field_flops, run_bench
-from noisenerf.cli.bench.report import verdict
 
 
 @pytest.fixture(scope="module")
-def report(tmp_path_factory):
+def inputs(tmp_path_factory):
+    """A tiny scene and secret, and a bench config measuring them at tiny sizes."""
     folder = tmp_path_factory.mktemp("bench")
     make_tiny_scene(seed=2).save(folder / "scene")
     secret = np.random.default_rng(0).integers(0, 256, (12, 16, 3), dtype=np.uint8)
@@ -23,6 +31,12 @@ def report(tmp_path_factory):
                          photos=(str(folder / "secret.png"),), small_width=12, paper_samples=3, paper_iters=60, ablation_samples=2,
                          twok_size=32, twok_tile=16, twok_rows=1, threads=(1,), payload_bytes=200, view_width=12,
                          contention_width=12)
+    return folder, config
+
+
+@pytest.fixture(scope="module")
+def report(inputs):
+    folder, config = inputs
     sections = run_bench(config, folder / "out", run_stress=False, command="noisenerf bench (test)",
                          progress=lambda line: None)
     return folder / "out", {section.name: section for section in sections}
@@ -51,6 +65,7 @@ def test_views_spread_around_the_scene_and_contention_is_measured(report):
     assert all(r["exact"] for r in sections["contention"].rows)
     layouts = {r["layout"]: r["file_bytes_per_pixel"] for r in sections["bundle_size"].rows}
     assert layouts["compact"] < layouts["ray"] < layouts["sample"]
+    assert all("psnr" in r for r in sections["bundle_size"].rows if r["method"] == "paper")  # error_vs_time's noise
 
 
 def test_exact_curve_ends_exact_and_photos_reveal_exactly(report):
@@ -92,3 +107,58 @@ def test_a_goal_reached_exactly_is_met():
 def test_unknown_experiment_is_refused(tmp_path):
     with pytest.raises(UserError, match="unknown experiments"):
         run_bench(BenchConfig(scene="x", secret="y", experiments=("magic",)), tmp_path / "o", False, "")
+
+
+def test_bench_config_is_a_leaf():
+    """config.py imports no other bench module: every bench module may import it without a circle."""
+    tree = ast.parse(Path(config.__file__).read_text())
+    imported = [node.module for node in ast.walk(tree) if isinstance(node, ast.ImportFrom)]
+    imported += [alias.name for node in ast.walk(tree) if isinstance(node, ast.Import) for alias in node.names]
+    assert [name for name in imported if name.startswith("noisenerf.cli")] == []
+
+
+def test_every_experiment_comes_after_those_it_needs():
+    for position, experiment in enumerate(REGISTRY):
+        assert set(experiment.needs) <= set(EXPERIMENTS[:position]), experiment.name
+
+
+def test_selected_experiments_bring_their_needs_first():
+    assert [e.name for e in selected(("bundle_size", "throughput"))] == ["error_vs_time", "cost", "throughput",
+                                                                         "bundle_size"]
+    assert selected(None) == REGISTRY
+
+
+def test_a_dependent_experiment_alone_runs_what_it_needs_first(inputs):
+    folder, config = inputs
+    said = []
+    sections = run_bench(dataclasses.replace(config, experiments=("throughput",)), folder / "only", False, "",
+                         progress=said.append)
+    assert said == ["bench: cost (needed by throughput)", "bench: throughput"]
+    assert [section.name for section in sections] == ["cost", "throughput"]
+    assert all(row["exact"] for row in sections[1].rows)  # it revealed cost's bundle
+
+
+def test_an_experiment_sees_only_what_it_needs_and_cannot_change_it():
+    earlier = {"a": Measured([{"x": 1}]), "b": Measured([{"x": 2}])}
+
+    def measure(context):
+        assert dict(context.needed) == {"b": earlier["b"]}
+        with pytest.raises(TypeError):
+            context.needed["a"] = earlier["a"]
+        return Measured([{"y": 3}])
+
+    experiment = Experiment("c", "C", measure, lambda context, measured: ["described"], needs=("b",))
+    measured, section = experiment.run(BenchContext(None, None, None, None, None, None), earlier)
+    assert measured.rows == section.rows == [{"y": 3}] and section.lines == ["described"]
+
+
+def test_bench_stress_reports_a_failed_case_and_runs_the_others(monkeypatch):
+    def not_negative(stressed, value):
+        if value < 0:
+            raise AssertionError("negative")
+
+    monkeypatch.setattr(stress, "STRESS_CHECKS", (stress.StressCheck(not_negative, full=((-1,), (1,)), fast=()),))
+    section = stress_section()
+    assert [row["passed"] for row in section.rows] == [False, True]
+    assert "**1 of 2 passed**" in section.lines[0]
+    assert section.lines[-1] == "- failed: `not_negative(-1)`: AssertionError: negative"

@@ -4,61 +4,40 @@ tampering detected, format-1 bundles still revealed, newer formats refused in on
 from __future__ import annotations
 
 import json
-import subprocess
-import sys
 
 import numpy as np
 import pytest
 import torch
-from safetensors import safe_open
-from safetensors.numpy import save_file
 
-from noisenerf.export.onnx_export import export_scene
-from noisenerf.runtime.bundle import (METADATA_KEY, CompactBasis, expand_coefficients, load_bundle, pack_coefficients,
-                                     unpack_coefficients)
+from helpers import assert_refused, rewrite_bundle, run_reveal
+from noisenerf.cli.demo import DEMO_VIEW
+from noisenerf.runtime.bundle import CompactBasis, expand_coefficients, load_bundle, pack_coefficients, unpack_coefficients
 from noisenerf.runtime.errors import UserError
 from noisenerf.runtime.images import write_image
-from noisenerf.cli.demo import DEMO_VIEW
-from noisenerf.train.scene.procedural import DEMO_SCENE
 from noisenerf.train.hide.plan import HideConfig
 from noisenerf.train.hide.run import hide
-from noisenerf.train.scene.scene import load_scene
-
-
-def run_reveal(*args) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "noisenerf.cli.reveal", *map(str, args)],
-                          capture_output=True, text=True, timeout=120)
 
 
 @pytest.fixture(scope="module")
-def demo(tmp_path_factory):
-    """The demo scene's model, a 40×24 photo-like secret hidden as two compact tiles, and a ray bundle."""
+def demo(demo_scene, demo_model, tmp_path_factory):
+    """A folder holding a 40×24 photo-like secret of the demo scene hidden as two compact tiles and as a ray
+    bundle, the secret, the hides' reports, and the demo's model."""
     folder = tmp_path_factory.mktemp("compact")
-    export_scene(DEMO_SCENE, folder / "model.onnx")
     yy, xx = np.mgrid[0:24, 0:40]
     smooth = np.stack([xx * 6, yy * 10, (xx + yy) * 4], axis=-1)
     secret = np.clip(smooth + np.random.default_rng(0).integers(-8, 9, smooth.shape), 0, 255).astype(np.uint8)
     write_image(folder / "secret.png", secret)
-    scene = load_scene(DEMO_SCENE)
-    reports = {layout: hide(scene, secret, folder / f"{layout}.bundle",
+    reports = {layout: hide(demo_scene, secret, folder / f"{layout}.bundle",
                             HideConfig(layout=layout, tile_size=24, view=DEMO_VIEW), torch.device("cpu"),
                             show_progress=False) for layout in ("compact", "ray")}
-    return folder, secret, reports
-
-
-def rewrite(source, target, edit_meta=lambda meta: meta, edit_tensors=lambda tensors: tensors) -> None:
-    """Copy a bundle file with its metadata and tensors edited (no validation: what an attacker can write)."""
-    with safe_open(str(source), framework="numpy") as handle:
-        meta = json.loads(handle.metadata()[METADATA_KEY])
-        tensors = {name: handle.get_tensor(name) for name in handle.keys()}
-    save_file(edit_tensors(tensors), str(target), metadata={METADATA_KEY: json.dumps(edit_meta(meta))})
+    return folder, secret, reports, demo_model
 
 
 def test_compact_bundle_reveals_exactly_through_onnxruntime(demo):
-    folder, secret, reports = demo
+    folder, secret, reports, model = demo
     assert reports["compact"]["exact"] and len(reports["compact"]["tiles"]) == 2
     assert reports["compact"]["bundle_bytes"] * 8 < reports["ray"]["bundle_bytes"]
-    result = run_reveal(folder / "model.onnx", folder / "compact.bundle", "-o", folder / "out.png", "--json")
+    result = run_reveal(model, folder / "compact.bundle", "-o", folder / "out.png", "--json")
     assert result.returncode == 0, result.stderr
     assert json.loads(result.stdout)["exact"] is True
     bundle = load_bundle(folder / "compact.bundle")
@@ -66,47 +45,45 @@ def test_compact_bundle_reveals_exactly_through_onnxruntime(demo):
 
 
 def test_a_tampered_coefficient_is_not_exact_and_a_corrupt_stream_is_refused(demo):
-    folder, _, _ = demo
+    folder, _, _, model = demo
     bundle = load_bundle(folder / "compact.bundle")
     tile = bundle.tiles[0]
     coefficients = tile.noise.coefficients.copy()
     coefficients[3, 5, 0] += 300  # one pixel moved ~9 noise units along the first basis direction
 
-    def tamper(tensors):
-        return {**tensors, "tile_0000": pack_coefficients(coefficients)}
+    def tamper(meta, tensors):
+        tensors["tile_0000"] = pack_coefficients(coefficients)
 
-    rewrite(folder / "compact.bundle", folder / "tampered.bundle", edit_tensors=tamper)
-    result = run_reveal(folder / "model.onnx", folder / "tampered.bundle", "-o", folder / "t.png", "--json")
+    rewrite_bundle(folder / "compact.bundle", folder / "tampered.bundle", tamper)
+    result = run_reveal(model, folder / "tampered.bundle", "-o", folder / "t.png", "--json")
     assert result.returncode == 0 and json.loads(result.stdout)["exact"] is False
 
-    def flip(tensors):
+    def flip(meta, tensors):
         packed = tensors["tile_0001"].copy()
         packed[len(packed) // 2] ^= 0x10
-        return {**tensors, "tile_0001": packed}
+        tensors["tile_0001"] = packed
 
-    rewrite(folder / "compact.bundle", folder / "flipped.bundle", edit_tensors=flip)
-    result = run_reveal(folder / "model.onnx", folder / "flipped.bundle", "-o", folder / "f.png")
-    assert result.returncode == 2 and "Traceback" not in result.stderr
-    assert len(result.stderr.splitlines()) == 1 and "coefficients" in result.stderr
-    assert not (folder / "f.png").exists()
+    rewrite_bundle(folder / "compact.bundle", folder / "flipped.bundle", flip)
+    result = run_reveal(model, folder / "flipped.bundle", "-o", folder / "f.png")
+    assert_refused(result, folder / "f.png", "coefficients")
 
 
 def test_format_1_ray_bundle_still_reveals_and_newer_formats_are_refused(demo):
-    folder, _, _ = demo
+    folder, _, _, model = demo
 
     def as_format(version):
-        return lambda meta: {**meta, "format_version": version}
+        return lambda meta, tensors: meta.update(format_version=version)
 
-    rewrite(folder / "ray.bundle", folder / "v1.bundle", as_format(1))
-    result = run_reveal(folder / "model.onnx", folder / "v1.bundle", "-o", folder / "v1.png", "--json")
+    rewrite_bundle(folder / "ray.bundle", folder / "v1.bundle", as_format(1))
+    result = run_reveal(model, folder / "v1.bundle", "-o", folder / "v1.png", "--json")
     assert result.returncode == 0 and json.loads(result.stdout)["exact"] is True
-    rewrite(folder / "compact.bundle", folder / "v1compact.bundle", as_format(1))
+    rewrite_bundle(folder / "compact.bundle", folder / "v1compact.bundle", as_format(1))
     with pytest.raises(UserError, match="unknown noise layout 'compact'"):
         load_bundle(folder / "v1compact.bundle")
-    rewrite(folder / "compact.bundle", folder / "v3.bundle", as_format(3))
-    result = run_reveal(folder / "model.onnx", folder / "v3.bundle", "-o", folder / "v3.png")
-    assert result.returncode == 2 and len(result.stderr.splitlines()) == 1
-    assert "bundle format 3" in result.stderr and "a newer noisenerf is needed" in result.stderr
+    rewrite_bundle(folder / "compact.bundle", folder / "v3.bundle", as_format(3))
+    result = run_reveal(model, folder / "v3.bundle", "-o", folder / "v3.png")
+    assert_refused(result, folder / "v3.png", "bundle format 3")
+    assert "a newer noisenerf is needed" in result.stderr
 
 
 @pytest.mark.parametrize("dtype", ["int16", "int8"])
@@ -136,41 +113,42 @@ def test_expansion_matches_the_solver_and_puts_escapes_in_place():
 
 
 def edit_tile_meta(key, value):
-    def edit(meta):
-        meta["tiles"][0][key] = value
-        return meta
-    return edit
+    """A bundle edit setting the first tile's `key` to `value`."""
+    return lambda meta, tensors: meta["tiles"][0].__setitem__(key, value)
 
 
 def edit_noise_meta(key, value):
-    def edit(meta):
-        meta["noise"][key] = value
-        return meta
-    return edit
+    """A bundle edit setting the noise metadata's `key` to `value`."""
+    return lambda meta, tensors: meta["noise"].__setitem__(key, value)
 
 
 def edit_tensor(name, make):
-    return lambda meta: meta, lambda tensors: {**tensors, name: make(tensors[name])}
+    """A bundle edit replacing tensor `name` with make(it), or removing it where that is None."""
+    def edit(meta, tensors):
+        tensors[name] = make(tensors[name])
+        if tensors[name] is None:
+            del tensors[name]
+    return edit
 
 
 HOSTILE = {
-    "scale NaN": ((edit_tile_meta("scale", float("nan")), None), "scale must be a finite number"),
-    "scale 0": ((edit_tile_meta("scale", 0), None), "scale must be a finite number"),
-    "scale text": ((edit_tile_meta("scale", "1"), None), "scale must be a number"),
-    "9 coefficients": ((edit_noise_meta("coefficients", 9), None), "between 1 and 8"),
-    "coefficients 2.5": ((edit_noise_meta("coefficients", 2.5), None), "must be an integer"),
-    "coefficients missing": ((edit_noise_meta("coefficients", None), None), "must be an integer"),
-    "unknown codec": ((edit_noise_meta("codec", "zip"), None), "unknown coefficient codec"),
-    "float dtype": ((edit_noise_meta("dtype", "float16"), None), "unknown noise dtype"),
-    "one coefficient fewer": ((edit_noise_meta("coefficients", 4), None), "do not hold exactly"),
+    "scale NaN": (edit_tile_meta("scale", float("nan")), "scale must be a finite number"),
+    "scale 0": (edit_tile_meta("scale", 0), "scale must be a finite number"),
+    "scale text": (edit_tile_meta("scale", "1"), "scale must be a number"),
+    "9 coefficients": (edit_noise_meta("coefficients", 9), "between 1 and 8"),
+    "coefficients 2.5": (edit_noise_meta("coefficients", 2.5), "must be an integer"),
+    "coefficients missing": (edit_noise_meta("coefficients", None), "must be an integer"),
+    "unknown codec": (edit_noise_meta("codec", "zip"), "unknown coefficient codec"),
+    "float dtype": (edit_noise_meta("dtype", "float16"), "unknown noise dtype"),
+    "one coefficient fewer": (edit_noise_meta("coefficients", 4), "do not hold exactly"),
     "basis missing": (edit_tensor("tile_0000_basis", lambda t: None), "is missing"),
     "basis NaN": (edit_tensor("tile_0000_basis", lambda t: np.full_like(t, np.nan)), "basis holds NaN"),
     "basis float16": (edit_tensor("tile_0000_basis", lambda t: t.astype(np.float16)), "expected float32"),
     "offset short": (edit_tensor("tile_0000_offset", lambda t: t[:89]), "offset is"),
     "escapes outside": (edit_tensor("tile_0000_escapes", lambda t: np.array([10 ** 6], np.int32)), "inside the tile"),
     "escapes repeated": (edit_tensor("tile_0000_escapes", lambda t: np.array([0, 0], np.int32)), "strictly increasing"),
-    "escape noise Inf": ((lambda meta: meta, lambda tensors: {**tensors, "tile_0000_escapes": np.array([0], np.int32),
-                                                              "tile_0000_escape_noise": np.full((1, 90), np.inf, np.float16)}),
+    "escape noise Inf": (lambda meta, tensors: tensors.update(
+        tile_0000_escapes=np.array([0], np.int32), tile_0000_escape_noise=np.full((1, 90), np.inf, np.float16)),
                          "escape noise holds NaN"),
     "escape noise short": (edit_tensor("tile_0000_escapes", lambda t: np.arange(len(t) + 1, dtype=np.int32)),
                            "escape noise is"),
@@ -183,13 +161,8 @@ HOSTILE = {
 
 @pytest.mark.parametrize("case", list(HOSTILE))
 def test_hostile_compact_bundle_is_one_line(demo, case):
-    folder, _, _ = demo
-    (edit_meta, edit_tensors), message = HOSTILE[case]
-
-    def tensors_without_none(tensors):
-        edited = edit_tensors(tensors) if edit_tensors else tensors
-        return {name: value for name, value in edited.items() if value is not None}
-
-    rewrite(folder / "compact.bundle", folder / "bad.bundle", edit_meta, tensors_without_none)
+    folder, _, _, _ = demo
+    edit, message = HOSTILE[case]
+    rewrite_bundle(folder / "compact.bundle", folder / "bad.bundle", edit)
     with pytest.raises(UserError, match=message):
         load_bundle(folder / "bad.bundle")

@@ -17,8 +17,7 @@ import numpy as np
 import pytest
 import torch
 
-from conftest import make_tiny_scene
-from helpers import run_main
+from helpers import make_tiny_scene, run_main
 from noisenerf.cli.bench.coverage import hard_secrets
 from noisenerf.cli.main import main as noisenerf_main
 from noisenerf.export.onnx_export import export_scene
@@ -29,8 +28,8 @@ from noisenerf.runtime.reveal import reveal
 from noisenerf.train.hide import exact
 from noisenerf.train.hide.plan import HideConfig
 from noisenerf.train.hide.run import hide
-from noisenerf.train.scene.scene import Scene, load_scene
 from noisenerf.train.scene.procedural import DEMO_SCENE
+from noisenerf.train.scene.scene import Scene, load_scene
 
 SIZE = 8  # px a side of each hard secret in the mosaic
 
@@ -79,9 +78,9 @@ def one_iteration(monkeypatch):
     Patched in this process only, so the hides below run with --workers 1."""
     real_refine = exact.refine
 
-    def refine(view, index, goal, space, noise, finished, store, settings, *args, **kwargs):
-        return real_refine(view, index, goal, space, noise, finished, store,
-                           dataclasses.replace(settings, max_iters=1), *args, **kwargs)
+    def refine(problem, *args, **kwargs):
+        return real_refine(dataclasses.replace(problem, settings=dataclasses.replace(problem.settings, max_iters=1)),
+                           *args, **kwargs)
 
     monkeypatch.setattr(exact, "refine", refine)
 

@@ -6,33 +6,13 @@ import json
 import math
 
 import numpy as np
-import OpenImageIO as oiio
 import pytest
 
+from helpers import read_raw, turning_llff, write_blender, write_png
 from noisenerf.runtime.errors import UserError
 from noisenerf.train.scene.datasets import load_dataset
 
 LEGO_FOV = 0.6911112070083618
-
-
-def write_png(path, pixels: np.ndarray):
-    """Straight-alpha PNG written with OpenImageIO directly."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    spec = oiio.ImageSpec(pixels.shape[1], pixels.shape[0], pixels.shape[2], "uint8")
-    spec.attribute("oiio:UnassociatedAlpha", 1)
-    out = oiio.ImageOutput.create(str(path))
-    assert out.open(str(path), spec), out.geterror()
-    out.write_image(pixels)
-    out.close()
-
-
-def read_png(path) -> np.ndarray:
-    config = oiio.ImageSpec()
-    config.attribute("oiio:UnassociatedAlpha", 1)
-    image = oiio.ImageInput.open(str(path), config)
-    pixels = image.read_image("uint8")
-    image.close()
-    return pixels
 
 
 def pose(k: int) -> list[list[float]]:
@@ -41,27 +21,26 @@ def pose(k: int) -> list[list[float]]:
     return c2w.tolist()
 
 
-def write_blender(folder, splits=("train", "val", "test"), size=(8, 4), channels=4, file_suffix=""):
+def gradient_blender(folder, splits=("train", "val", "test"), size=(8, 4), channels=4, file_suffix=""):
     """One frame per split, pixel (x, y) of frame k = (40k + 20x, 10y, 255 − 30x, alpha 255 − 60x)."""
     width, height = size
     x, y = np.meshgrid(np.arange(width), np.arange(height))
+    frames = {}
     for k, split in enumerate(splits):
         pixels = np.stack([40 * k + 20 * x, 10 * y, 255 - 30 * x, 255 - 60 * x], axis=-1) % 256
-        write_png(folder / split / f"r_0{file_suffix or '.png'}", pixels[..., :channels].astype(np.uint8))
-        frame = {"file_path": f"./{split}/r_0{file_suffix}", "rotation": 0.0, "transform_matrix": pose(k)}
-        (folder / f"transforms_{split}.json").write_text(json.dumps({"camera_angle_x": 0.8, "frames": [frame]}))
-    return folder
+        frames[split] = [(pixels[..., :channels].astype(np.uint8), pose(k))]
+    return write_blender(folder, frames, camera_angle_x=0.8, file_suffix=file_suffix)
 
 
 # ---- NeRF-Synthetic ------------------------------------------------------------------------------
 
 def test_blender_composites_straight_alpha_on_the_background(tmp_path):
-    folder = write_blender(tmp_path)
+    folder = gradient_blender(tmp_path)
     dataset = load_dataset(folder, background=(0.0, 0.0, 1.0))
     assert dataset.kind == "blender" and dataset.images.shape == (3, 4, 8, 3)
     assert dataset.splits == {"train": (0,), "val": (1,), "test": (2,)}
     assert (dataset.near, dataset.far, dataset.ndc) == (2.0, 6.0, None)
-    raw = read_png(folder / "val" / "r_0.png").astype(np.float64) / 255.0
+    raw = read_raw(folder / "val" / "r_0.png").astype(np.float64) / 255.0
     alpha = raw[..., 3:]
     expected = raw[..., :3] * alpha + np.array([0.0, 0.0, 1.0]) * (1.0 - alpha)
     np.testing.assert_allclose(dataset.images[1], expected, atol=1e-6)
@@ -71,7 +50,7 @@ def test_blender_composites_straight_alpha_on_the_background(tmp_path):
 
 
 def test_blender_resolution_composites_then_box_downscales(tmp_path):
-    folder = write_blender(tmp_path, splits=("train",), size=(12, 10))
+    folder = gradient_blender(tmp_path, splits=("train",), size=(12, 10))
     full = load_dataset(folder).images[0]
     small = load_dataset(folder, resolution=6)
     assert small.images.shape == (1, 5, 6, 3)  # height 10 · 6 / 12 = 5
@@ -81,13 +60,13 @@ def test_blender_resolution_composites_then_box_downscales(tmp_path):
 
 
 def test_blender_keeps_file_extensions_and_rgb_images(tmp_path):
-    folder = write_blender(tmp_path, splits=("train",), channels=3, file_suffix=".png")
+    folder = gradient_blender(tmp_path, splits=("train",), channels=3, file_suffix=".png")
     dataset = load_dataset(folder, background=(0.0, 0.0, 0.0))
-    np.testing.assert_allclose(dataset.images[0], read_png(folder / "train" / "r_0.png") / 255.0, atol=1e-6)
+    np.testing.assert_allclose(dataset.images[0], read_raw(folder / "train" / "r_0.png") / 255.0, atol=1e-6)
 
 
 def test_without_images_gives_the_same_cameras(tmp_path):
-    folder = write_blender(tmp_path)
+    folder = gradient_blender(tmp_path)
     bare = load_dataset(folder, resolution=4, with_images=False)
     assert bare.images is None and bare.cameras == load_dataset(folder, resolution=4).cameras
 
@@ -112,7 +91,7 @@ def edit_json(path, edit):
     (lambda f: write_png(f / "test" / "r_0.png", np.zeros((5, 8, 4), np.uint8)), "is 8x5, but"),
 ])
 def test_bad_blender_input_is_one_user_error(tmp_path, break_it, message):
-    folder = write_blender(tmp_path)
+    folder = gradient_blender(tmp_path)
     break_it(folder)
     with pytest.raises(UserError, match=message):
         load_dataset(folder)
@@ -124,7 +103,7 @@ def test_unknown_folder_and_too_large_resolution(tmp_path):
     with pytest.raises(UserError, match="dataset folder not found"):
         load_dataset(tmp_path / "absent")
     with pytest.raises(UserError, match="resolution 9 is larger than the images"):
-        load_dataset(write_blender(tmp_path), resolution=9)
+        load_dataset(gradient_blender(tmp_path), resolution=9)
 
 
 def test_real_lego_cameras_and_splits(shared_data):
@@ -149,7 +128,7 @@ def test_real_lego_images_at_resolution_50(shared_data, tmp_path):
     (tmp_path / "train").symlink_to(lego / "train")
     dataset = load_dataset(tmp_path, resolution=50)
     assert dataset.images.shape == (2, 50, 50, 3) and dataset.images.dtype == np.float32
-    raw = read_png(lego / "train" / "r_1.png").astype(np.float64) / 255.0
+    raw = read_raw(lego / "train" / "r_1.png").astype(np.float64) / 255.0
     over_white = raw[..., :3] * raw[..., 3:] + (1.0 - raw[..., 3:])
     np.testing.assert_allclose(dataset.images[1], over_white.reshape(50, 16, 50, 16, 3).mean(axis=(1, 3)), atol=1e-5)
 
@@ -171,27 +150,8 @@ def nerf_pytorch_poses(poses_bounds: np.ndarray) -> np.ndarray:
     return (np.linalg.inv(average) @ full)[:, :3]
 
 
-def write_llff(folder, n=9, full=(60, 80, 70.0), factors=(2, 4), extra_images=0):
-    """poses_bounds.npy with LLFF's [down, right, back, t | h, w, f] columns and images_N folders."""
-    rng = np.random.default_rng(3)
-    rows = []
-    for k in range(n):
-        angle = 0.1 * k
-        right, up = np.array([math.cos(angle), 0.0, -math.sin(angle)]), np.array([0.0, 1.0, 0.0])
-        back = np.cross(right, up)
-        columns = np.stack([-up, right, back, rng.normal(size=3), full], axis=1)
-        rows.append(np.concatenate([columns.ravel(), [2.0 + 0.1 * k, 20.0]]))
-    np.save(folder / "poses_bounds.npy", np.asarray(rows))
-    height, width, _ = full
-    for factor in factors:
-        for k in range(n + extra_images):
-            write_png(folder / f"images_{factor}" / f"image{k:03d}.png",
-                      np.full((height // factor, width // factor, 3), 10 * k, np.uint8))
-    return np.asarray(rows)
-
-
 def test_llff_poses_follow_nerf_pytorch(tmp_path):
-    poses_bounds = write_llff(tmp_path)
+    poses_bounds = turning_llff(tmp_path)
     dataset = load_dataset(tmp_path, factor=4)
     c2w = np.stack([camera.matrix() for camera in dataset.cameras])
     np.testing.assert_allclose(c2w[:, :3], nerf_pytorch_poses(poses_bounds), atol=2e-5)
@@ -207,7 +167,7 @@ def test_llff_poses_follow_nerf_pytorch(tmp_path):
 
 
 def test_llff_picks_the_smallest_folder_wide_enough(tmp_path):
-    write_llff(tmp_path)
+    turning_llff(tmp_path)
     assert load_dataset(tmp_path, resolution=20, with_images=False).cameras[0].fx == pytest.approx(17.5)
     at_30 = load_dataset(tmp_path, resolution=30).cameras[0]  # images_2 (40 px) downscaled to 30
     assert (at_30.width, at_30.height, at_30.fx) == (30, 23, pytest.approx(35.0 * 30 / 40))
@@ -218,7 +178,7 @@ def test_llff_picks_the_smallest_folder_wide_enough(tmp_path):
 
 
 def test_llff_bad_input(tmp_path):
-    write_llff(tmp_path, extra_images=1)
+    turning_llff(tmp_path, extra_images=1)
     with pytest.raises(UserError, match="holds 10 images but poses_bounds.npy has 9 poses"):
         load_dataset(tmp_path, factor=2)
     np.save(tmp_path / "poses_bounds.npy", np.zeros((9, 15)))

@@ -11,8 +11,8 @@ import torch
 from noisenerf.cli.demo import DEMO_VIEW
 from noisenerf.runtime.errors import UserError
 from noisenerf.train.hide.compact import LIFT_MARGIN, CompactSettings, lift_density, solver_view, tile_space
-from noisenerf.train.hide.exact import (Criteria, ExactSettings, NoiseSpace, SolveCounts, chord_start, counted_outputs,
-                                        lattice_candidates, refine, residuals, round_to_lattice)
+from noisenerf.train.hide.exact import (ChunkProblem, ExactSettings, NoiseSpace, chord_start, lattice_candidates, refine,
+                                        residuals, round_to_lattice)
 from noisenerf.train.hide.plan import HideConfig, plan
 from noisenerf.train.hide.secret_view import BranchView, SecretView
 from noisenerf.train.hide.solver import ChunkPool
@@ -51,8 +51,8 @@ def test_singular_jacobians_give_plain_rounding():
 
 @pytest.fixture(scope="module")
 def compact_view():
-    """A 16×12 secret's view of the demo scene, its pixels, a compact space and the float-phase solution.
-    The space's integer steps are 1/4, 4x the default's, so plain rounding misses many pixels' bins."""
+    """The problem of a 16×12 secret's view of the demo scene in a compact space, and its float-phase
+    solution. The space's integer steps are 1/4, 4x the default's, so plain rounding misses many pixels' bins."""
     scene = load_scene(DEMO_SCENE)
     secret = procedural_secret(16, 12)
     config = HideConfig(view=DEMO_VIEW, tile_size=16)
@@ -60,28 +60,26 @@ def compact_view():
     pixels = torch.tensor(secret.reshape(-1, 3))
     exact = ExactSettings()
     space = tile_space(view, pixels, CompactSettings(coefficient_range=8192.0), exact, torch.int16, seed=0)
-    index = torch.arange(view.n_rays)
-    criteria = Criteria(pixels, exact)
-    converged, done = refine(view, index, criteria.goal, space, space.zeros(len(index), view.noise_dims, CPU),
-                             criteria.converged, lambda p: p, exact, torch.Generator().manual_seed(0), SolveCounts())
-    return view, index, space, criteria, converged[done], done
+    problem = ChunkProblem(view, torch.arange(view.n_rays), pixels, space, exact, torch.Generator().manual_seed(0))
+    converged, done = refine(problem, space.zeros(view.n_rays, view.noise_dims, CPU), storage_phase=False)
+    return problem, converged[done], done
 
 
 def test_entering_the_lattice_keeps_more_pixels_exact_than_rounding(compact_view):
-    view, index, space, criteria, converged, done = compact_view
+    problem, converged, done = compact_view
     which = done.nonzero()[:, 0]
     assert len(which) > 100
-    entered = round_to_lattice(view, index[which], space, converged, criteria_of(criteria, which), ExactSettings(),
-                               SolveCounts())
-    assert torch.equal(space.store(entered), entered)  # on the lattice
-    right = {name: criteria.rounds_right(counted_outputs(view, index[which], space, params, SolveCounts()), which)
-             for name, params in {"lattice": entered, "rounded": space.store(converged)}.items()}
+    entered = round_to_lattice(problem.subset(which), converged)
+    assert torch.equal(problem.space.store(entered), entered)  # on the lattice
+    right = {name: problem.rounds_right(problem.outputs(which, params), which)
+             for name, params in {"lattice": entered, "rounded": problem.space.store(converged)}.items()}
     assert float(right["lattice"].float().mean()) >= 0.95
     assert int(right["lattice"].sum()) > int(right["rounded"].sum())
 
 
 def test_a_compact_tile_lifts_its_density_once_and_moves_only_the_view_direction(compact_view):
-    view, index, space, criteria, converged, done = compact_view
+    problem = compact_view[0]
+    view, index, space = problem.secret_view, problem.index, problem.space
     xyz_dims = view.field.config.xyz_dims
     assert not space.basis[:xyz_dims].any() and space.basis[xyz_dims:].any()
     density = view.field.trunk_outputs(view.encodings(index)[:, 0, :xyz_dims] + space.offset[:xyz_dims])[0]
@@ -92,7 +90,7 @@ def test_a_compact_tile_lifts_its_density_once_and_moves_only_the_view_direction
 
 
 def test_lift_density_reaches_its_margin_on_every_sampled_ray(compact_view):
-    view, index = compact_view[:2]
+    view, index = compact_view[0].secret_view, compact_view[0].index
     xyz_dims = view.field.config.xyz_dims
     clean = view.field.trunk_outputs(view.encodings(index)[:, 0, :xyz_dims])[0]
     assert float(clean.min()) < 1.0  # the demo view's single samples start below the floor
@@ -101,7 +99,8 @@ def test_lift_density_reaches_its_margin_on_every_sampled_ray(compact_view):
 
 
 def test_the_view_branch_renders_what_the_whole_field_renders(compact_view):
-    view, index, space, criteria, converged, done = compact_view
+    problem, converged, done = compact_view
+    view, index, space = problem.secret_view, problem.index, problem.space
     branch = solver_view(view, space)
     noise = space.expand(converged + torch.randn(converged.shape, generator=torch.Generator().manual_seed(4)))
     which = index[done]
@@ -115,25 +114,19 @@ def test_the_view_branch_renders_what_the_whole_field_renders(compact_view):
     torch.testing.assert_close(torch.cat([raw_rgb[:, 0], raw_density], -1), outputs, rtol=0, atol=0)
 
 
-def criteria_of(criteria: Criteria, which: torch.Tensor) -> Criteria:
-    """The criteria of a subset of pixels, indexed from 0 as round_to_lattice indexes them."""
-    return Criteria((criteria.values[which] * 255).round().to(torch.uint8), criteria.settings)
-
-
 def test_chord_start_is_never_worse_than_its_start(compact_view):
-    view, index, space, criteria, converged, done = compact_view
+    problem, converged, done = compact_view
     which = done.nonzero()[:, 0]
     seeds, rest = which[::4], which[torch.arange(len(which)) % 4 != 0]
-    donor = seeds[torch.cdist(criteria.goal[rest], criteria.goal[seeds]).argmin(1)]
+    donor = seeds[torch.cdist(problem.goal[rest], problem.goal[seeds]).argmin(1)]
     solved = dict(zip(which.tolist(), converged))
     start = torch.stack([solved[int(d)] for d in donor])
-    _, jac = view.outputs_and_jacobian(index[donor], space.expand(start))
-    moved = chord_start(view, index[rest], space, start, criteria.goal[rest], space.chain(jac), ExactSettings(),
-                        SolveCounts())
+    _, jac = problem.outputs_and_jacobian(donor, start)
+    moved = chord_start(problem, rest, start, jac)
 
     def error(params):
-        outputs = counted_outputs(view, index[rest], space, params, SolveCounts())
-        return (residuals(outputs, criteria.goal[rest], ExactSettings().density_floor) ** 2).sum(-1)
+        outputs = problem.outputs(rest, params)
+        return (residuals(outputs, problem.goal[rest], problem.settings.density_floor) ** 2).sum(-1)
 
     assert bool((error(moved) <= error(start)).all())
     assert float(error(moved).median()) < float(error(start).median())

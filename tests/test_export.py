@@ -6,7 +6,7 @@ import numpy as np
 import onnx
 import pytest
 
-from conftest import make_tiny_scene
+from helpers import make_tiny_scene
 from noisenerf.export import onnx_export
 from noisenerf.export.onnx_export import export_scene, probe_parity
 from noisenerf.runtime.bundle import Tile, VectorNoise

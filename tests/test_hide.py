@@ -6,16 +6,16 @@ import numpy as np
 import pytest
 import torch
 
-from conftest import interrupted_after_saves, make_tiny_scene
+from helpers import interrupted_after_saves, make_tiny_scene
 from noisenerf.runtime.bundle import load_bundle
 from noisenerf.runtime.errors import UserError
 from noisenerf.runtime.images import to_uint8
 from noisenerf.runtime.reveal import reveal
+from noisenerf.train.hide.paper import PaperSettings
 from noisenerf.train.hide.plan import HideConfig
 from noisenerf.train.hide.run import hide
-from noisenerf.train.scene.render import numpy_fields
-from noisenerf.train.hide.paper import PaperSettings
 from noisenerf.train.hide.tiling import tile_rects
+from noisenerf.train.scene.render import numpy_fields
 
 CPU = torch.device("cpu")
 

@@ -8,31 +8,10 @@ import numpy as np
 import OpenImageIO as oiio
 import pytest
 
+from helpers import read_raw, write_raw
 from noisenerf.runtime import images
 from noisenerf.runtime.errors import UserError
 from noisenerf.runtime.images import image_shape, load_secret, read_image, resize_image, write_image
-
-
-def write_raw(path, pixels: np.ndarray, pixel_type: str, unassociated: bool = False):
-    """Write pixels with OpenImageIO directly, independent of write_image."""
-    spec = oiio.ImageSpec(pixels.shape[1], pixels.shape[0], pixels.shape[2], pixel_type)
-    if unassociated:
-        spec.attribute("oiio:UnassociatedAlpha", 1)
-    out = oiio.ImageOutput.create(str(path))
-    assert out.open(str(path), spec), out.geterror()
-    assert out.write_image(pixels)
-    out.close()
-    return path
-
-
-def read_raw(path) -> np.ndarray:
-    """Pixels as stored (alpha not premultiplied), read with OpenImageIO directly."""
-    config = oiio.ImageSpec()
-    config.attribute("oiio:UnassociatedAlpha", 1)
-    image = oiio.ImageInput.open(str(path), config)
-    pixels = image.read_image(oiio.UNKNOWN)
-    image.close()
-    return pixels
 
 
 # ---- reading -------------------------------------------------------------------------------------

@@ -14,12 +14,12 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-import OpenImageIO as oiio
 import pytest
 import torch
 import torch.nn.functional as F
 from torch import nn
 
+from helpers import run_reveal, write_blender, write_llff
 from noisenerf.export.onnx_export import export_scene
 from noisenerf.runtime.camera import camera_rays
 from noisenerf.runtime.errors import UserError
@@ -32,7 +32,6 @@ from noisenerf.train.scene.import_nerf_pytorch import (
 )
 from noisenerf.train.scene.render import TorchRays, render_hierarchical
 from noisenerf.train.scene.scene import load_scene, weights_fingerprint
-from test_reveal_cli import run_reveal
 
 TOLERANCE = 1e-5
 
@@ -256,14 +255,6 @@ def save_checkpoint(path: Path, reference: Reference) -> Path:
 
 # ---- tiny datasets -----------------------------------------------------------------------------
 
-def write_png(path: Path, pixels: np.ndarray) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    out = oiio.ImageOutput.create(str(path))
-    out.open(str(path), oiio.ImageSpec(pixels.shape[1], pixels.shape[0], pixels.shape[2], "uint8"))
-    out.write_image(pixels)
-    out.close()
-
-
 def look_at(eye, target=(0.0, 0.0, 0.0), up=(0.0, 0.0, 1.0)) -> np.ndarray:
     """An OpenGL camera-to-world (looking down −z) at eye towards target."""
     back = np.asarray(eye, float) - target
@@ -278,40 +269,25 @@ def look_at(eye, target=(0.0, 0.0, 0.0), up=(0.0, 0.0, 1.0)) -> np.ndarray:
 BLENDER_SIZE, BLENDER_FOV = (12, 10), 0.8  # (width, height): not square, so x and y cannot be swapped
 
 
-def write_blender(folder: Path) -> list[np.ndarray]:
+def orbit_blender(folder: Path) -> list[np.ndarray]:
     """transforms_{train,val,test}.json with 2/1/1 frames and tiny RGBA PNGs; returns the c2w per frame."""
     eyes = {"train": [(0.5, -3.8, 1.2), (3.5, 1.0, 1.5)], "val": [(-3.0, 2.0, 1.0)], "test": [(2.0, 3.0, -1.5)]}
     rng = np.random.default_rng(0)
-    poses = []
-    for split, split_eyes in eyes.items():
-        frames = []
-        for k, eye in enumerate(split_eyes):
-            c2w = look_at(eye)
-            poses.append(c2w)
-            width, height = BLENDER_SIZE
-            write_png(folder / split / f"r_{k}.png", rng.integers(0, 256, (height, width, 4), dtype=np.uint8))
-            frames.append({"file_path": f"./{split}/r_{k}", "rotation": 0.0, "transform_matrix": c2w.tolist()})
-        (folder / f"transforms_{split}.json").write_text(json.dumps({"camera_angle_x": BLENDER_FOV, "frames": frames}))
-    return poses
+    width, height = BLENDER_SIZE
+    frames = {split: [(rng.integers(0, 256, (height, width, 4), dtype=np.uint8), look_at(eye)) for eye in split_eyes]
+              for split, split_eyes in eyes.items()}
+    write_blender(folder, frames, camera_angle_x=BLENDER_FOV)
+    return [c2w for split_frames in frames.values() for _, c2w in split_frames]
 
 
 LLFF_FULL, LLFF_FACTOR = (80, 96, 90.0), 8  # original (H, W, focal); images_8 are 10 × 12
 
 
-def write_llff(folder: Path) -> np.ndarray:
-    """poses_bounds.npy (LLFF's [down, right, back, t | hwf] columns) + images_8; returns the array."""
-    height, width, focal = LLFF_FULL
-    rows = []
-    for k, eye in enumerate([(0.0, 0.0, 0.0), (0.4, 0.1, 0.2), (-0.3, 0.3, -0.1)]):
-        c2w = look_at(eye, target=(0.1 * k, 0.0, -10.0), up=(0.0, 1.0, 0.0))
-        right, up, back, t = c2w[:3, 0], c2w[:3, 1], c2w[:3, 2], c2w[:3, 3]
-        pose = np.stack([-up, right, back, t, [height, width, focal]], axis=1)
-        rows.append(np.concatenate([pose.ravel(), [2.0 + 0.3 * k, 9.0 - k]]))
-        write_png(folder / f"images_{LLFF_FACTOR}" / f"image{k:03d}.png",
-                  np.full((height // LLFF_FACTOR, width // LLFF_FACTOR, 3), 40 * k, dtype=np.uint8))
-    poses_bounds = np.asarray(rows)
-    np.save(folder / "poses_bounds.npy", poses_bounds)
-    return poses_bounds
+def forward_llff(folder: Path) -> np.ndarray:
+    """poses_bounds.npy for three cameras looking down −z + images_8; returns the array."""
+    eyes = [(0.0, 0.0, 0.0), (0.4, 0.1, 0.2), (-0.3, 0.3, -0.1)]
+    c2ws = [look_at(eye, target=(0.1 * k, 0.0, -10.0), up=(0.0, 1.0, 0.0)) for k, eye in enumerate(eyes)]
+    return write_llff(folder, c2ws, LLFF_FULL, [[2.0 + 0.3 * k, 9.0 - k] for k in range(3)], (LLFF_FACTOR,), 40)
 
 
 def unit(v: np.ndarray) -> np.ndarray:
@@ -380,7 +356,7 @@ def reference_fingerprint(reference: Reference, architecture: dict) -> str:
 @pytest.mark.parametrize("use_viewdirs", [True, False])
 def test_blender_import_renders_as_nerf_pytorch(tmp_path, use_viewdirs):
     folder = tmp_path / "run"
-    poses = write_blender(folder / "data")
+    poses = orbit_blender(folder / "data")
     config = blender_config(folder, use_viewdirs=str(use_viewdirs))
     reference = make_reference(seed=2, use_viewdirs=use_viewdirs)
     checkpoint = save_checkpoint(tmp_path / "200000.tar", reference)
@@ -423,7 +399,7 @@ def test_imported_fields_equal_nerf_pytorch_networks(tmp_path, use_viewdirs):
 
 
 def test_llff_ndc_import_renders_as_nerf_pytorch(tmp_path):
-    poses_bounds = write_llff(tmp_path / "fern_tiny")
+    poses_bounds = forward_llff(tmp_path / "fern_tiny")
     config = write_config(tmp_path / "config.txt", datadir=tmp_path / "fern_tiny", dataset_type="llff",
                           factor=LLFF_FACTOR, llffhold=8, use_viewdirs="True", **TINY_NETS)
     reference = make_reference(seed=2, half_size=0.8)
@@ -463,14 +439,14 @@ def test_reveal_view_renders_hierarchically_as_nerf_pytorch(tmp_path, kind):
     n = HIERARCHICAL_SAMPLES
     nets = {**TINY_NETS, "N_samples": n, "N_importance": n}
     if kind == "blender":
-        poses = write_blender(tmp_path / "data")
+        poses = orbit_blender(tmp_path / "data")
         config = blender_config(tmp_path, **nets)
         reference = make_reference(seed=3, tame=False)
         width, height = BLENDER_SIZE
         views = [(index, poses[index], height, width, 0.5 * width / np.tan(0.5 * BLENDER_FOV)) for index in (0, 3)]
         render_args = (False, 2.0, 6.0, True)
     else:
-        c2ws, _ = reference_llff_poses(write_llff(tmp_path / "fern_tiny"))
+        c2ws, _ = reference_llff_poses(forward_llff(tmp_path / "fern_tiny"))
         config = write_config(tmp_path / "config.txt", datadir=tmp_path / "fern_tiny", dataset_type="llff",
                               factor=LLFF_FACTOR, llffhold=8, use_viewdirs="True", **nets)
         reference = make_reference(seed=2, half_size=0.8)
@@ -490,7 +466,7 @@ def test_reveal_view_renders_hierarchically_as_nerf_pytorch(tmp_path, kind):
 
 
 def test_llff_without_ndc_uses_scaled_depth_bounds(tmp_path):
-    poses_bounds = write_llff(tmp_path / "data")
+    poses_bounds = forward_llff(tmp_path / "data")
     _, bounds = reference_llff_poses(poses_bounds)
     assert llff_world_bounds(tmp_path / "data") == pytest.approx((0.9 * bounds.min(), bounds.max()), rel=1e-6)
     config = read_config(write_config(tmp_path / "c.txt", dataset_type="llff", no_ndc="True", **TINY_NETS))
@@ -501,7 +477,7 @@ def test_llff_without_ndc_uses_scaled_depth_bounds(tmp_path):
 
 
 def test_blender_half_res_halves_size_and_focal(tmp_path):
-    write_blender(tmp_path / "data")
+    orbit_blender(tmp_path / "data")
     config = read_config(blender_config(tmp_path, half_res="True", white_bkgd="False"))
     cameras, near, far, ndc, _ = scene_geometry(config, tmp_path / "data")
     width, height = BLENDER_SIZE

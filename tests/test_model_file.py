@@ -16,7 +16,7 @@ import onnx
 import pytest
 from onnx import numpy_helper
 
-from conftest import make_tiny_scene
+from helpers import assert_refused, make_tiny_scene, run_reveal, two_tile_bundle
 from noisenerf.export.onnx_export import export_scene
 from noisenerf.runtime.bundle import load_bundle
 from noisenerf.runtime.errors import UserError
@@ -27,7 +27,6 @@ from noisenerf.runtime.render import render_view
 from noisenerf.runtime.reveal import render_tile, reveal
 from noisenerf.train.hide.plan import HideConfig, plan
 from noisenerf.train.scene.render import numpy_coarse, numpy_field, numpy_fields
-from test_reveal_cli import assert_refused, run_reveal, two_tile_bundle
 
 
 @pytest.fixture(scope="module")

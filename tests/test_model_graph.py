@@ -15,13 +15,12 @@ import onnx
 import pytest
 from onnx import helper, numpy_helper
 
-from conftest import make_tiny_scene
+from helpers import assert_refused, make_tiny_scene, run_reveal
 from noisenerf.export.onnx_export import export_scene
 from noisenerf.runtime import session as session_module
 from noisenerf.runtime.errors import UserError
 from noisenerf.runtime.graph import field_graph
 from noisenerf.runtime.model import load_model
-from test_reveal_cli import assert_refused, run_reveal
 
 REFUSAL = "the model's graph is not the one its scene exports"
 

@@ -3,24 +3,17 @@
 import pytest
 import torch
 
-from conftest import interrupted_after_saves
+from helpers import interrupted_after_saves
 from noisenerf.runtime.errors import UserError
-from noisenerf.runtime.metrics import ssim
 from noisenerf.runtime.images import to_uint8
-from noisenerf.train.hide.plan import HideConfig, plan
+from noisenerf.runtime.metrics import ssim
 from noisenerf.train.hide.paper import (learning_rate, recipe, revival_noise, solve_block, solve_blocks,
                                           start_noise, survey)
-from noisenerf.train.scene.procedural import procedural_secret
-from noisenerf.train.scene.scene import load_scene
+from noisenerf.train.hide.plan import HideConfig, plan
 from noisenerf.train.hide.secret_view import SecretView
+from noisenerf.train.scene.procedural import procedural_secret
 
 CPU = torch.device("cpu")
-DEMO_SCENE = __import__("pathlib").Path(__file__).resolve().parents[1] / "train" / "assets" / "demo_scene"
-
-
-@pytest.fixture(scope="module")
-def demo():
-    return load_scene(DEMO_SCENE)
 
 
 def paper_view(scene, secret, n_samples, view=0):
@@ -35,8 +28,8 @@ def secret():
 
 
 @pytest.fixture(scope="module")
-def view(demo, secret):
-    return paper_view(demo, secret, 16)
+def view(demo_scene, secret):
+    return paper_view(demo_scene, secret, 16)
 
 
 def test_the_demo_view_has_dead_rays_and_revival_makes_them_live(view, secret):
@@ -100,7 +93,7 @@ def test_recipes_follow_their_schedules():
         recipe("authors", iters=0)
 
 
-def test_paper_mode_reaches_an_ssim_the_old_solver_missed(demo, secret, view):
+def test_paper_mode_reaches_an_ssim_the_old_solver_missed(demo_scene, secret, view):
     """The solver before revival (the paper's recipe without it, as main 72e8d1b ran it) ends this run
     at SSIM 0.41 (measured); the default recipe with revival must beat 0.97 in the same 300 iterations."""
     pixels = torch.from_numpy(secret.reshape(-1, 3).copy())
@@ -114,29 +107,30 @@ def test_paper_mode_reaches_an_ssim_the_old_solver_missed(demo, secret, view):
     assert scores["default"] > 0.97
 
 
-def test_interrupted_paper_hide_resumes_per_block_to_a_byte_identical_bundle(demo, secret, tmp_path, monkeypatch):
+def test_interrupted_paper_hide_resumes_per_block_to_a_byte_identical_bundle(demo_scene, secret, tmp_path,
+                                                                              monkeypatch):
     from noisenerf.train.hide.run import hide
     from noisenerf.train.hide import paper as paper_solver
 
     config = HideConfig(method="paper", layout="sample", dtype="float32", n_samples=8,
                         settings=(recipe("authors", iters=4, block_pixels=40, record_at=(2, 4)),))
-    hide(demo, secret, tmp_path / "whole.bundle", config, CPU, show_progress=False)
+    hide(demo_scene, secret, tmp_path / "whole.bundle", config, CPU, show_progress=False)
     with pytest.raises(KeyboardInterrupt), interrupted_after_saves(2):
-        hide(demo, secret, tmp_path / "resumed.bundle", config, CPU, show_progress=False)
+        hide(demo_scene, secret, tmp_path / "resumed.bundle", config, CPU, show_progress=False)
     solved, solve_block = [], paper_solver.solve_block
     monkeypatch.setattr(paper_solver, "solve_block", lambda *a, **k: solved.append(1) or solve_block(*a, **k))
-    report = hide(demo, secret, tmp_path / "resumed.bundle", config, CPU, show_progress=False)
+    report = hide(demo_scene, secret, tmp_path / "resumed.bundle", config, CPU, show_progress=False)
     assert len(solved) == 4 - 2  # 144 pixels in blocks of 40 make 4 blocks; 2 were saved
     assert (tmp_path / "resumed.bundle").read_bytes() == (tmp_path / "whole.bundle").read_bytes()
     assert [r["iteration"] for r in report["tiles"][0]["records"]] == [2, 4]
 
 
-def test_a_view_too_large_to_cache_encodes_per_batch_with_the_same_result(demo, secret, monkeypatch):
+def test_a_view_too_large_to_cache_encodes_per_batch_with_the_same_result(demo_scene, secret, monkeypatch):
     from noisenerf.train.hide import secret_view
 
-    cached = paper_view(demo, secret, 16)
+    cached = paper_view(demo_scene, secret, 16)
     monkeypatch.setattr(secret_view, "ENCODING_CACHE_BYTES", 0)
-    streamed = paper_view(demo, secret, 16)
+    streamed = paper_view(demo_scene, secret, 16)
     assert cached.cached is not None and streamed.cached is None
     index = torch.arange(5, 40)
     noise = torch.randn(index.numel(), 16, streamed.noise_dims, generator=torch.Generator().manual_seed(0))

@@ -7,7 +7,6 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import json
-import os
 import subprocess
 import sys
 from pathlib import Path
@@ -17,19 +16,18 @@ import onnx
 import pytest
 import torch
 
+from helpers import assert_refused, run_reveal
 from noisenerf.cli.main import main as noisenerf_main
-from noisenerf.export.onnx_export import export_scene
 from noisenerf.runtime.bundle import load_bundle
 from noisenerf.runtime.errors import UserError
 from noisenerf.runtime.images import read_native, write_image
 from noisenerf.runtime.payload import (
     INEXACT, MIN_BUCKET, Record, checked_payload, image_record, near_square, sealed_shape, unpack_record,
 )
-from noisenerf.runtime.sealing import MAC_KEY, WRONG, ScryptParams, Seal, new_seal
-from noisenerf.train.scene.procedural import DEMO_SCENE
-from noisenerf.train.hide.plan import HideConfig
+from noisenerf.runtime.sealing import WRONG, ScryptParams, Seal, new_seal
 from noisenerf.train.hide.payload import hide_payload
-from noisenerf.train.scene.scene import load_scene
+from noisenerf.train.hide.plan import HideConfig
+from noisenerf.train.scene.procedural import DEMO_SCENE
 
 CPU = torch.device("cpu")
 PASSPHRASE = b"correct horse battery staple"
@@ -43,11 +41,9 @@ def fixed_seal() -> Seal:
 
 
 @pytest.fixture(scope="module")
-def demo(tmp_path_factory):
+def demo(demo_scene, demo_model):
     """The demo scene and its exported model."""
-    folder = tmp_path_factory.mktemp("payload")
-    export_scene(DEMO_SCENE, folder / "model.onnx")
-    return load_scene(DEMO_SCENE), folder / "model.onnx"
+    return demo_scene, demo_model
 
 
 @pytest.fixture(scope="module")
@@ -58,21 +54,6 @@ def sealed(demo, tmp_path_factory):
     hide_payload(scene, Record("file", b"the eagle lands at noon\n", b"note.txt"), path, CONFIG, CPU,
                  passphrase=PASSPHRASE, seal=fixed_seal(), show_progress=False)
     return path
-
-
-def reveal_cli(model: Path, bundle: Path, out: Path, *args, passphrase: bytes | None = None):
-    env = {key: value for key, value in os.environ.items() if key != "NOISENERF_PASSPHRASE"}
-    if passphrase is not None:
-        env["NOISENERF_PASSPHRASE"] = passphrase.decode()
-    return subprocess.run([sys.executable, "-m", "noisenerf.cli.reveal", str(model), str(bundle), "-o", str(out),
-                           *map(str, args)], capture_output=True, text=True, timeout=60, env=env,
-                          stdin=subprocess.DEVNULL)
-
-
-def assert_refused(result: subprocess.CompletedProcess, out: Path, message: str) -> None:
-    assert result.returncode == 2 and result.stdout == ""
-    assert result.stderr.splitlines() == [f"noisenerf-reveal: error: {message}"]
-    assert not out.exists()
 
 
 def test_record_round_trip_ignores_padding_and_checks_its_digest():
@@ -116,7 +97,7 @@ def test_file_payloads_reveal_byte_for_byte(demo, tmp_path, content):
                              "--quiet"], capture_output=True, text=True, timeout=300)
     assert result.returncode == 0, result.stderr
     assert json.loads(result.stdout)["payload"]["bytes"] == len(data)
-    result = reveal_cli(model, tmp_path / "x.bundle", tmp_path / "out.png", "--json")
+    result = run_reveal(model, tmp_path / "x.bundle", "-o", tmp_path / "out.png", "--json")
     assert result.returncode == 0, result.stderr
     assert (tmp_path / "out.png").read_bytes() == data  # written as bytes, whatever the extension
     report = json.loads(result.stdout)
@@ -144,7 +125,8 @@ def test_sealed_file_through_the_command_line(demo, tmp_path):
     assert result.returncode == 0, result.stderr
     raw = (tmp_path / "s.bundle").read_bytes()
     assert b"plan.txt" not in raw and b"plan B" not in raw
-    result = reveal_cli(model, tmp_path / "s.bundle", tmp_path / "out.txt", "--passphrase-file", tmp_path / "pass")
+    result = run_reveal(model, tmp_path / "s.bundle", "-o", tmp_path / "out.txt", "--passphrase-file",
+                        tmp_path / "pass")
     assert result.returncode == 0, result.stderr
     assert (tmp_path / "out.txt").read_bytes() == b"plan B\n"
     assert "payload: file 'plan.txt', 7 bytes" in result.stdout and ", sealed" in result.stdout
@@ -156,7 +138,7 @@ def test_sealed_image_reveals_as_the_image(demo, tmp_path):
     hide_payload(scene, image_record(image), tmp_path / "i.bundle", CONFIG, CPU, passphrase=PASSPHRASE,
                  seal=fixed_seal(), show_progress=False)
     assert (load_bundle(tmp_path / "i.bundle").width, load_bundle(tmp_path / "i.bundle").height) == (16, 16)
-    result = reveal_cli(model, tmp_path / "i.bundle", tmp_path / "out.png", "--json", passphrase=PASSPHRASE)
+    result = run_reveal(model, tmp_path / "i.bundle", "-o", tmp_path / "out.png", "--json", passphrase=PASSPHRASE)
     assert result.returncode == 0, result.stderr
     np.testing.assert_array_equal(read_native(tmp_path / "out.png"), image)
     assert json.loads(result.stdout)["payload"] | {"sha256": None} == {
@@ -201,17 +183,18 @@ def test_a_changed_byte_in_the_bundle_is_refused(demo, sealed, tmp_path, tamper)
     _, model = demo
     tamper(sealed, tmp_path / "t.bundle")
     assert (tmp_path / "t.bundle").read_bytes() != sealed.read_bytes()
-    assert_refused(reveal_cli(model, tmp_path / "t.bundle", tmp_path / "out", passphrase=PASSPHRASE),
-                   tmp_path / "out", WRONG)
+    assert_refused(run_reveal(model, tmp_path / "t.bundle", "-o", tmp_path / "out", passphrase=PASSPHRASE),
+                   tmp_path / "out", WRONG, exact=True)
 
 
 def test_wrong_or_missing_passphrase_is_refused(demo, sealed, tmp_path):
     _, model = demo
-    assert_refused(reveal_cli(model, sealed, tmp_path / "out", passphrase=b"wrong"), tmp_path / "out", WRONG)
-    assert_refused(reveal_cli(model, sealed, tmp_path / "out"), tmp_path / "out",
+    assert_refused(run_reveal(model, sealed, "-o", tmp_path / "out", passphrase=b"wrong"), tmp_path / "out", WRONG,
+                   exact=True)
+    assert_refused(run_reveal(model, sealed, "-o", tmp_path / "out"), tmp_path / "out",
                    "the bundle is sealed: give its passphrase with --passphrase-file F, NOISENERF_PASSPHRASE, or at "
-                   "the prompt (stdin a terminal)")
-    result = reveal_cli(model, sealed, tmp_path / "out", passphrase=PASSPHRASE)
+                   "the prompt (stdin a terminal)", exact=True)
+    result = run_reveal(model, sealed, "-o", tmp_path / "out", passphrase=PASSPHRASE)
     assert result.returncode == 0 and (tmp_path / "out").read_bytes() == b"the eagle lands at noon\n"
 
 
@@ -223,9 +206,8 @@ def test_a_changed_model_weight_is_refused(demo, sealed, tmp_path):
     raw[0] ^= 1
     weight.raw_data = bytes(raw)
     onnx.save(proto, str(tmp_path / "m.onnx"))
-    result = reveal_cli(tmp_path / "m.onnx", sealed, tmp_path / "out", passphrase=PASSPHRASE)
-    assert result.returncode == 2 and not (tmp_path / "out").exists()
-    assert len(result.stderr.splitlines()) == 1 and "its weights do not match its fingerprint" in result.stderr
+    assert_refused(run_reveal(tmp_path / "m.onnx", sealed, "-o", tmp_path / "out", passphrase=PASSPHRASE),
+                   tmp_path / "out", "its weights do not match its fingerprint")
 
 
 def test_unsealed_payload_whose_pixels_changed_is_refused(demo, tmp_path):
@@ -236,7 +218,8 @@ def test_unsealed_payload_whose_pixels_changed_is_refused(demo, tmp_path):
     tiles = tuple(dataclasses.replace(tile, noise=dataclasses.replace(
         tile.noise, coefficients=np.zeros_like(tile.noise.coefficients))) for tile in bundle.tiles)
     dataclasses.replace(bundle, tiles=tiles).save(tmp_path / "z.bundle")
-    assert_refused(reveal_cli(model, tmp_path / "z.bundle", tmp_path / "out"), tmp_path / "out", INEXACT)
+    assert_refused(run_reveal(model, tmp_path / "z.bundle", "-o", tmp_path / "out"), tmp_path / "out", INEXACT,
+                   exact=True)
 
 
 def test_hide_refuses_bad_payload_requests(tmp_path, capsys, monkeypatch):

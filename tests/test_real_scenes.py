@@ -10,14 +10,14 @@ import torch
 from noisenerf.export.onnx_export import export_scene, probe_parity
 from noisenerf.runtime.bundle import load_bundle
 from noisenerf.runtime.images import load_secret, resize_image
+from noisenerf.runtime.images import to_uint8
 from noisenerf.runtime.model import load_model
 from noisenerf.runtime.render import render_view
-from noisenerf.runtime.images import to_uint8
 from noisenerf.runtime.reveal import render_tile, reveal
-from noisenerf.train.scene.datasets import load_dataset
-from noisenerf.train.scene.fit import PRESETS, Budget, fit
 from noisenerf.train.hide.plan import HideConfig
 from noisenerf.train.hide.run import hide
+from noisenerf.train.scene.datasets import load_dataset
+from noisenerf.train.scene.fit import PRESETS, Budget, fit
 from noisenerf.train.scene.render import numpy_field
 from noisenerf.train.scene.scene import load_scene
 

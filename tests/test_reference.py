@@ -18,15 +18,13 @@ import contextlib
 import dataclasses
 import hashlib
 import json
-import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from conftest import make_tiny_scene  # noqa: E402
+from helpers import make_tiny_scene  # run as a script, this file's folder is sys.path[0]
 
 REFERENCE = Path(__file__).resolve().parent / "reference"
 CPU = torch.device("cpu")

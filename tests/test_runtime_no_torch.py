@@ -4,8 +4,6 @@ import json
 import subprocess
 import sys
 
-from test_reveal_cli import write_reveal_inputs
-
 # Runs in the fresh interpreter: block torch and onnx (not onnxruntime), import every runtime module and
 # the reveal CLI, reveal a bundle end to end, then report what got imported.
 SCRIPT = r"""
@@ -31,8 +29,8 @@ print(json.dumps({"code": code, "modules": modules,
 """
 
 
-def test_runtime_imports_and_reveals_without_torch_or_onnx(tmp_path):
-    model, bundle = write_reveal_inputs(tmp_path)
+def test_runtime_imports_and_reveals_without_torch_or_onnx(reveal_inputs, tmp_path):
+    _, model, bundle = reveal_inputs
     result = subprocess.run([sys.executable, "-c", SCRIPT, str(model), str(bundle), "-o", str(tmp_path / "out.png"),
                              "--json"], capture_output=True, text=True, timeout=60)
     assert result.returncode == 0, result.stderr

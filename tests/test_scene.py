@@ -2,11 +2,10 @@
 
 import json
 
-import numpy as np
 import pytest
 import torch
 
-from conftest import make_tiny_scene
+from helpers import make_tiny_scene
 from noisenerf.runtime.errors import UserError
 from noisenerf.train.scene.scene import load_scene
 

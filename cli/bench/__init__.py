@@ -8,7 +8,8 @@ The paper's method costs ~0.15 s per pixel at 64 samples on 2 cores, so the curv
 the secret downscaled to `small_width`; the exact method is also measured at full size.
 
 Each experiment measures rows (its CSV), then describes them as report lines (registry.py lists them in
-order); run.py writes the CSVs, plots and BENCHMARKS.md (report.py).
+order, with what each needs of the others); run.py writes the CSVs, plots and BENCHMARKS.md (report.py).
+`--stress` adds the numerical stress checks (stress.py), every case.
 """
 
 from noisenerf.cli.bench.config import BenchConfig

@@ -1,10 +1,9 @@
-"""What one `noisenerf bench` run measures."""
+"""What one `noisenerf bench` run measures. A leaf: it imports no other bench module, so that every one
+of them can import it."""
 
 from __future__ import annotations
 
 from dataclasses import dataclass
-
-from noisenerf.cli.bench.registry import EXPERIMENTS
 
 
 @dataclass(frozen=True)
@@ -35,5 +34,5 @@ class BenchConfig:
     view_width: int | None = 128  # their width there (None: native; 8 × 5 native photos take ~15 min on 2 cores)
     contention_width: int = 256  # the contention experiment's secret: several chunks, so the hide's workers take part
     coverage_size: int = 24  # the coverage experiment's hard secrets (square): 10 of them at every camera
-    experiments: tuple[str, ...] = EXPERIMENTS
+    experiments: tuple[str, ...] | None = None  # --only's names; None: every experiment (registry.selected)
     seed: int = 0

@@ -7,7 +7,8 @@ import contextlib
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING
+from types import MappingProxyType
+from typing import Mapping
 
 import numpy as np
 import torch
@@ -18,42 +19,14 @@ from noisenerf.runtime.model import Model
 from noisenerf.runtime.reveal import Revealed, reveal
 from noisenerf.train.hide.plan import HideConfig
 from noisenerf.train.hide.run import hide
-from noisenerf.train.hide.secret_view import SecretView
 from noisenerf.train.scene.scene import Scene
 
-if TYPE_CHECKING:  # config.py imports the registry, which imports the experiments, which import this module
-    from noisenerf.cli.bench.config import BenchConfig
-
-
-@dataclass(frozen=True)
-class PaperNoise:
-    """Paper-mode noise over a whole secret view, as the solver left it."""
-
-    noise: torch.Tensor  # (n, k, dims) float32 on the CPU
-    view: SecretView
-    secret: np.ndarray  # the secret it hides, uint8 (h, w, 3)
-
-
-@dataclass(frozen=True)
-class FullHide:
-    """The exact hide of the full-size secret at the bench view."""
-
-    bundle: Path
-    report: dict  # hide()'s
-
-
-@dataclass
-class Handoffs:
-    """What one experiment hands to a later one. EXPERIMENTS' order runs the maker first; when --only leaves
-    error_vs_time out, bundle_size gives no quality for the paper's noise."""
-
-    paper_noise: PaperNoise | None = None  # error_vs_time's; bundle_size stores it as float32 and float16
-    full_hide: FullHide | None = None  # cost's or throughput's, whichever runs first: both use its bundle
+from noisenerf.cli.bench.config import BenchConfig
 
 
 @dataclass(frozen=True)
 class BenchContext:
-    """One run's inputs, fixed for every experiment, and the handoffs between experiments."""
+    """One run's inputs, fixed for every experiment, and what the experiments it needs measured."""
 
     config: BenchConfig
     scene: Scene
@@ -61,7 +34,8 @@ class BenchContext:
     work: Path  # a temporary folder for the bundles the experiments write
     model_path: Path  # the scene exported as ONNX
     model: Model  # model_path loaded by the runtime
-    handoffs: Handoffs = field(default_factory=Handoffs)
+    # by name, what the experiments in its `needs` measured (registry.Experiment.run sets it), read-only
+    needed: Mapping[str, Measured] = field(default_factory=lambda: MappingProxyType({}))
 
     @property
     def device(self) -> torch.device:

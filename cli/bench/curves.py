@@ -5,13 +5,14 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass
+from typing import Callable
 
 import numpy as np
 import torch
 
 from noisenerf.runtime.images import to_uint8
 from noisenerf.runtime.metrics import ssim_authors, tile_quality
-from noisenerf.train.hide.exact import ExactSettings, NoiseSpace, solve_exact
+from noisenerf.train.hide.exact import ChunkProblem, ExactSettings, NoiseSpace, Refinement, SolveCounts, solve_exact
 from noisenerf.train.hide.paper import PaperSettings, recorded_points, solve_blocks, survey
 from noisenerf.train.hide.plan import HideConfig, plan
 from noisenerf.train.hide.secret_view import SecretView
@@ -19,7 +20,7 @@ from noisenerf.train.hide.tiling import MIN_TILE_SIZE
 from noisenerf.train.scene.field import NeRFField
 from noisenerf.train.scene.scene import Scene
 
-from noisenerf.cli.bench.context import PaperNoise, Stopwatch, synchronized_time
+from noisenerf.cli.bench.context import Stopwatch, synchronized_time
 
 
 def secret_view(scene: Scene, secret: np.ndarray, view: int, n_samples: int, device: torch.device = torch.device("cpu"),
@@ -37,10 +38,27 @@ def secret_quality(colors: torch.Tensor, secret: np.ndarray) -> dict:
     return tile_quality(colors.cpu().numpy(), secret.reshape(-1, 3), secret.shape[:2])
 
 
-def exact_curve(scene: Scene, secret: np.ndarray, view: int, settings: ExactSettings = ExactSettings(),
+@dataclass(frozen=True, eq=False, kw_only=True)
+class WatchedProblem(ChunkProblem):
+    """A chunk problem measured iteration by iteration: `observe(index (m,), noise (m, 1, dims), counts)` after
+    every Levenberg–Marquardt step, and with `retiring` off, finished pixels kept in the batch (what
+    retiring them saves)."""
+
+    observe: Callable[[torch.Tensor, torch.Tensor, SolveCounts], None]
+    retiring: bool = True
+
+    def batch(self, state: Refinement) -> torch.Tensor:
+        return super().batch(state) if self.retiring else state.active
+
+    def step(self, state: Refinement) -> None:
+        super().step(state)
+        self.observe(self.index, self.space.expand(state.params), self.counts)
+
+
+def exact_curve(scene: Scene, secret: np.ndarray, view: int, retiring: bool = True,
                 device: torch.device = torch.device("cpu")) -> tuple[list[dict], dict]:
     """Quality of the whole secret after every LM iteration of the exact solver in the full noise (the ray
-    layout, float16), observation excluded."""
+    layout, float16), observation excluded; `retiring` off keeps finished pixels in the batch."""
     scene.to(device)
     tile_view = secret_view(scene, secret, view, 1, device)
     pixels = torch.from_numpy(secret.reshape(-1, 3).copy()).to(device)
@@ -48,7 +66,7 @@ def exact_curve(scene: Scene, secret: np.ndarray, view: int, settings: ExactSett
     index = torch.arange(tile_view.n_rays, device=device)
     watch, rows = Stopwatch(), []
 
-    def observe(which, noise, counts):
+    def record(which, noise, counts):
         with watch.pause():
             current[which] = noise
             with torch.no_grad():
@@ -56,9 +74,19 @@ def exact_curve(scene: Scene, secret: np.ndarray, view: int, settings: ExactSett
             rows.append({"method": "exact", "iteration": len(rows) + 1, "seconds": watch.elapsed(),
                          "jacobians_per_pixel": counts.jacobians / len(index), **secret_quality(colors, secret)})
 
-    result = solve_exact(tile_view, index, pixels, NoiseSpace(torch.float16), settings, torch.Generator().manual_seed(0),
-                         observe)
-    return rows, {"seconds": watch.elapsed(), **dataclasses.asdict(result.counts)}
+    problem = WatchedProblem(tile_view, index, pixels, NoiseSpace(torch.float16), ExactSettings(),
+                             torch.Generator().manual_seed(0), observe=record, retiring=retiring)
+    solve_exact(problem)
+    return rows, {"seconds": watch.elapsed(), **dataclasses.asdict(problem.counts)}
+
+
+@dataclass(frozen=True)
+class PaperNoise:
+    """Paper-mode noise over a whole secret view, as the solver left it."""
+
+    noise: torch.Tensor  # (n, k, dims) float32 on the CPU
+    secret_view: SecretView
+    secret: np.ndarray  # the secret it hides, uint8 (h, w, 3)
 
 
 @dataclass

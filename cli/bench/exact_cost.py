@@ -16,15 +16,14 @@ from noisenerf.runtime.networks import render_network
 from noisenerf.runtime.render import render_view
 from noisenerf.runtime.reveal import reveal
 from noisenerf.runtime.session import OnnxField, read_model_file
-from noisenerf.train.hide.exact import ExactSettings
 from noisenerf.train.hide.paper import recipe
 from noisenerf.train.hide.plan import HideConfig
 from noisenerf.train.scene.datasets import load_dataset
 from noisenerf.train.scene.field import NeRFField
 from noisenerf.train.scene.render import numpy_field
 
-from noisenerf.cli.bench.context import BenchContext, FullHide, Measured, size_of, small_secret, timed
-from noisenerf.cli.bench.curves import exact_curve, secret_quality
+from noisenerf.cli.bench.context import BenchContext, Measured, size_of, small_secret, timed
+from noisenerf.cli.bench.curves import PaperNoise, exact_curve, secret_quality
 from noisenerf.cli.bench.report import verdict
 
 HIDE_OVER_REVEAL_GOAL = 25  # exact hide time ÷ onnxruntime reveal time (the views experiment checks it too)
@@ -39,28 +38,25 @@ def field_flops(field: NeRFField) -> int:
     return 2 * sum(m.in_features * m.out_features for m in field.modules() if isinstance(m, torch.nn.Linear))
 
 
-def full_size_hide(context: BenchContext) -> FullHide:
-    """The exact hide of the full-size secret at the bench view, once per run (cost and throughput)."""
-    if context.handoffs.full_hide is None:
-        report = context.hide(context.secret, "full", HideConfig(view=context.config.view))
-        context.handoffs.full_hide = FullHide(context.work / "full.bundle", report)
-    return context.handoffs.full_hide
+@dataclass(frozen=True, kw_only=True)
+class Cost(Measured):
+    bundle: Path  # the full-size secret's exact hide, which throughput reveals
 
 
-def measure_cost(context: BenchContext) -> Measured:
+def measure_cost(context: BenchContext) -> Cost:
     """Exact hide of the full-size secret against its onnxruntime reveal and an ordinary render."""
     model, secret = context.model, context.secret
-    full = full_size_hide(context)
-    bundle = load_bundle(full.bundle)
+    report = context.hide(secret, "full", HideConfig(view=context.config.view))
+    bundle = load_bundle(context.work / "full.bundle")
     revealed, reveal_seconds = timed(reveal, bundle, model.render_config, model.fields())
     _, render_seconds = timed(render_view, bundle.tiles[0].camera, model.render_config, model.field, None,
                               early_stop=0.0)
-    hide_seconds = full.report["seconds"]
-    return Measured([{"secret": Path(context.config.secret).name, "width": secret.shape[1], "height": secret.shape[0],
+    hide_seconds = report["seconds"]
+    return Cost([{"secret": Path(context.config.secret).name, "width": secret.shape[1], "height": secret.shape[0],
                       "hide_seconds": hide_seconds, "reveal_seconds": reveal_seconds,
                       "ordinary_render_seconds": render_seconds, "exact": revealed.exact,
                       "hide_over_reveal": hide_seconds / reveal_seconds,
-                      "hide_over_ordinary_render": hide_seconds / render_seconds}])
+                      "hide_over_ordinary_render": hide_seconds / render_seconds}], bundle=context.work / "full.bundle")
 
 
 def describe_cost(context: BenchContext, measured: Measured) -> list[str]:
@@ -88,9 +84,10 @@ def matmul_peak(threads: int, size: int = 1024, repeats: int = 20) -> float:
 
 
 def measure_throughput(context: BenchContext) -> Measured:
-    """Reveal rays/s and field samples/s, onnxruntime against torch eager at each thread count."""
+    """Reveal rays/s and field samples/s, onnxruntime against torch eager at each thread count; the reveal
+    is of cost's bundle."""
     config, scene = context.config, context.scene
-    bundle = load_bundle(full_size_hide(context).bundle)
+    bundle = load_bundle(context.needed["cost"].bundle)
     flops = field_flops(scene.render_field)
     rng = np.random.default_rng(config.seed)
     points = rng.uniform(-1, 1, (65536, 3)).astype(np.float32)
@@ -164,9 +161,9 @@ def measure_skipping(context: BenchContext) -> Skipping:
             rows.append({"experiment": "ordinary render", "variant": name, "work": evaluated, "dense_work": dense,
                          "psnr": float(np.mean(scores)), "seconds": time.perf_counter() - started})
     small = small_secret(context.secret, 2 * config.small_width)
-    for retire in (True, False):
-        curve, counts = exact_curve(scene, small, config.view, ExactSettings(retire=retire))
-        rows.append({"experiment": "exact hide", "variant": "retiring" if retire else "no retiring",
+    for retiring in (True, False):
+        curve, counts = exact_curve(scene, small, config.view, retiring)
+        rows.append({"experiment": "exact hide", "variant": "retiring" if retiring else "no retiring",
                      "work": counts["jacobians"], "dense_work": counts["renders"], "psnr": curve[-1]["psnr"],
                      "seconds": counts["seconds"]})
     return Skipping(rows, size_of(small), test_views=len(views))
@@ -199,8 +196,18 @@ def describe_skipping(context: BenchContext, measured: Skipping) -> list[str]:
     return lines
 
 
+def stored_quality(kept: PaperNoise, dtype: str) -> dict:
+    """Exact fraction and PSNR of paper-mode noise once stored as `dtype` (float32 or float16)."""
+    index = torch.arange(kept.secret_view.n_rays, device=kept.secret_view.device)
+    with torch.no_grad():
+        stored = kept.noise.to(getattr(torch, dtype)).float().to(index.device)
+        quality = secret_quality(kept.secret_view.render(index, stored), kept.secret)
+    return {"exact_fraction": quality["exact_fraction"], "psnr": quality["psnr"]}
+
+
 def measure_bundle_size(context: BenchContext) -> Measured:
-    """Bytes per hidden pixel of each noise layout and dtype, and what float16 storage does to each."""
+    """Bytes per hidden pixel of each noise layout and dtype, and what float16 storage does to each; the
+    paper's quality is that of error_vs_time's noise (its one-iteration hides here give the bytes only)."""
     config = context.config
     small = small_secret(context.secret, config.small_width)
     n_pixels = small.shape[0] * small.shape[1]
@@ -212,17 +219,12 @@ def measure_bundle_size(context: BenchContext) -> Measured:
         paper = recipe(config.paper_recipe, iters=1, record_at=())
         report = context.hide(small, "size", HideConfig(method=method, layout=layout, dtype=dtype, n_samples=samples,
                                                         view=config.view, settings=(paper,)))
-        rows.append({"method": method, "layout": layout, "dtype": dtype, "samples": samples,
-                     "file_bytes_per_pixel": report["bundle_bytes"] / n_pixels, "hide_seconds": report["seconds"],
-                     "exact_fraction": report["exact_fraction"] if method == "exact" else None})
-    kept = context.handoffs.paper_noise
-    if kept is not None:
-        index = torch.arange(kept.view.n_rays, device=kept.view.device)
-        with torch.no_grad():
-            for row, dtype in ((rows[3], torch.float32), (rows[4], torch.float16)):
-                stored = kept.noise.to(dtype).float().to(index.device)
-                quality = secret_quality(kept.view.render(index, stored), kept.secret)
-                row["exact_fraction"], row["psnr"] = quality["exact_fraction"], quality["psnr"]
+        row = {"method": method, "layout": layout, "dtype": dtype, "samples": samples,
+               "file_bytes_per_pixel": report["bundle_bytes"] / n_pixels, "hide_seconds": report["seconds"],
+               "exact_fraction": report["exact_fraction"]}
+        if method == "paper":
+            row.update(stored_quality(context.needed["error_vs_time"].paper_noise, dtype))
+        rows.append(row)
     return Measured(rows, size_of(small))
 
 
@@ -234,7 +236,7 @@ def describe_bundle_size(context: BenchContext, measured: Measured) -> list[str]
              "|---|---|---|---|---|---|---|"]
     lines += [f"| {r['method']} | {r['layout']} | {r['dtype']} | {r['samples']} | {r['file_bytes_per_pixel']:,.1f} | "
               f"{r['hide_seconds']:.2f} | "
-              f"{'—' if r['exact_fraction'] is None else format(r['exact_fraction'], '.4f')} |" for r in measured.rows]
+              f"{r['exact_fraction']:.4f} |" for r in measured.rows]
     lines += ["", "Exact mode verifies every pixel after rounding to the storage dtype (the compact layout's "
               "integer lattice, the ray layout's float16), so its bundles are exact by construction; the paper's "
               "rows give the fraction its noise (from the run-time experiment) reaches before and after float16 "

@@ -171,11 +171,13 @@ def describe_contention(context: BenchContext, measured: Measured) -> list[str]:
 
 
 @dataclass(frozen=True, kw_only=True)
-class Twok(Measured):
+class TiledSecret2K(Measured):
+    """The 2048² secret hidden as tiles: one row, the part measured and its extrapolation to the whole."""
+
     bytes_per_pixel: float  # of the part hidden
 
 
-def measure_twok(context: BenchContext) -> Twok:
+def measure_twok(context: BenchContext) -> TiledSecret2K:
     """A 2048×2048 secret (twok_size) as 512-px tiles: the first `twok_rows` tile rows hidden and revealed."""
     config = context.config
     big = to_uint8(resize_image(context.secret.astype(np.float32) / 255.0, config.twok_size, config.twok_size))
@@ -188,10 +190,10 @@ def measure_twok(context: BenchContext) -> Twok:
            "hide_seconds": report["seconds"], "reveal_seconds": reveal_seconds, "exact": revealed.exact,
            "torch_exact_fraction": report["exact_fraction"], "hide_seconds_2k": report["seconds"] * scale,
            "reveal_seconds_2k": reveal_seconds * scale, "bundle_bytes_2k": report["bundle_bytes"] * scale}
-    return Twok([row], bytes_per_pixel=report["bytes_per_pixel"])
+    return TiledSecret2K([row], bytes_per_pixel=report["bytes_per_pixel"])
 
 
-def describe_twok(context: BenchContext, measured: Twok) -> list[str]:
+def describe_twok(context: BenchContext, measured: TiledSecret2K) -> list[str]:
     config, row = context.config, measured.rows[0]
     scale = row["tile_rows"] / row["hidden_rows"]
     part = "the whole secret" if scale == 1 else (f"the first {row['hidden_rows']} of {row['tile_rows']} tile rows "

@@ -15,7 +15,7 @@ from noisenerf.train.hide.paper import PaperSettings, recipe
 from noisenerf.train.hide.secret_view import pass_samples_for
 
 from noisenerf.cli.bench.context import BenchContext, Measured, peak_rss_gib, size_of, small_secret
-from noisenerf.cli.bench.curves import PaperRun, exact_curve, paper_curve
+from noisenerf.cli.bench.curves import PaperNoise, PaperRun, exact_curve, paper_curve
 from noisenerf.cli.bench.report import curves_plot, save_figure, verdict
 
 PAPER_SSIM_GOAL = 0.97  # mean SSIM (data_range 1, 11×11 Gaussian) over the photos after 300 iterations
@@ -41,6 +41,11 @@ class PaperCurves(Measured):
 class PaperQuality(PaperCurves):
     runs: list[tuple[str, PaperRun]]  # (photo name, its run)
     probe_gib: float | None  # peak GPU memory at twice the width (CUDA only)
+
+
+@dataclass(frozen=True, kw_only=True)
+class ErrorVsTime(PaperCurves):
+    paper_noise: PaperNoise  # the paper's noise it found: bundle_size stores it as float32 and float16
 
 
 def square_secret(photo: np.ndarray, width: int) -> np.ndarray:
@@ -130,7 +135,7 @@ def plot_paper_quality(rows: list[dict], path: Path) -> None:
     save_figure(figure, path)
 
 
-def measure_error_vs_time(context: BenchContext) -> PaperCurves:
+def measure_error_vs_time(context: BenchContext) -> ErrorVsTime:
     """Both methods on the same small secret, quality against time; keeps the paper's noise for bundle_size."""
     config, device = context.config, context.device
     small = ablation_secret(context)
@@ -140,15 +145,14 @@ def measure_error_vs_time(context: BenchContext) -> PaperCurves:
     settings = recipe(config.paper_recipe, iters=config.paper_iters, record_at=record_at,
                       pass_samples=pass_samples_for(device))
     run = paper_curve(context.scene, small, config.view, config.paper_samples, settings, device, keep_noise=True)
-    context.handoffs.paper_noise = run.kept
-    return PaperCurves(exact_rows + run.rows, size_of(small), settings=settings)
+    return ErrorVsTime(exact_rows + run.rows, size_of(small), settings=settings, paper_noise=run.kept)
 
 
 def first_reaching(rows: list[dict], key: str, value: float) -> dict | None:
     return next((row for row in rows if row[key] >= value), None)
 
 
-def describe_error_vs_time(context: BenchContext, measured: PaperCurves) -> list[str]:
+def describe_error_vs_time(context: BenchContext, measured: ErrorVsTime) -> list[str]:
     config, settings, (width, height) = context.config, measured.settings, measured.secret_size
     exact_rows = [row for row in measured.rows if row["method"] == "exact"]
     paper_rows = [row for row in measured.rows if row["method"] == "paper"]

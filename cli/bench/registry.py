@@ -1,10 +1,14 @@
-"""Every bench experiment, in the order a run measures and reports them."""
+"""Every bench experiment, in the order a run measures and reports them, and what each needs of the others."""
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Callable
+from types import MappingProxyType
+from typing import Any, Callable, Mapping
+
+from noisenerf.runtime.errors import UserError
 
 from noisenerf.cli.bench import coverage, exact_cost, exact_scale, paper, payload
 from noisenerf.cli.bench.context import BenchContext, Measured, Section
@@ -12,20 +16,24 @@ from noisenerf.cli.bench.context import BenchContext, Measured, Section
 
 @dataclass(frozen=True)
 class Experiment:
-    """One experiment: it measures rows (its CSV), then describes them for the report."""
+    """One experiment: it measures rows (its CSV), then describes them for the report. What it needs from
+    other experiments it names in `needs` and reads from `context.needed`, by name, read-only."""
 
     name: str  # of its CSV and plot, and what --only takes
     title: str  # its report section's heading
     measure: Callable[[BenchContext], Measured]
     describe: Callable[[BenchContext, Any], list[str]]  # the report's lines, from what `measure` returned
     plot: Callable[[list[dict], Path], None] | None = None  # draws the rows as a PNG at the path given
+    needs: tuple[str, ...] = ()  # experiments whose Measured it reads; REGISTRY lists them before it
 
-    def run(self, context: BenchContext) -> Section:
+    def run(self, context: BenchContext, earlier: Mapping[str, Measured]) -> tuple[Measured, Section]:
+        """Measure and describe, given what the experiments run before measured (by name); it sees only its needs."""
+        context = dataclasses.replace(context, needed=MappingProxyType({name: earlier[name] for name in self.needs}))
         measured = self.measure(context)
-        return Section(self.name, self.title, measured.rows, self.describe(context, measured))
+        return measured, Section(self.name, self.title, measured.rows, self.describe(context, measured))
 
 
-# The order matters beyond the report's: error_vs_time hands its paper-mode noise to bundle_size.
+# Each experiment comes after those it needs, so the registry's order runs needs first (test_bench checks it).
 REGISTRY = (
     Experiment("paper_quality", "The paper's method at the paper's scale", paper.measure_paper_quality,
                paper.describe_paper_quality, paper.plot_paper_quality),
@@ -34,10 +42,12 @@ REGISTRY = (
     Experiment("ablation", "The paper's Table 3 ablation (paper mode)", paper.measure_ablation, paper.describe_ablation,
                paper.plot_ablation),
     Experiment("cost", "Hide ÷ reveal cost", exact_cost.measure_cost, exact_cost.describe_cost),
-    Experiment("throughput", "Reveal throughput", exact_cost.measure_throughput, exact_cost.describe_throughput),
+    Experiment("throughput", "Reveal throughput", exact_cost.measure_throughput, exact_cost.describe_throughput,
+               needs=("cost",)),  # it reveals cost's bundle
     Experiment("skipping", "Skipping what the scene does not need", exact_cost.measure_skipping,
                exact_cost.describe_skipping),
-    Experiment("bundle_size", "Bundle size", exact_cost.measure_bundle_size, exact_cost.describe_bundle_size),
+    Experiment("bundle_size", "Bundle size", exact_cost.measure_bundle_size, exact_cost.describe_bundle_size,
+               needs=("error_vs_time",)),  # it stores the paper's noise from there as float32 and float16
     Experiment("photos", "Real photos at native size", exact_scale.measure_photos, exact_scale.describe_photos),
     Experiment("views", "Hide time across views and photos", exact_scale.measure_views, exact_scale.describe_views,
                exact_scale.plot_views),
@@ -48,3 +58,20 @@ REGISTRY = (
     Experiment("payload", "File payloads, plain and sealed", payload.measure_payload, payload.describe_payload),
 )
 EXPERIMENTS = tuple(experiment.name for experiment in REGISTRY)
+
+
+def selected(names: tuple[str, ...] | None) -> tuple[Experiment, ...]:
+    """The experiments named (BenchConfig.experiments; None: all of them) and every one they need, in the
+    registry's order, which puts needs first. An experiment selected alone brings what it needs along, and
+    the report has that section too: `--only throughput` measures cost first, as throughput reveals cost's
+    bundle, rather than refusing or measuring less."""
+    if names is None:
+        return REGISTRY
+    unknown = set(names) - set(EXPERIMENTS)
+    if unknown:
+        raise UserError(f"unknown experiments {sorted(unknown)} (choose from {', '.join(EXPERIMENTS)})")
+    wanted = set(names)
+    for experiment in reversed(REGISTRY):  # dependents before their needs, so needs of needs are added too
+        if experiment.name in wanted:
+            wanted.update(experiment.needs)
+    return tuple(experiment for experiment in REGISTRY if experiment.name in wanted)

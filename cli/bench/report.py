@@ -6,7 +6,6 @@ import csv
 import datetime
 import platform
 from pathlib import Path
-from typing import TYPE_CHECKING
 
 import onnxruntime
 import torch
@@ -15,10 +14,8 @@ import noisenerf
 from noisenerf.runtime.cores import available_cores
 from noisenerf.runtime.files import atomic_output
 
+from noisenerf.cli.bench.config import BenchConfig
 from noisenerf.cli.bench.context import Section
-
-if TYPE_CHECKING:  # config.py imports the registry, which imports the experiments, which import this module
-    from noisenerf.cli.bench.config import BenchConfig
 
 
 def verdict(value: float, goal: float, lower_is_better: bool, also: bool = True) -> str:

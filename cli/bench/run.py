@@ -1,10 +1,8 @@
-"""A whole bench run: the selected experiments in the registry's order, then CSVs, plots and the report."""
+"""A whole bench run: the selected experiments and those they need, in the registry's order, then CSVs,
+plots and the report."""
 
 from __future__ import annotations
 
-import os
-import subprocess
-import sys
 import tempfile
 from pathlib import Path
 
@@ -13,19 +11,19 @@ from noisenerf.runtime.images import load_secret
 from noisenerf.runtime.model import load_model
 from noisenerf.train.scene.scene import load_scene
 
+from noisenerf.cli.bench import stress
 from noisenerf.cli.bench.config import BenchConfig
 from noisenerf.cli.bench.context import BenchContext, Section, timed
-from noisenerf.cli.bench.registry import EXPERIMENTS, REGISTRY
+from noisenerf.cli.bench.registry import REGISTRY, selected
 from noisenerf.cli.bench.report import write_csv, write_report
 
 
 def run_bench(config: BenchConfig, out: Path, run_stress: bool, command: str, progress=print) -> list[Section]:
-    """Run the configured experiments; write OUT/BENCHMARKS.md, CSVs and plots. Returns the sections."""
+    """Run the configured experiments and those they need (registry.selected); write OUT/BENCHMARKS.md, CSVs
+    and plots. Returns the sections."""
     from noisenerf.export.onnx_export import export_scene
 
-    unknown = set(config.experiments) - set(EXPERIMENTS)
-    if unknown:
-        raise UserError(f"unknown experiments {sorted(unknown)} (choose from {', '.join(EXPERIMENTS)})")
+    experiments = selected(config.experiments)
     if not out.parent.is_dir():
         raise UserError(f"output folder does not exist: {out.parent}")
     out.mkdir(exist_ok=True)
@@ -36,14 +34,17 @@ def run_bench(config: BenchConfig, out: Path, run_stress: bool, command: str, pr
         model_path = Path(tmp) / "model.onnx"
         export_scene(config.scene, model_path)
         context = BenchContext(config, scene, secret, Path(tmp), model_path, load_model(model_path))
-        for experiment in (experiment for experiment in REGISTRY if experiment.name in config.experiments):
-            progress(f"bench: {experiment.name}")
-            section, seconds = timed(experiment.run, context)
+        measured = {}  # the runner's own: an experiment gets a read-only view of its needs only
+        for experiment in experiments:
+            dependents = [other.name for other in experiments if experiment.name in other.needs]
+            asked = config.experiments is None or experiment.name in config.experiments
+            progress(f"bench: {experiment.name}" + ("" if asked else f" (needed by {', '.join(dependents)})"))
+            (measured[experiment.name], section), seconds = timed(experiment.run, context, measured)
             section.lines.append(f"\n_(experiment wall time {seconds:.0f} s)_")
             sections.append(section)
     if run_stress:
         progress("bench: stress")
-        sections.append(stress(full=True))
+        sections.append(stress_section())
     for section in sections:
         write_csv(out / f"{section.name}.csv", section.rows)
     plot_sections(sections, out)
@@ -66,16 +67,13 @@ def plot_sections(sections: list[Section], out: Path) -> None:
     plt.close("all")
 
 
-def stress(full: bool) -> Section:
-    """The stress suite (tests/test_stress.py) with every case; it lives in a source checkout."""
-    tests = Path(__file__).resolve().parents[2] / "tests" / "test_stress.py"
-    if not tests.is_file():
-        raise UserError(f"the stress suite runs from a source checkout ({tests} not found)")
-    env = {**os.environ, "NOISENERF_STRESS": "full" if full else "fast"}
-    result, seconds = timed(subprocess.run, [sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", str(tests)],
-                            capture_output=True, text=True, env=env, cwd=tests.parent)
-    summary = result.stdout.strip().splitlines()[-1] if result.stdout.strip() else result.stderr.strip()[-200:]
-    rows = [{"suite": "full" if full else "fast", "exit_code": result.returncode, "summary": summary, "seconds": seconds}]
-    return Section("stress", "Numerical stress suite", rows,
-                   [f"`NOISENERF_STRESS={'full' if full else 'fast'} pytest tests/test_stress.py`: {summary} "
-                    f"(exit code {result.returncode}, {seconds:.0f} s)."])
+def stress_section() -> Section:
+    """Every case of the numerical stress checks (stress.py), one row each; the report lists the failures."""
+    rows, seconds = timed(stress.run_stress)
+    failed = [row for row in rows if not row["passed"]]
+    lines = [f"Every case of the numerical stress checks (`cli/bench/stress.py`, on a small random-weight scene; "
+             f"`NOISENERF_STRESS=full pytest tests/test_stress.py` runs the same): **{len(rows) - len(failed)} of "
+             f"{len(rows)} passed** ({seconds:.0f} s)."]
+    if failed:
+        lines += ["", *(f"- failed: `{row['case']}`: {row['error']}" for row in failed)]
+    return Section("stress", "Numerical stress suite", rows, lines)

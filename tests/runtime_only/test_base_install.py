@@ -9,6 +9,8 @@ from pathlib import Path
 
 import pytest
 
+from helpers import assert_refused, run_reveal
+
 DEMO_DIR = os.environ.get("NOISENERF_DEMO_DIR")
 
 
@@ -17,10 +19,6 @@ def demo_dir() -> Path:
     if not DEMO_DIR or not (Path(DEMO_DIR) / "secret.bundle").is_file():
         pytest.skip("set NOISENERF_DEMO_DIR to a `noisenerf demo` output folder to run the base-install checks")
     return Path(DEMO_DIR)
-
-
-def reveal_cli(*args: str) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "noisenerf.cli.reveal", *args], capture_output=True, text=True)
 
 
 def test_reveal_never_loads_torch_and_reports_exactness(demo_dir, tmp_path):
@@ -40,7 +38,7 @@ def test_reveal_never_loads_torch_and_reports_exactness(demo_dir, tmp_path):
 def test_base_install_reveal_equals_the_demo_reveal(demo_dir, tmp_path):
     from noisenerf.runtime.images import read_image
 
-    result = reveal_cli(str(demo_dir / "model.onnx"), str(demo_dir / "secret.bundle"), "-o", str(tmp_path / "r.png"))
+    result = run_reveal(demo_dir / "model.onnx", demo_dir / "secret.bundle", "-o", tmp_path / "r.png")
     assert result.returncode == 0, result.stderr
     assert (read_image(tmp_path / "r.png") == read_image(demo_dir / "revealed.png")).all()
     assert (read_image(tmp_path / "r.png") == read_image(demo_dir / "secret.png")).all()
@@ -52,12 +50,9 @@ def test_fingerprint_mismatch_is_one_line_and_exit_2(demo_dir, tmp_path):
 
     bundle = dataclasses.replace(load_bundle(demo_dir / "secret.bundle"), model_fingerprint="0" * 64)
     bundle.save(tmp_path / "other.bundle")
-    result = reveal_cli(str(demo_dir / "model.onnx"), str(tmp_path / "other.bundle"), "-o", str(tmp_path / "r.png"))
-    assert result.returncode == 2
-    assert result.stderr.strip().splitlines() == [
-        f"noisenerf-reveal: error: bundle was made for model 000000000000…, this model is "
-        f"{bundle_fingerprint(demo_dir)[:12]}…"]
-    assert not (tmp_path / "r.png").exists()
+    result = run_reveal(demo_dir / "model.onnx", tmp_path / "other.bundle", "-o", tmp_path / "r.png")
+    assert_refused(result, tmp_path / "r.png", f"bundle was made for model 000000000000…, this model is "
+                   f"{bundle_fingerprint(demo_dir)[:12]}…", exact=True)
 
 
 def bundle_fingerprint(demo_dir):
@@ -69,7 +64,7 @@ def bundle_fingerprint(demo_dir):
 def test_ordinary_render_skips_and_matches_the_demo_render(demo_dir, tmp_path):
     from noisenerf.runtime.images import read_image
 
-    result = reveal_cli(str(demo_dir / "model.onnx"), "--view", "2", "-o", str(tmp_path / "v.png"), "--json")
+    result = run_reveal(demo_dir / "model.onnx", "--view", 2, "-o", tmp_path / "v.png", "--json")
     assert result.returncode == 0, result.stderr
     report = json.loads(result.stdout)
     assert report["samples"] < report["samples_dense"]
@@ -80,12 +75,8 @@ DEMO_PASSPHRASE = "noisenerf demo"  # train.demo.DEMO_PASSPHRASE (these tests ca
 
 
 def reveal_note(demo_dir: Path, out: Path, passphrase: str | None) -> subprocess.CompletedProcess:
-    env = {key: value for key, value in os.environ.items() if key != "NOISENERF_PASSPHRASE"}
-    if passphrase is not None:
-        env["NOISENERF_PASSPHRASE"] = passphrase
-    return subprocess.run([sys.executable, "-m", "noisenerf.cli.reveal", str(demo_dir / "model.onnx"),
-                           str(demo_dir / "note.bundle"), "-o", str(out), "--json"],
-                          capture_output=True, text=True, env=env, stdin=subprocess.DEVNULL)
+    return run_reveal(demo_dir / "model.onnx", demo_dir / "note.bundle", "-o", out, "--json",
+                      passphrase=None if passphrase is None else passphrase.encode())
 
 
 def test_base_install_opens_the_sealed_note_byte_for_byte(demo_dir, tmp_path):
@@ -104,7 +95,5 @@ def test_base_install_opens_the_sealed_note_byte_for_byte(demo_dir, tmp_path):
            "or at the prompt (stdin a terminal)"),
 ])
 def test_base_install_refuses_the_note_without_its_passphrase(demo_dir, tmp_path, passphrase, message):
-    result = reveal_note(demo_dir, tmp_path / "note.txt", passphrase)
-    assert result.returncode == 2 and result.stdout == ""
-    assert result.stderr.splitlines() == [f"noisenerf-reveal: error: {message}"]
-    assert not (tmp_path / "note.txt").exists()
+    assert_refused(reveal_note(demo_dir, tmp_path / "note.txt", passphrase), tmp_path / "note.txt", message,
+                   exact=True)

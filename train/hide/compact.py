@@ -11,17 +11,16 @@ varies in few directions. Per tile, from a seeded sample of its pixels:
 Each pixel's noise is o + (q · scale) Bᵀ with q (k,) int16 (or int8); the exact solver works in that
 space (train/hide/exact.NoiseSpace) and judges only lattice points, as the ray layout judges only float16
 noise. Since the noise leaves γ(x) at o, each ray's trunk (density and feature) is evaluated once and the
-solver renders only the view branch: a 128-px photo hid ~5x faster than with a basis in the whole
-noise (315 -> 64 µs a pixel on one core, 3 photos × 4 views of lego), and fewer pixels escaped (298 ->
-72). A field without a view branch gets its offset and basis from the sample solved in the full noise.
-A basis cannot reach every colour from every start; those pixels escape: they are solved again in the
-full 90 values and stored as float16 noise beside the coefficients, so every pixel is still exact.
+solver renders only the view branch, a fraction of the field's work; a basis in γ(d) alone also lets
+fewer pixels escape than one in the whole noise. A field without a view branch gets its offset and basis
+from the sample solved in the full noise. A basis cannot reach every colour from every start; those
+pixels escape: they are solved again in the full 90 values and stored as float16 noise beside the
+coefficients, so every pixel is still exact.
 
-Why k = 6: in the γ(d) basis, k = 5 took a median 6.1 bytes a pixel against 7.2 on 128-px lego photos
-but let 14x as many pixels escape (362 against 25), its worst photo at 9.1. Measured before, with the
-basis in the whole noise (README "Formats"): each coefficient costs ~1.2 bytes a pixel after xz, each
-escape 184 bytes; k = 4 left 0.3–6 % of pixels to escape; k = 7–8 cost more than their fewer escapes
-save; int8 coefficients leave most pixels unreachable on their lattice.
+Why k = 6: every coefficient costs bytes at every pixel and each escape 184 (90 float16 values and an
+index), so k trades bytes per pixel against escapes: fewer coefficients let many more pixels escape,
+more cost more than their fewer escapes save. int8 coefficients leave most pixels unreachable on
+their lattice. The measurements are the bench's (docs/bench/, README "Formats").
 """
 
 from __future__ import annotations
@@ -36,17 +35,17 @@ import torch
 from noisenerf.runtime.errors import UserError
 from noisenerf.runtime.limits import MAX_COMPACT_COEFFICIENTS
 from noisenerf.train.hide.secret_view import BranchView, SecretView
-from noisenerf.train.hide.exact import INTEGER_LIMITS, ExactSettings, NoiseSpace, is_lifted, solve_exact
+from noisenerf.train.hide.exact import INTEGER_LIMITS, ChunkProblem, ExactSettings, NoiseSpace, is_lifted, solve_exact
 
 @dataclass(frozen=True)
 class CompactSettings:
     key: ClassVar[str] = "compact"  # where bundles record these settings
     coefficients: int = 6  # k per pixel
-    # largest storable |coefficient|: int16 steps of 1/16 (int8: 2048/127). In the γ(d) basis, 1/16 saved ~0.6 byte a pixel
-    # against 1/32 at as many escapes (23 -> 27, 4 photos × 4 views at 128 px); 1/8 let 181 escape
+    # largest storable |coefficient|: int16 steps of 1/16 (int8: 2048/127). Coarser steps cost fewer bytes
+    # until the lattice misses colours: 1/16 costs less than 1/32 at about as many escapes, 1/8 lets many escape
     coefficient_range: float = 2048.0
-    # a seeded sample of a tile's pixels whose solved noise chooses its offset and basis: 256 let 3.6 % of a
-    # tench photo's pixels escape (13 bytes a pixel), 1,024 0.07 % (6.7), and hid it faster (README "Formats")
+    # a seeded sample of a tile's pixels whose solved noise chooses its offset and basis: a smaller sample's
+    # basis lets many more pixels escape, which costs more bytes and time than solving the sample
     basis_pixels: int = 1024
     max_iters: int = 50  # per phase in the basis; a pixel still unfinished escapes to full float16 noise
     tolerance_bins: float = 0.4  # float phase in the basis: round_to_lattice re-aims at the bin centre after it
@@ -82,17 +81,17 @@ LIFT_MARGIN = 2.0  # lift_density lifts its sample to this many density floors, 
 LIFT_STEPS = (0.25, 0.5, 1.0, 2.0, 4.0, 8.0, 16.0, 32.0)  # step lengths lift_density tries
 LIFT_ROUNDS = 8
 # below this share of its sample lifted, a tile takes the basis in the full noise: every ray the shared γ(x)
-# leaves unlifted would escape at 184 bytes (lego: always 100 %; a random-weight test net: none)
+# leaves unlifted would escape at 184 bytes (a trained scene's views lift whole; a random-weight net's may not)
 MIN_LIFTED = 0.99
 
 
-def lift_density(view: SecretView, floor: float) -> torch.Tensor:
+def lift_density(secret_view: SecretView, floor: float) -> torch.Tensor:
     """One γ(x) noise vector (xyz_dims,) shared by a single-sample view's rays that lifts their raw
     densities towards LIFT_MARGIN · floor: from zero, steps along the mean density gradient of the rays
     still below, each of the LIFT_STEPS length that most raises Σ min(density, goal) over every ray, until
-    all are there or no step helps. (On lego one step of 8–16 lifted every ray of every view tried.)"""
-    field, xyz_dims = view.field, view.field.config.xyz_dims
-    encoded = view.encodings(torch.arange(view.n_rays, device=view.device))[:, 0, :xyz_dims]
+    all are there or no step helps; on a trained scene one step usually lifts every ray."""
+    field, xyz_dims = secret_view.field, secret_view.field.config.xyz_dims
+    encoded = secret_view.encodings(torch.arange(secret_view.n_rays, device=secret_view.device))[:, 0, :xyz_dims]
     goal = LIFT_MARGIN * floor
 
     def density(noise: torch.Tensor) -> torch.Tensor:
@@ -101,7 +100,7 @@ def lift_density(view: SecretView, floor: float) -> torch.Tensor:
     def progress(noise: torch.Tensor) -> float:
         return float(torch.clamp_max(density(noise), goal).sum())
 
-    noise = torch.zeros(xyz_dims, device=view.device)
+    noise = torch.zeros(xyz_dims, device=secret_view.device)
     with torch.no_grad():
         best = progress(noise)
     for _ in range(LIFT_ROUNDS):
@@ -122,7 +121,7 @@ def lift_density(view: SecretView, floor: float) -> torch.Tensor:
     return noise
 
 
-def tile_space(view: SecretView, pixels: torch.Tensor, settings: CompactSettings, exact: ExactSettings,
+def tile_space(secret_view: SecretView, pixels: torch.Tensor, settings: CompactSettings, exact: ExactSettings,
                storage: torch.dtype, seed: int) -> NoiseSpace:
     """The compact NoiseSpace of one tile with int8/int16 coefficients, from `basis_pixels` of its pixels
     (n, 3) uint8 drawn with `seed`. A field with a view branch gets a shared γ(x) noise that lifts the
@@ -130,15 +129,15 @@ def tile_space(view: SecretView, pixels: torch.Tensor, settings: CompactSettings
     more than 1 − MIN_LIFTED of the sample unlifted; then, as for a field without a view branch, the
     offset and basis come from the sample solved in the full noise."""
     generator = torch.Generator().manual_seed(seed)
-    sample = torch.randperm(view.n_rays, generator=generator)[:settings.basis_pixels].to(pixels.device)
+    sample = torch.randperm(secret_view.n_rays, generator=generator)[:settings.basis_pixels].to(pixels.device)
     scale = float(np.float32(settings.coefficient_range / INTEGER_LIMITS[storage]))
-    if view.field.config.use_viewdirs:
-        part = view.subset(sample)
+    if secret_view.field.config.use_viewdirs:
+        part = secret_view.subset(sample)
         xyz_noise = lift_density(part, exact.density_floor)
         branch = BranchView(part, xyz_noise)
         if float(is_lifted(branch.density, exact.density_floor).float().mean()) >= MIN_LIFTED:
             return direction_basis(branch, pixels[sample], xyz_noise, settings, exact, storage, scale, generator)
-    solved = solve_exact(view, sample, pixels[sample], NoiseSpace(torch.float32), exact, generator)
+    solved = solve_exact(ChunkProblem(secret_view, sample, pixels[sample], NoiseSpace(torch.float32), exact, generator))
     offset, basis = principal_basis(solved.params, settings.coefficients)
     return NoiseSpace(storage, basis, offset, scale)
 
@@ -147,15 +146,15 @@ def direction_basis(branch: BranchView, pixels: torch.Tensor, xyz_noise: torch.T
                     exact: ExactSettings, storage: torch.dtype, scale: float, generator: torch.Generator) -> NoiseSpace:
     """tile_space's γ(d) basis from a sample's BranchView and pixels (s, 3): the principal directions of
     the sample's solved noise, found twice. The solved pixels the first basis cannot bring to their
-    colours (mostly the darkest) count missed_weight times in the second; on lego 128-px photos that cut
-    escapes from 145 to 25 (4 photos × 4 views). Pixels left unsolved never count."""
+    colours (mostly the darkest) count missed_weight times in the second, which turns the basis towards
+    them and so cuts escapes. Pixels left unsolved never count."""
     dir_dims, k = branch.noise_dims - len(xyz_noise), settings.coefficients
     every = torch.arange(branch.n_rays, device=pixels.device)
     directions = direction_space(torch.float32, xyz_noise, xyz_noise.new_zeros(dir_dims),
                                  torch.eye(dir_dims, device=xyz_noise.device))
-    solved = solve_exact(branch, every, pixels, directions, exact, generator)
+    solved = solve_exact(ChunkProblem(branch, every, pixels, directions, exact, generator))
     first = direction_space(torch.float32, xyz_noise, *principal_basis(solved.params[solved.done], k))
-    trial = solve_exact(branch, every, pixels, first, in_basis(exact, settings), generator)
+    trial = solve_exact(ChunkProblem(branch, every, pixels, first, in_basis(exact, settings), generator))
     weights = torch.where(trial.done, 1, settings.missed_weight) * solved.done
     return direction_space(storage, xyz_noise, *principal_basis(solved.params.repeat_interleave(weights, 0), k),
                            scale)
@@ -169,10 +168,10 @@ def direction_space(storage: torch.dtype, xyz_noise: torch.Tensor, dir_offset: t
                       torch.cat([xyz_noise, dir_offset]), scale)
 
 
-def solver_view(view: SecretView, space: NoiseSpace) -> SecretView | BranchView:
+def solver_view(secret_view: SecretView, space: NoiseSpace) -> SecretView | BranchView:
     """What the exact solver renders for a chunk in `space`: the view branch alone where the space's noise
     leaves γ(x) at its offset (tile_space, fields with a view branch), else the whole field."""
-    xyz_dims = view.field.config.xyz_dims
-    if space.basis is not None and view.field.config.use_viewdirs and not space.basis[:xyz_dims].any():
-        return BranchView(view, space.offset[:xyz_dims])
-    return view
+    xyz_dims = secret_view.field.config.xyz_dims
+    if space.basis is not None and secret_view.field.config.use_viewdirs and not space.basis[:xyz_dims].any():
+        return BranchView(secret_view, space.offset[:xyz_dims])
+    return secret_view

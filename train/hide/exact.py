@@ -9,20 +9,23 @@ is the minimum-norm Levenberg–Marquardt one, δ += Jᵀ(JJᵀ + λI)⁻¹r, wi
 J is exact (the field's hand-written four-row reverse pass), and a pixel retires as soon as it is
 finished, so later iterations only pay for the few left. Every 16th pixel is solved first; the others
 start from the noise of the solved seed nearest in target colour, moved by a few Gauss–Newton steps
-with that seed's Jacobian (chord_start: forward passes only; ~20 % fewer Jacobians on lego photos).
+with that seed's Jacobian (chord_start: forward passes only, which spare Jacobians of their own).
 
 Two phases: the first solves in float32 until every channel sits within `tolerance_bins` of its bin's
 centre; the second rounds to the storage dtype and polishes, judging only storable noise, until every
 channel rounds to its 8-bit value with `margin_bins` to spare (far more than the torch ↔ onnxruntime
-disagreement, ~1e-6 in colour). Between the phases, a compact tile's integer lattice (each of its 6
-coefficients in steps of CompactSettings.coefficient_range / 32767) is entered by round_to_lattice, a
-search among nearby lattice points predicted by the Jacobian: with a basis in the whole noise a step of
-1/32 moved a colour by more than a bin, and plain rounding then LM on the lattice took ~3× the
-Jacobians. In a compact tile's γ(d) basis (compact.py) steps move colours less, and radius 1 with 2
-tries was as good as 2 and 3, in less time.
+disagreement). Between the phases, a compact tile's integer lattice (each of its 6 coefficients in
+steps of CompactSettings.coefficient_range / 32767) is entered by round_to_lattice, a search among nearby
+lattice points predicted by the Jacobian: one lattice step can move a colour by more than a bin, so plain
+rounding would leave many pixels to LM on the lattice, which costs far more Jacobians than rendering a
+few predicted points. In a compact tile's γ(d) basis (compact.py) steps move colours less, so a small
+radius and few tries suffice.
 
-The solver renders through a SolverView: the whole field (SecretView), or for a compact tile whose noise
-moves only γ(d), the view branch alone (BranchView, ~1/12 of the multiply-adds).
+A solve is one ChunkProblem, what stays fixed over it (the view and its pixels, the noise space,
+settings, generator and counts), which every step takes; what Levenberg–Marquardt changes from one
+iteration to the next is a Refinement. The solver renders through a SolverView: the whole field
+(SecretView), or for a compact tile whose noise moves only γ(d), the view branch alone (BranchView, ~1/12
+of the multiply-adds).
 
 A pixel that has not finished after `restart_after` iterations, or whose Jacobian is zero (every ReLU
 it needs is off), restarts from the noise of a finished pixel of nearby target colour; every other
@@ -37,7 +40,7 @@ from __future__ import annotations
 import dataclasses
 import itertools
 from dataclasses import dataclass
-from typing import Callable, ClassVar
+from typing import ClassVar
 
 import torch
 
@@ -46,10 +49,13 @@ from noisenerf.train.hide.secret_view import BranchView, SecretView
 
 SolverView = SecretView | BranchView  # what the solver renders: the whole field, or its view branch alone
 
+CPU_CHUNK_PIXELS = 16384  # chunk_pixels_for a CPU, and HideConfig's default
+
+
 def chunk_pixels_for(device: torch.device) -> int:
     """Pixels solved together: a GPU needs large batches to be busy (its Jacobians of 4 × 90 per pixel
     stay well under a GiB at 2^18); on a CPU smaller chunks resume at a finer grain and cost the same."""
-    return 1 << 18 if device.type == "cuda" else 16384
+    return 1 << 18 if device.type == "cuda" else CPU_CHUNK_PIXELS
 
 
 END_PULL_BINS = 0.2  # targets for 0 and 255 sit this far inside, where a sigmoid can arrive
@@ -69,13 +75,15 @@ class ExactSettings:
     step_scales: tuple[float, ...] = (1.0, 0.5, 0.25)
     restart_after: int = 8
     donors: int = 4  # the k-th restart starts from one of the 4k finished pixels nearest in target colour
-    kick: float = 1.0  # scale of a random restart around zero noise
+    kick: float = 1.0  # spread of a random restart around zero noise (restart); the name bundles record
     jitter: float = 0.1  # added to a pixel's restart point per restart it has had
     seed_stride: int = 16  # every seed_stride-th pixel is solved first and warm-starts the others
-    retire: bool = True  # finished pixels leave the batch (off only to measure what retiring saves)
     chord_steps: int = 3  # warm-started pixels first step with their seed's Jacobian (chord_start)
     lattice_radius: int = 1  # integer lattices: free coefficients tried within ± this many steps (round_to_lattice)
     lattice_tries: int = 2  # integer lattices: best-predicted lattice points rendered per pixel
+    # not a setting: bundles record that finished pixels leave the batch (ChunkProblem.batch), as they
+    # did when it could be switched off
+    retire: bool = dataclasses.field(default=True, init=False)
 
     def __post_init__(self):
         if self.lattice_tries < 1 or self.lattice_radius < 0 or self.chord_steps < 0:
@@ -153,9 +161,9 @@ class NoiseSpace:
         return torch.zeros(m, dims if self.basis is None else self.basis.shape[1], device=device)
 
 
-def sample_outputs(view: SolverView, index: torch.Tensor, noise: torch.Tensor) -> torch.Tensor:
+def sample_outputs(secret_view: SolverView, index: torch.Tensor, noise: torch.Tensor) -> torch.Tensor:
     """Raw colour and raw density of each ray's single sample. index: (m,), noise: (m, 1, dims) -> (m, 4)."""
-    raw_rgb, raw_density = view.raw(index, noise)
+    raw_rgb, raw_density = secret_view.raw(index, noise)
     return torch.cat([raw_rgb[:, 0], raw_density[:, :1]], dim=-1)
 
 
@@ -239,147 +247,205 @@ class SolveCounts:
     restarts: int = 0
 
 
-def counted_outputs(view: SolverView, index: torch.Tensor, space: NoiseSpace, params: torch.Tensor,
-             counts: SolveCounts) -> torch.Tensor:
-    """sample_outputs of params (m, P) without gradients, counted. -> (m, 4)."""
-    counts.renders += index.numel()
-    with torch.no_grad():
-        return sample_outputs(view, index, space.expand(params))
-
-
-Store = Callable[[torch.Tensor], torch.Tensor]  # params (m, P) -> the params a phase may judge
-
-
-def line_search(view: SolverView, index: torch.Tensor, space: NoiseSpace, noise: torch.Tensor, outputs: torch.Tensor,
-                step: torch.Tensor, goal: torch.Tensor, settings: ExactSettings, store: Store, counts: SolveCounts
-                ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """The first of settings.step_scales that lowers each pixel's ‖r‖², else the old params.
-    noise: params (m, P), outputs: (m, 4), step: (m, P) -> params, outputs, improved (m,) bool."""
-    before = (residuals(outputs, goal, settings.density_floor) ** 2).sum(-1)
-    noise, outputs = noise.clone(), outputs.clone()
-    improved = torch.zeros(noise.shape[0], dtype=torch.bool, device=noise.device)
-    for scale in settings.step_scales:
-        trying = (~improved).nonzero()[:, 0]
-        if trying.numel() == 0:
-            break
-        candidate = store(noise[trying] + scale * step[trying])
-        after = counted_outputs(view, index[trying], space, candidate, counts)
-        better = (residuals(after, goal[trying], settings.density_floor) ** 2).sum(-1) < before[trying]
-        chosen = trying[better]
-        noise[chosen], outputs[chosen], improved[chosen] = candidate[better], after[better], True
-    return noise, outputs, improved
-
-
-Observer = Callable[[torch.Tensor, torch.Tensor, SolveCounts], None]  # (index (m,), noise (m, 1, dims), counts)
-
-
-def refine(view: SolverView, index: torch.Tensor, goal: torch.Tensor, space: NoiseSpace, noise: torch.Tensor,
-           finished: Callable[[torch.Tensor, torch.Tensor], torch.Tensor], store: Store,
-           settings: ExactSettings, generator: torch.Generator, counts: SolveCounts,
-           observe: Observer | None = None) -> tuple[torch.Tensor, torch.Tensor]:
-    """Levenberg–Marquardt on every pixel until `finished(outputs (a, 4), which (a,)) -> (a,) bool` holds.
-    Finished pixels retire (unless settings.retire is off, for comparison); Jacobians are computed only
-    for pixels that still need a step; `observe` sees the noise after every iteration (benchmarks).
-    noise: params (m, P) -> params, done (m,) bool."""
-    m = index.shape[0]
-    device = noise.device
-    noise = noise.clone()
-    done = torch.zeros(m, dtype=torch.bool, device=device)
-    damping = torch.full((m,), settings.damping, device=device)
-    age = torch.zeros(m, dtype=torch.int64, device=device)
-    restarts = torch.zeros(m, dtype=torch.int64, device=device)
-    outputs = counted_outputs(view, index, space, noise, counts)
-    active = torch.arange(m, device=device)
-    for iteration in range(1, settings.max_iters + 1):
-        done[active] = finished(outputs[active], active)
-        if done.all():
-            break
-        if settings.retire:
-            active = active[~done[active]]
-        counts.iterations = max(counts.iterations, iteration)
-        age[active] += 1
-        stuck = active[(age[active] > settings.restart_after) & ~done[active]]
-        if stuck.numel():
-            finished_pixels = done.nonzero()[:, 0]
-            restarts[stuck] += 1
-            # the k-th restart of a pixel jitters its start by k·jitter and draws from more donors, so
-            # repeated restarts explore further; every other one starts afresh at random, in case the
-            # donors' noise all lies in a basin this pixel's colour cannot be reached from
-            spread = settings.jitter * (restarts[stuck] - 1).float()[:, None]
-            start = torch.zeros_like(noise[stuck])
-            from_donor = (restarts[stuck] % 2 == 1) & bool(finished_pixels.numel())
-            if from_donor.any():
-                start[from_donor] = donor_noise(stuck[from_donor], finished_pixels, goal, noise, generator,
-                                                settings.donors * restarts[stuck[from_donor]])
-            spread = torch.where(from_donor[:, None], spread, spread + settings.kick)
-            noise[stuck] = store(start + spread * torch.randn(start.shape, generator=generator).to(device))
-            outputs[stuck] = counted_outputs(view, index[stuck], space, noise[stuck], counts)
-            age[stuck], damping[stuck] = 0, settings.damping
-            counts.restarts += stuck.numel()
-        _, jac = view.outputs_and_jacobian(index[active], space.expand(noise[active]))
-        jac = space.chain(jac)
-        counts.jacobians += active.numel()
-        age[active[jac.flatten(1).abs().amax(-1) < 1e-12]] = settings.restart_after + 1  # all ReLUs off: restart
-        step = damped_step(jac, residuals(outputs[active], goal[active], settings.density_floor), damping[active])
-        noise[active], outputs[active], improved = line_search(view, index[active], space, noise[active],
-                                                               outputs[active], step, goal[active], settings, store,
-                                                               counts)
-        damping[active] = torch.where(improved, torch.clamp(damping[active] / DAMPING_DOWN, min=DAMPING_RANGE[0]),
-                                      torch.clamp(damping[active] * DAMPING_UP, max=DAMPING_RANGE[1]))
-        if observe is not None:
-            observe(index, space.expand(noise), counts)
-    return noise, done
-
-
-@dataclass(frozen=True)
-class ChunkResult:
-    params: torch.Tensor  # (m, P) float32, storable (NoiseSpace.store leaves them unchanged)
-    done: torch.Tensor  # (m,) bool: the pixel rounds to its 8-bit value (a compact space may leave a few)
-    counts: SolveCounts
-
-
 def is_lifted(raw_density: torch.Tensor, floor: float) -> torch.Tensor:
     """Whether a single sample's density counts as lifted (opacity exactly 1, with room to spare): at least
     half the floor the solver aims at. (...) -> (...) bool."""
     return raw_density >= floor / 2
 
 
-class Criteria:
-    """What a chunk's pixels aim at: logit goals, and when a pixel counts as converged (float32 phase,
-    near its bin's centre) or as rounding right (storage phase, inside its bin with the margin)."""
+@dataclass
+class Refinement:
+    """What refine changes from one iteration to the next, for a problem's m pixels (ChunkProblem keeps
+    what does not)."""
 
-    def __init__(self, pixels: torch.Tensor, settings: ExactSettings):
-        self.target = bin_targets(pixels)
-        self.goal = logit(self.target)
-        self.values = pixels.float() / 255.0
-        self.settings = settings
+    params: torch.Tensor  # (m, P)
+    outputs: torch.Tensor  # (m, 4) at params
+    # the storage phase: params stay storable and a pixel finishes when it rounds right; else the float32
+    # phase, any float params, a pixel finished near its bin's centre
+    storage_phase: bool
+    done: torch.Tensor  # (m,) bool
+    damping: torch.Tensor  # (m,) λ
+    age: torch.Tensor  # (m,) int64: iterations since the pixel's last start
+    restarts: torch.Tensor  # (m,) int64
+    active: torch.Tensor  # (a,) int64: the pixels in the batch
+
+    @staticmethod
+    def start(problem: ChunkProblem, params: torch.Tensor, storage_phase: bool) -> Refinement:
+        """Every pixel in the batch at params (m, P), with the initial λ."""
+        m, device = len(problem.index), params.device
+        every = torch.arange(m, device=device)
+        return Refinement(params.clone(), problem.outputs(every, params), storage_phase,
+                          torch.zeros(m, dtype=torch.bool, device=device),
+                          torch.full((m,), problem.settings.damping, device=device),
+                          torch.zeros(m, dtype=torch.int64, device=device),
+                          torch.zeros(m, dtype=torch.int64, device=device), every)
+
+
+@dataclass(frozen=True, eq=False)  # tensors have no truth value: a problem equals only itself
+class ChunkProblem:
+    """One solve's fixed part: pixels `index` (m,) of a single-sample view with 8-bit values `pixels` (m, 3)
+    uint8, their noise sought in `space`, the settings, the generator every random start draws from and
+    the counts the solve adds to. From the pixels: `target` (m, 3), the bin centres (bin_targets), `goal`
+    (m, 3), their logits, and `values` (m, 3), the 8-bit values in [0, 1]. What changes from one
+    iteration to the next is a Refinement's.
+
+    refine moves the pixels with `step` and keeps in the batch those `batch` returns: a subclass may
+    watch or vary an iteration without the solver knowing."""
+
+    secret_view: SolverView
+    index: torch.Tensor
+    pixels: torch.Tensor
+    space: NoiseSpace
+    settings: ExactSettings
+    generator: torch.Generator
+    counts: SolveCounts = dataclasses.field(default_factory=SolveCounts)
+    target: torch.Tensor = dataclasses.field(init=False)
+    goal: torch.Tensor = dataclasses.field(init=False)
+    values: torch.Tensor = dataclasses.field(init=False)
+
+    def __post_init__(self):
+        object.__setattr__(self, "target", bin_targets(self.pixels))
+        object.__setattr__(self, "goal", logit(self.target))
+        object.__setattr__(self, "values", self.pixels.float() / 255.0)
+
+    def subset(self, which: torch.Tensor) -> ChunkProblem:
+        """The problem of pixels `which` (s,) alone, indexed from 0; same settings, generator and counts."""
+        return dataclasses.replace(self, index=self.index[which], pixels=self.pixels[which])
+
+    def outputs(self, which: torch.Tensor, params: torch.Tensor) -> torch.Tensor:
+        """sample_outputs of pixels `which` (a,) at params (a, P), without gradients, counted. -> (a, 4)."""
+        self.counts.renders += which.numel()
+        with torch.no_grad():
+            return sample_outputs(self.secret_view, self.index[which], self.space.expand(params))
+
+    def outputs_and_jacobian(self, which: torch.Tensor, params: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Outputs (a, 4) of pixels `which` (a,) at params (a, P) and their Jacobian in the params (a, 4, P),
+        counted."""
+        outputs, jac = self.secret_view.outputs_and_jacobian(self.index[which], self.space.expand(params))
+        self.counts.jacobians += which.numel()
+        return outputs, self.space.chain(jac)
+
+    def judged(self, params: torch.Tensor, storage_phase: bool) -> torch.Tensor:
+        """The params a phase judges: the nearest storable ones in the storage phase, any float32 params
+        before it. (m, P) -> (m, P)."""
+        return self.space.store(params) if storage_phase else params
 
     def lifted(self, outputs: torch.Tensor) -> torch.Tensor:
         return is_lifted(outputs[:, 3], self.settings.density_floor)
 
     def converged(self, outputs: torch.Tensor, which: torch.Tensor) -> torch.Tensor:
+        """Float32 phase: pixels `which` (a,) with outputs (a, 4) near their bins' centres. -> (a,) bool."""
         near = colour_distance_bins(outputs, self.target[which]) <= self.settings.tolerance_bins
         return near & self.lifted(outputs)
 
     def rounds_right(self, outputs: torch.Tensor, which: torch.Tensor) -> torch.Tensor:
+        """Storage phase: pixels `which` (a,) whose outputs (a, 4) round to their 8-bit values with
+        margin_bins to spare. -> (a,) bool."""
         inside = colour_distance_bins(outputs, self.values[which]) <= 0.5 - self.settings.margin_bins
         return inside & self.lifted(outputs)
 
+    def batch(self, state: Refinement) -> torch.Tensor:
+        """The pixels the next step moves: those of the batch not finished. Finished pixels retire, so
+        later iterations only pay for the few left. -> (a,) int64."""
+        return state.active[~state.done[state.active]]
 
-def chord_start(view: SolverView, index: torch.Tensor, space: NoiseSpace, params: torch.Tensor, goal: torch.Tensor,
-                jac: torch.Tensor, settings: ExactSettings, counts: SolveCounts) -> torch.Tensor:
-    """Warm starts refined without Jacobians of their own: from params (m, P) (a solved seed's), take
-    settings.chord_steps Gauss–Newton steps with that seed's Jacobian jac (m, 4, P) (the chord method),
-    keeping each pixel's best. The seed's Jacobian is only a rough guide to the pixel's (on lego they
-    differ by ~40–90 %), but three steps bring ~80 % of a photo's pixels within 10 bins, where LM's own
-    steps take over. -> params (m, P)."""
+    def step(self, state: Refinement) -> None:
+        """One Levenberg–Marquardt iteration of the batch, state.active: pixels stuck for restart_after
+        iterations, or whose Jacobian is zero (every ReLU they need is off), restart; the others take the
+        damped step with a line search, and λ falls after a step that improved, else rises."""
+        settings, active = self.settings, state.active
+        state.age[active] += 1
+        stuck = active[(state.age[active] > settings.restart_after) & ~state.done[active]]
+        if stuck.numel():
+            restart(self, state, stuck)
+        _, jac = self.outputs_and_jacobian(active, state.params[active])
+        state.age[active[jac.flatten(1).abs().amax(-1) < 1e-12]] = settings.restart_after + 1  # restart next
+        step = damped_step(jac, residuals(state.outputs[active], self.goal[active], settings.density_floor),
+                           state.damping[active])
+        improved = line_search(self, state, step)
+        state.damping[active] = torch.where(improved, torch.clamp(state.damping[active] / DAMPING_DOWN,
+                                                                  min=DAMPING_RANGE[0]),
+                                            torch.clamp(state.damping[active] * DAMPING_UP, max=DAMPING_RANGE[1]))
+
+
+def restart(problem: ChunkProblem, state: Refinement, stuck: torch.Tensor) -> None:
+    """New starts for the stuck pixels (s,), judged as their phase judges params. The k-th restart of a
+    pixel jitters its start by k·jitter and draws from more donors, so repeated restarts explore further;
+    every other one starts afresh at random around zero noise, in case the donors' noise all lies in a
+    basin this pixel's colour cannot be reached from."""
+    settings = problem.settings
+    finished_pixels = state.done.nonzero()[:, 0]
+    state.restarts[stuck] += 1
+    spread = settings.jitter * (state.restarts[stuck] - 1).float()[:, None]
+    start = torch.zeros_like(state.params[stuck])
+    from_donor = (state.restarts[stuck] % 2 == 1) & bool(finished_pixels.numel())
+    if from_donor.any():
+        start[from_donor] = donor_noise(stuck[from_donor], finished_pixels, problem.goal, state.params,
+                                        problem.generator, settings.donors * state.restarts[stuck[from_donor]])
+    spread = torch.where(from_donor[:, None], spread, spread + settings.kick)
+    jitter = torch.randn(start.shape, generator=problem.generator).to(start.device)
+    state.params[stuck] = problem.judged(start + spread * jitter, state.storage_phase)
+    state.outputs[stuck] = problem.outputs(stuck, state.params[stuck])
+    state.age[stuck], state.damping[stuck] = 0, settings.damping
+    problem.counts.restarts += stuck.numel()
+
+
+def line_search(problem: ChunkProblem, state: Refinement, step: torch.Tensor) -> torch.Tensor:
+    """Moves each pixel of the batch, state.active (a,), by the first of settings.step_scales of its step
+    (a, P) that lowers its ‖r‖², updating state.params and state.outputs; the others stay.
+    -> improved (a,) bool."""
+    settings, active = problem.settings, state.active
+    params, outputs, goal = state.params[active], state.outputs[active], problem.goal[active]
+    before = (residuals(outputs, goal, settings.density_floor) ** 2).sum(-1)
+    improved = torch.zeros(active.numel(), dtype=torch.bool, device=params.device)
+    for scale in settings.step_scales:
+        trying = (~improved).nonzero()[:, 0]
+        if trying.numel() == 0:
+            break
+        candidate = problem.judged(params[trying] + scale * step[trying], state.storage_phase)
+        after = problem.outputs(active[trying], candidate)
+        better = (residuals(after, goal[trying], settings.density_floor) ** 2).sum(-1) < before[trying]
+        chosen = trying[better]
+        params[chosen], outputs[chosen], improved[chosen] = candidate[better], after[better], True
+    state.params[active], state.outputs[active] = params, outputs
+    return improved
+
+
+def refine(problem: ChunkProblem, params: torch.Tensor, storage_phase: bool) -> tuple[torch.Tensor, torch.Tensor]:
+    """Levenberg–Marquardt on every pixel of the problem until it is finished (Refinement.storage_phase
+    says when), Jacobians only for the batch (ChunkProblem.batch). params (m, P) -> params, done (m,) bool."""
+    finished = problem.rounds_right if storage_phase else problem.converged
+    state = Refinement.start(problem, params, storage_phase)
+    for iteration in range(1, problem.settings.max_iters + 1):
+        state.done[state.active] = finished(state.outputs[state.active], state.active)
+        if state.done.all():
+            break
+        state.active = problem.batch(state)
+        problem.counts.iterations = max(problem.counts.iterations, iteration)
+        problem.step(state)
+    return state.params, state.done
+
+
+@dataclass(frozen=True)
+class ChunkResult:
+    params: torch.Tensor  # (m, P) float32, storable (NoiseSpace.store leaves them unchanged)
+    done: torch.Tensor  # (m,) bool: the pixel rounds to its 8-bit value (a compact space may leave a few)
+
+
+def chord_start(problem: ChunkProblem, which: torch.Tensor, params: torch.Tensor, jac: torch.Tensor) -> torch.Tensor:
+    """Warm starts for pixels `which` (w,) refined without Jacobians of their own: from params (w, P) (a
+    solved seed's), take settings.chord_steps Gauss–Newton steps with that seed's Jacobian jac (w, 4, P)
+    (the chord method), keeping each pixel's best. The seed's Jacobian is only a rough guide to the
+    pixel's, but a few steps bring most pixels near enough for LM's own steps to take over at less cost:
+    forward passes only. -> params (w, P)."""
+    settings, goal = problem.settings, problem.goal[which]
     best = params
-    outputs = counted_outputs(view, index, space, params, counts)
+    outputs = problem.outputs(which, params)
     best_error = (residuals(outputs, goal, settings.density_floor) ** 2).sum(-1)
-    damping = torch.full((len(index),), settings.damping, device=params.device)
+    damping = torch.full((which.numel(),), settings.damping, device=params.device)
     for _ in range(settings.chord_steps):
         params = params + damped_step(jac, residuals(outputs, goal, settings.density_floor), damping)
-        outputs = counted_outputs(view, index, space, params, counts)
+        outputs = problem.outputs(which, params)
         error = (residuals(outputs, goal, settings.density_floor) ** 2).sum(-1)
         better = error < best_error
         best, best_error = torch.where(better[:, None], params, best), torch.where(better, error, best_error)
@@ -389,36 +455,35 @@ def chord_start(view: SolverView, index: torch.Tensor, space: NoiseSpace, params
 LATTICE_VALUES = 1 << 24  # candidate coordinates (pixels × c × k) formed at once: ~64 MB a tensor
 
 
-def round_to_lattice(view: SolverView, index: torch.Tensor, space: NoiseSpace, params: torch.Tensor,
-                     criteria: Criteria, settings: ExactSettings, counts: SolveCounts) -> torch.Tensor:
+def round_to_lattice(problem: ChunkProblem, params: torch.Tensor) -> torch.Tensor:
     """Storable params for float params (m, k) of an integer lattice: the field's Jacobian at the float
     solution predicts each lattice_candidates point's colour (the net is piecewise linear, so within a
     ReLU region exactly); the settings.lattice_tries best points (ranked by predicted distance from the
     8-bit value, those that keep the density lifted first) are rendered in turn and the first that
     rounds right is kept, else the best predicted. Phase 2 of solve_exact polishes what is left.
     -> params (m, k) on the lattice."""
+    space, settings = problem.space, problem.settings
     stored = space.store(params)
     if not space.lattice or space.basis.shape[1] < 3:
         return stored
     k = space.basis.shape[1]
     limit = INTEGER_LIMITS[space.storage]
     per_part = max(1, LATTICE_VALUES // ((2 * settings.lattice_radius + 1) ** (k - 3) * k))
-    for part in torch.split(torch.arange(len(index), device=params.device), per_part):
-        outputs, jac = view.outputs_and_jacobian(index[part], space.expand(params[part]))
-        counts.jacobians += part.numel()
-        jac = space.chain(jac) * space.scale  # per integer step
+    for part in torch.split(torch.arange(len(problem.index), device=params.device), per_part):
+        outputs, jac = problem.outputs_and_jacobian(part, params[part])
+        jac = jac * space.scale  # per integer step
         coords = params[part] / space.scale
         candidates = torch.clamp(lattice_candidates(coords, jac[:, :3], settings.lattice_radius), -limit, limit)
         predicted = outputs[:, None, :] + (candidates - coords[:, None, :]) @ jac.transpose(1, 2)  # (p, c, 4)
-        distance = colour_distance_bins(predicted.flatten(0, 1), criteria.values[part].repeat_interleave(
+        distance = colour_distance_bins(predicted.flatten(0, 1), problem.values[part].repeat_interleave(
             candidates.shape[1], 0)).reshape(candidates.shape[:2])
         distance = distance + 255.0 * (predicted[..., 3] < settings.density_floor / 2)  # unlifted: last
         ranked = space.params_of(candidates.gather(1, distance.argsort(1)[:, :settings.lattice_tries, None].expand(
             -1, -1, k)))
         chosen, left = ranked[:, 0].clone(), torch.arange(part.numel(), device=params.device)
         for t in range(ranked.shape[1]):
-            after = counted_outputs(view, index[part[left]], space, ranked[left, t], counts)
-            right = criteria.rounds_right(after, part[left])
+            after = problem.outputs(part[left], ranked[left, t])
+            right = problem.rounds_right(after, part[left])
             chosen[left[right]] = ranked[left[right], t]
             left = left[~right]
             if left.numel() == 0:
@@ -427,84 +492,65 @@ def round_to_lattice(view: SolverView, index: torch.Tensor, space: NoiseSpace, p
     return stored
 
 
-def solve_from(view: SolverView, index: torch.Tensor, pixels: torch.Tensor, space: NoiseSpace, start: torch.Tensor,
-               settings: ExactSettings, generator: torch.Generator, counts: SolveCounts,
-               observe: Observer | None = None) -> tuple[torch.Tensor, torch.Tensor]:
-    """Both phases for pixels `index` (m,) with 8-bit values `pixels` (m, 3) from params `start` (m, P):
-    float32 until converged near the bin centres, onto the storable lattice, then storable params until
-    every value rounds right. -> params (m, P), done (m,) bool."""
-    criteria = Criteria(pixels, settings)
-    converged, _ = refine(view, index, criteria.goal, space, start, criteria.converged, lambda n: n, settings,
-                          generator, counts, observe)
-    on_lattice = round_to_lattice(view, index, space, converged, criteria, settings, counts)
-    return refine(view, index, criteria.goal, space, on_lattice, criteria.rounds_right, space.store, settings,
-                  generator, counts, observe)
+def solve_from(problem: ChunkProblem, start: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Both phases from params `start` (m, P): float32 until converged near the bin centres, onto the
+    storable lattice, then storable params until every value rounds right. -> params (m, P), done (m,) bool."""
+    converged, _ = refine(problem, start, storage_phase=False)
+    return refine(problem, round_to_lattice(problem, converged), storage_phase=True)
 
 
 RESCUE_ROUNDS = 6  # further solves a pixel left unfinished gets (rescue), each from another start
 
 
-def rescue(view: SolverView, index: torch.Tensor, pixels: torch.Tensor, space: NoiseSpace, params: torch.Tensor,
-           done: torch.Tensor, settings: ExactSettings, generator: torch.Generator, counts: SolveCounts
-           ) -> tuple[torch.Tensor, torch.Tensor]:
-    """Pixels that a solve left unfinished, solved again in `space` from other starts until they round right:
-    round 0 continues from their own params, round r ≥ 1 starts from the params of the r-th finished pixel
+def rescue(problem: ChunkProblem, params: torch.Tensor, done: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Pixels that a solve left unfinished, solved again from other starts until they round right: round 0
+    continues from their own params, round r ≥ 1 starts from the params of the r-th finished pixel
     nearest in target colour (whose ray is lifted and whose colour is near), jittered by r·jitter; every
     round has twice the iterations. Saturated colours far from every colour the view renders need this:
     their first solve ends in a basin without the colour, or with the density unlifted.
-    index (m,), pixels (m, 3) uint8, params (m, P), done (m,) bool -> params, done."""
+    params (m, P), done (m,) bool -> params, done."""
     params, done = params.clone(), done.clone()
-    goal = Criteria(pixels, settings).goal
-    longer = dataclasses.replace(settings, max_iters=2 * settings.max_iters)
+    settings = problem.settings
+    longer = dataclasses.replace(problem, settings=dataclasses.replace(settings, max_iters=2 * settings.max_iters))
     for r in range(RESCUE_ROUNDS):
         left, finished = (~done).nonzero()[:, 0], done.nonzero()[:, 0]
         if left.numel() == 0:
             break
         start = params[left]
         if r and finished.numel():
-            nearest = torch.cdist(goal[left], goal[finished]).topk(min(r, finished.numel()), largest=False).indices
+            nearest = torch.cdist(problem.goal[left], problem.goal[finished]).topk(min(r, finished.numel()),
+                                                                                  largest=False).indices
             start = params[finished[nearest[:, -1]]]
-            start = start + r * settings.jitter * torch.randn(start.shape, generator=generator).to(start.device)
-        solved, ok = solve_from(view, index[left], pixels[left], space, space.store(start), longer, generator, counts)
+            start = start + r * settings.jitter * torch.randn(start.shape, generator=problem.generator).to(start.device)
+        solved, ok = solve_from(longer.subset(left), problem.space.store(start))
         params[left[ok]], done[left[ok]] = solved[ok], True
     return params, done
 
 
-def solve_exact(view: SolverView, index: torch.Tensor, pixels: torch.Tensor, space: NoiseSpace,
-                settings: ExactSettings, generator: torch.Generator, observe: Observer | None = None) -> ChunkResult:
-    """Bring pixels `index` (m,) of a single-sample view to their 8-bit values `pixels` (m, 3) uint8, with
-    each pixel's noise in `space` (the full 90 values, or a tile's compact basis).
+def solve_exact(problem: ChunkProblem) -> ChunkResult:
+    """Bring the problem's pixels of a single-sample view to their 8-bit values, with each pixel's noise in
+    its space (the full 90 values, or a tile's compact basis).
 
     Every seed_stride-th pixel is solved first from zero params; every other pixel then starts from the
-    params of the solved seed nearest in target colour, which is most of the way there (it measured
-    ~40 % fewer Jacobians than starting all pixels from zero). Each group runs both phases; a last
-    storage-phase pass over the whole chunk gives any pixel still left every finished pixel as a donor."""
-    if view.n_samples != 1:
+    params of the solved seed nearest in target colour, which is most of the way there, so it needs far
+    fewer Jacobians than a start from zero. Each group runs both phases; a last storage-phase pass over
+    the whole chunk gives any pixel still left every finished pixel as a donor."""
+    secret_view, space = problem.secret_view, problem.space
+    if secret_view.n_samples != 1:
         raise ValueError("the exact solver needs a secret view with one sample per ray")
-    m = index.shape[0]
-    counts = SolveCounts()
+    m, device = len(problem.index), problem.pixels.device
     if m == 0:  # e.g. a chunk whose rays all escape (exact_solver.solve_chunk)
-        return ChunkResult(space.zeros(0, view.noise_dims, pixels.device),
-                           torch.zeros(0, dtype=torch.bool, device=pixels.device), counts)
-    criteria = Criteria(pixels, settings)
-
-    def both_phases(group: torch.Tensor, start: torch.Tensor) -> torch.Tensor:
-        return solve_from(view, index[group], pixels[group], space, start, settings, generator, counts, observe)[0]
-
-    params = space.zeros(m, view.noise_dims, pixels.device)
-    is_seed = torch.arange(m, device=pixels.device) % settings.seed_stride == 0
+        return ChunkResult(space.zeros(0, secret_view.noise_dims, device),
+                           torch.zeros(0, dtype=torch.bool, device=device))
+    params = space.zeros(m, secret_view.noise_dims, device)
+    is_seed = torch.arange(m, device=device) % problem.settings.seed_stride == 0
     seeds, rest = is_seed.nonzero()[:, 0], (~is_seed).nonzero()[:, 0]
-    params[seeds] = both_phases(seeds, params[seeds])
+    params[seeds] = solve_from(problem.subset(seeds), params[seeds])[0]
     if rest.numel():
-        nearest_seed = torch.cdist(criteria.goal[rest], criteria.goal[seeds]).argmin(dim=1)
+        nearest_seed = torch.cdist(problem.goal[rest], problem.goal[seeds]).argmin(dim=1)
         start = params[seeds[nearest_seed]]
-        if settings.chord_steps:
-            _, seed_jac = view.outputs_and_jacobian(index[seeds], space.expand(params[seeds]))
-            counts.jacobians += seeds.numel()
-            start = chord_start(view, index[rest], space, start, criteria.goal[rest],
-                                space.chain(seed_jac)[nearest_seed], settings, counts)
-        params[rest] = both_phases(rest, start)
-    params, done = refine(view, index, criteria.goal, space, params, criteria.rounds_right, space.store, settings,
-                          generator, counts, observe)
-    return ChunkResult(params, done, counts)
-
+        if problem.settings.chord_steps:
+            _, seed_jac = problem.outputs_and_jacobian(seeds, params[seeds])
+            start = chord_start(problem, rest, start, seed_jac[nearest_seed])
+        params[rest] = solve_from(problem.subset(rest), start)[0]
+    return ChunkResult(*refine(problem, params, storage_phase=True))

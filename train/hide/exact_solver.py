@@ -12,7 +12,8 @@ import torch
 from noisenerf.runtime.bundle import CompactBasis, CompactNoise, TileNoise, VectorNoise, noise_shape
 from noisenerf.runtime.errors import UserError
 from noisenerf.train.hide.compact import CompactSettings, in_basis, solver_view, tile_space
-from noisenerf.train.hide.exact import ExactSettings, NoiseSpace, chunk_pixels_for, is_lifted, rescue, solve_exact
+from noisenerf.train.hide.exact import (ChunkProblem, ExactSettings, NoiseSpace, SolveCounts, is_lifted, rescue,
+                                        solve_exact)
 from noisenerf.train.hide.secret_view import BranchView, SecretView
 from noisenerf.train.hide.solver import ChunkPool, Solver, TileSolution, chunk_seed, storage_dtype
 
@@ -25,10 +26,10 @@ ESCAPE_DTYPE = torch.float16  # a compact tile's escaped pixels store full noise
 COUNTS = ("iterations", "jacobians", "renders", "restarts")
 
 
-def exact_space(view: SecretView, config: HideConfig, k: int, pixels: torch.Tensor) -> NoiseSpace:
+def exact_space(secret_view: SecretView, config: HideConfig, k: int, pixels: torch.Tensor) -> NoiseSpace:
     """Where tile k's exact solve looks for noise: the tile's compact basis, or the full float noise."""
     if config.layout == "compact":
-        return tile_space(view, pixels, config.get(CompactSettings), config.get(ExactSettings),
+        return tile_space(secret_view, pixels, config.get(CompactSettings), config.get(ExactSettings),
                           storage_dtype(config.dtype), chunk_seed(config, k, -1))
     return NoiseSpace(storage_dtype(config.dtype))
 
@@ -48,33 +49,35 @@ def stored_noise(space: NoiseSpace, params: torch.Tensor, escaped: torch.Tensor,
     return CompactNoise(coefficients.reshape(shape).cpu().numpy(), basis)
 
 
-def solve_chunk(view: SecretView, index: torch.Tensor, pixels: torch.Tensor, space: NoiseSpace, config: HideConfig,
-                seed: int) -> dict[str, torch.Tensor]:
+def solve_chunk(secret_view: SecretView, index: torch.Tensor, pixels: torch.Tensor, space: NoiseSpace,
+                config: HideConfig, seed: int) -> dict[str, torch.Tensor]:
     """One chunk's solve, as saved for resume: params (m, P), counts, and for a compact space the pixels it
     could not finish, `escaped` (m,) uint8, solved again in full float16 noise, `escape_noise` (m, dims)
     (zero where not escaped). Compact solves run at most CompactSettings.max_iters per phase: the few
     pixels its basis cannot reach escape sooner, and their float phase stops at CompactSettings.tolerance_bins."""
-    generator = torch.Generator().manual_seed(seed)
+    generator, counts = torch.Generator().manual_seed(seed), SolveCounts()
     settings = config.get(ExactSettings)
     if space.basis is None:
-        result = solve_exact(view, index, pixels, space, settings, generator)
-        params, _ = rescue(view, index, pixels, space, result.params, result.done, settings, generator, result.counts)
-        return {"noise": params, "counts": torch.tensor(dataclasses.astuple(result.counts))}
-    solving = solver_view(view, space)
+        problem = ChunkProblem(secret_view, index, pixels, space, settings, generator, counts)
+        result = solve_exact(problem)
+        params, _ = rescue(problem, result.params, result.done)
+        return {"noise": params, "counts": torch.tensor(dataclasses.astuple(counts))}
+    solving = solver_view(secret_view, space)
     # a ray the tile's shared γ(x) leaves unlifted can only escape: no basis solve for it
     tried = (is_lifted(solving.density[index], settings.density_floor) if isinstance(solving, BranchView)
              else torch.ones_like(index, dtype=torch.bool)).nonzero()[:, 0]
-    result = solve_exact(solving, index[tried], pixels[tried], space, in_basis(settings, config.get(CompactSettings)),
-                         generator)
-    params, done = space.zeros(len(index), view.noise_dims, index.device), torch.zeros_like(index, dtype=torch.bool)
+    result = solve_exact(ChunkProblem(solving, index[tried], pixels[tried], space,
+                                      in_basis(settings, config.get(CompactSettings)), generator, counts))
+    params = space.zeros(len(index), secret_view.noise_dims, index.device)
+    done = torch.zeros_like(index, dtype=torch.bool)
     params[tried], done[tried] = result.params, result.done
-    escape_noise = torch.zeros(len(index), view.noise_dims, device=index.device)
+    escape_noise = torch.zeros(len(index), secret_view.noise_dims, device=index.device)
     if not done.all():  # escapes start from their own compact noise (it keeps the tile's density lift); the
         # finished pixels' compact noise are the rescue's donors
-        full, _ = rescue(view, index, pixels, NoiseSpace(ESCAPE_DTYPE), space.expand(params)[:, 0], done, settings,
-                         generator, result.counts)
+        escapes = ChunkProblem(secret_view, index, pixels, NoiseSpace(ESCAPE_DTYPE), settings, generator, counts)
+        full, _ = rescue(escapes, space.expand(params)[:, 0], done)
         escape_noise[~done] = full[~done]
-    return {"noise": params, "counts": torch.tensor(dataclasses.astuple(result.counts)),
+    return {"noise": params, "counts": torch.tensor(dataclasses.astuple(counts)),
             "escaped": (~done).to(torch.uint8), "escape_noise": escape_noise}
 
 
@@ -96,9 +99,6 @@ class ExactSolver(Solver):
         if config.n_samples != 1:
             raise UserError("--method exact renders its secret view with one sample per ray (--samples 1)")
 
-    def chunk_pixels(self, device: torch.device) -> int:
-        return chunk_pixels_for(device)
-
     @contextlib.contextmanager
     def threads(self, device: torch.device):
         """One torch thread on a CPU. The Levenberg–Marquardt loop is thousands of small ops; with torch's
@@ -117,13 +117,13 @@ class ExactSolver(Solver):
         finally:
             torch.set_num_threads(before)
 
-    def solve_tile(self, view: SecretView, pixels: torch.Tensor, shape: tuple[int, int], config: HideConfig,
+    def solve_tile(self, secret_view: SecretView, pixels: torch.Tensor, shape: tuple[int, int], config: HideConfig,
                    progress: Progress, k: int, bar, pool: ChunkPool) -> TileSolution:
         """Solve a tile chunk by chunk, resuming saved chunks and spreading the others over the pool's
         workers (each gets its chunk's rays alone); the report has the solver's counts and the number of
         escaped pixels."""
-        space = exact_space(view, config, k, pixels)
-        n, dims = view.n_rays, view.noise_dims
+        space = exact_space(secret_view, config, k, pixels)
+        n, dims = secret_view.n_rays, secret_view.noise_dims
         params = space.zeros(n, dims, pixels.device)
         escaped = torch.zeros(n, dtype=torch.bool, device=pixels.device)
         escape_noise = torch.zeros(n, dims, device=pixels.device)
@@ -131,7 +131,8 @@ class ExactSolver(Solver):
         chunks = [torch.arange(start, min(start + config.chunk_pixels, n), device=pixels.device)
                   for start in range(0, n, config.chunk_pixels)]
 
-        def absorb(index: torch.Tensor, saved: dict[str, torch.Tensor]) -> None:
+        def merge_chunk(index: torch.Tensor, saved: dict[str, torch.Tensor]) -> None:
+            """A solved chunk's params, escapes and counts into the tile's; the bar advances."""
             nonlocal totals
             params[index] = saved["noise"].to(params.device)
             if "escaped" in saved:
@@ -151,12 +152,12 @@ class ExactSolver(Solver):
             if saved is None:
                 unsolved.append(c)
             else:
-                absorb(index, saved)
-        jobs = [(view.subset(chunks[c]), torch.arange(len(chunks[c]), device=pixels.device), pixels[chunks[c]],
+                merge_chunk(index, saved)
+        jobs = [(secret_view.subset(chunks[c]), torch.arange(len(chunks[c]), device=pixels.device), pixels[chunks[c]],
                  space, config, chunk_seed(config, k, c)) for c in unsolved]
         for i, saved in pool.solve_all(solve_chunk, jobs):
             progress.save(k, unsolved[i], saved)
-            absorb(chunks[unsolved[i]], saved)
+            merge_chunk(chunks[unsolved[i]], saved)
         noise = torch.where(escaped[:, None, None], escape_noise[:, None, :], space.expand(params))
         stored = stored_noise(space, params, escaped, escape_noise, noise_shape(config.layout, *shape, 1, -1))
         return TileSolution(noise, {**totals, "escaped": int(escaped.sum())}, stored)

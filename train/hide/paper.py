@@ -157,17 +157,17 @@ class ViewSurvey:
     alive: torch.Tensor  # (n_rays,) bool
 
 
-def survey(view: SecretView, pass_samples: int) -> ViewSurvey:
+def survey(secret_view: SecretView, pass_samples: int) -> ViewSurvey:
     """Render the view without noise, pass by pass, noting dead rays (all raw densities ≤ 0)."""
     colors, alive = [], []
-    device = view.device
-    zero = torch.zeros(1, 1, view.noise_dims, device=device)
+    device = secret_view.device
+    zero = torch.zeros(1, 1, secret_view.noise_dims, device=device)
     with torch.no_grad():
-        for part in pass_slices(view.n_rays, view.n_samples, pass_samples):
+        for part in pass_slices(secret_view.n_rays, secret_view.n_samples, pass_samples):
             index = torch.arange(part.start, part.stop, device=device)
-            raw_rgb, raw_density = view.raw(index, zero)
+            raw_rgb, raw_density = secret_view.raw(index, zero)
             alive.append(raw_density.amax(-1) > 0)
-            colors.append(view.shade(index, raw_rgb, raw_density))
+            colors.append(secret_view.shade(index, raw_rgb, raw_density))
     return ViewSurvey(torch.cat(colors), torch.cat(alive))
 
 
@@ -187,19 +187,19 @@ def nearest_donors(targets: torch.Tensor, clean: ViewSurvey, rows: int = 1024) -
     return torch.cat(donors), torch.cat(distances)
 
 
-def revival_noise(view: SecretView, index: torch.Tensor, targets: torch.Tensor, clean: ViewSurvey,
+def revival_noise(secret_view: SecretView, index: torch.Tensor, targets: torch.Tensor, clean: ViewSurvey,
                   mode: str) -> torch.Tensor:
     """Starting noise per sample that gives rays `index` (m,) the encodings of their colour donor,
     γ(donor) − γ(ray): for dead rays (mode "dead"), or also for live rays whose donor is nearer their
     target than their own clean colour (mode "all"); zero elsewhere. targets: (m, 3) in [0, 1]
     -> (m, n_samples, dims)."""
-    noise = torch.zeros(index.numel(), view.n_samples, view.noise_dims, device=view.device)
+    noise = torch.zeros(index.numel(), secret_view.n_samples, secret_view.noise_dims, device=secret_view.device)
     if mode == "off":
         return noise
     donors, distances = nearest_donors(targets, clean)
     own = torch.linalg.vector_norm(targets - clean.colors[index], dim=-1)
     revive = (donors >= 0) & (~clean.alive[index] | ((mode == "all") & (distances < own)))
-    noise[revive] = view.encodings(donors[revive]) - view.encodings(index[revive])
+    noise[revive] = secret_view.encodings(donors[revive]) - secret_view.encodings(index[revive])
     return noise
 
 
@@ -219,14 +219,14 @@ Recorder = Callable[[int, torch.Tensor, float], None]  # (iteration, colours (m,
 class BlockProblem:
     """One block's rays of a secret view, rendered in bounded passes."""
 
-    def __init__(self, view: SecretView, index: torch.Tensor, pass_samples: int):
-        self.view, self.index = view, index
-        self.parts = pass_slices(index.numel(), view.n_samples, pass_samples)
+    def __init__(self, secret_view: SecretView, index: torch.Tensor, pass_samples: int):
+        self.secret_view, self.index = secret_view, index
+        self.parts = pass_slices(index.numel(), secret_view.n_samples, pass_samples)
 
     def render(self, noise: torch.Tensor) -> torch.Tensor:
         """Colours (m, 3) with noise (m, k, dims), without gradients."""
         with torch.no_grad():
-            return torch.cat([self.view.render(self.index[p], noise[p]) for p in self.parts])
+            return torch.cat([self.secret_view.render(self.index[p], noise[p]) for p in self.parts])
 
     def losses_and_grad(self, noise: torch.Tensor, loss: Callable[[torch.Tensor, torch.Tensor, slice], torch.Tensor]
                         ) -> tuple[torch.Tensor, torch.Tensor]:
@@ -236,8 +236,8 @@ class BlockProblem:
         for part in self.parts:
             piece = noise[part].detach().requires_grad_(True)
             with torch.enable_grad():
-                raw_rgb, raw_density = self.view.raw(self.index[part], piece)
-                rendered = self.view.shade(self.index[part], raw_rgb, raw_density)
+                raw_rgb, raw_density = self.secret_view.raw(self.index[part], piece)
+                rendered = self.secret_view.shade(self.index[part], raw_rgb, raw_density)
                 grads.append(torch.autograd.grad(loss(rendered, raw_density, part).sum(), piece)[0])
             colors.append(rendered.detach())
         return torch.cat(colors), torch.cat(grads)
@@ -254,16 +254,16 @@ def matmul_precision(tf32: bool):
         torch.backends.cuda.matmul.allow_tf32 = before
 
 
-def solve_block(view: SecretView, index: torch.Tensor, pixels: torch.Tensor, noise: torch.Tensor,
+def solve_block(secret_view: SecretView, index: torch.Tensor, pixels: torch.Tensor, noise: torch.Tensor,
                 clean: torch.Tensor, settings: PaperSettings, record: Recorder | None = None) -> torch.Tensor:
     """Optimise the noise of rays `index` (m,) toward 8-bit pixels (m, 3) from a starting noise
     (m, k, dims) (k = 1 or n_samples), clean colours (m, 3) for eq. 7. Returns the noise (m, k, dims)."""
-    problem = BlockProblem(view, index, settings.pass_samples)
+    problem = BlockProblem(secret_view, index, settings.pass_samples)
     target = pixels.float() / 255.0
     noise = noise.clone()
     # the encoded input the authors' weight decay shrinks: γ + δ, with γ broadcast to the noise's shape
-    encoded = view.encodings(index)
-    encoded = encoded if noise.shape[1] == view.n_samples else encoded.mean(1, keepdim=True)
+    encoded = secret_view.encodings(index)
+    encoded = encoded if noise.shape[1] == secret_view.n_samples else encoded.mean(1, keepdim=True)
     with matmul_precision(settings.tf32 and noise.is_cuda):
         return optimise(problem, target, noise, clean, encoded, settings, record)
 
@@ -310,29 +310,29 @@ def recorded_points(settings: PaperSettings) -> list[int]:
     return [t for t in settings.record_at if t <= settings.iters]
 
 
-def solve_blocks(view: SecretView, pixels: torch.Tensor, layout_samples: int, settings: PaperSettings,
+def solve_blocks(secret_view: SecretView, pixels: torch.Tensor, layout_samples: int, settings: PaperSettings,
                  clean: ViewSurvey, dtype: torch.dtype,
                  cached: Callable[[int], dict | None] = lambda b: None) -> Iterator[BlockResult]:
     """The view's blocks one after another, each solved (or taken from cached(b), a dict with "noise"
     and "colors" as BlockResult has them). pixels: (n_rays, 3) uint8."""
     n_points = len(recorded_points(settings))
-    for b, start in enumerate(range(0, view.n_rays, settings.block_pixels)):
-        index = torch.arange(start, min(start + settings.block_pixels, view.n_rays), device=pixels.device)
+    for b, start in enumerate(range(0, secret_view.n_rays, settings.block_pixels)):
+        index = torch.arange(start, min(start + settings.block_pixels, secret_view.n_rays), device=pixels.device)
         saved = cached(b)
         if saved is not None:
             yield BlockResult(index, saved["noise"], saved["colors"], solved=False)
             continue
         recorded = []
-        noise = solve_block(view, index, pixels[index],
-                            start_noise(view, index, pixels[index], layout_samples, clean, settings),
+        noise = solve_block(secret_view, index, pixels[index],
+                            start_noise(secret_view, index, pixels[index], layout_samples, clean, settings),
                             clean.colors[index], settings, lambda t, colors, loss: recorded.append(colors.cpu()))
         colors = torch.stack(recorded) if recorded else torch.zeros(n_points, index.numel(), 3)
         yield BlockResult(index, noise.to(dtype).cpu(), colors, solved=True)
 
 
-def start_noise(view: SecretView, index: torch.Tensor, pixels: torch.Tensor, layout_samples: int,
+def start_noise(secret_view: SecretView, index: torch.Tensor, pixels: torch.Tensor, layout_samples: int,
                 clean: ViewSurvey, settings: PaperSettings) -> torch.Tensor:
     """The block's starting noise (m, layout_samples, dims): revival noise (zero with revival off); in
     the ray layout a ray's one noise vector is the mean of its samples' revival noise."""
-    noise = revival_noise(view, index, pixels.float() / 255.0, clean, settings.revival)
-    return noise if layout_samples == view.n_samples else noise.mean(1, keepdim=True)
+    noise = revival_noise(secret_view, index, pixels.float() / 255.0, clean, settings.revival)
+    return noise if layout_samples == secret_view.n_samples else noise.mean(1, keepdim=True)

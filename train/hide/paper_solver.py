@@ -31,7 +31,7 @@ class PaperSolver(Solver):
                      if value is not None}
         return (recipe(args.recipe, pass_samples=pass_samples_for(device), **overrides),)
 
-    def solve_tile(self, view: SecretView, pixels: torch.Tensor, shape: tuple[int, int], config: HideConfig,
+    def solve_tile(self, secret_view: SecretView, pixels: torch.Tensor, shape: tuple[int, int], config: HideConfig,
                    progress: Progress, k: int, bar, pool: ChunkPool) -> TileSolution:
         """The tile's blocks (resuming saved ones). Its noise waits on the CPU in the storage dtype, so
         device memory holds one block. The report has the tile's quality at each recorded iteration and
@@ -39,18 +39,19 @@ class PaperSolver(Solver):
         in this process (each already fills the device); the pool is left unused."""
         settings = config.get(PaperSettings)
         points = recorded_points(settings)
-        clean = survey(view, settings.pass_samples)
-        stored_shape = noise_shape(config.layout, *shape, view.n_samples, view.noise_dims)
+        clean = survey(secret_view, settings.pass_samples)
+        stored_shape = noise_shape(config.layout, *shape, secret_view.n_samples, secret_view.noise_dims)
         layout_samples = stored_shape[2] if config.layout == "sample" else 1
-        noise = torch.zeros(view.n_rays, layout_samples, view.noise_dims, dtype=storage_dtype(config.dtype))
-        colors = torch.zeros(len(points), view.n_rays, 3)
+        noise = torch.zeros(secret_view.n_rays, layout_samples, secret_view.noise_dims,
+                            dtype=storage_dtype(config.dtype))
+        colors = torch.zeros(len(points), secret_view.n_rays, 3)
 
         def saved_block(b: int) -> dict | None:
-            m = min(settings.block_pixels, view.n_rays - b * settings.block_pixels)
+            m = min(settings.block_pixels, secret_view.n_rays - b * settings.block_pixels)
             return progress.load(k, b, {"noise": ((m, *noise.shape[1:]), noise.dtype),
                                                "colors": ((len(points), m, 3), torch.float32)})
 
-        for b, block in enumerate(solve_blocks(view, pixels, layout_samples, settings, clean, noise.dtype,
+        for b, block in enumerate(solve_blocks(secret_view, pixels, layout_samples, settings, clean, noise.dtype,
                                                saved_block)):
             if block.solved:
                 progress.save(k, b, {"noise": block.noise, "colors": block.colors})

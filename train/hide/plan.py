@@ -14,6 +14,7 @@ from noisenerf.runtime.bundle import LAYOUT_DTYPES, LAYOUTS, Tile, secret_digest
 from noisenerf.runtime.errors import UserError
 from noisenerf.runtime.networks import NETWORKS, render_network
 from noisenerf.runtime.sampling import SamplingConfig
+from noisenerf.train.hide.exact import CPU_CHUNK_PIXELS
 from noisenerf.train.hide.methods import METHODS
 from noisenerf.train.hide.tiling import DEFAULT_TILE_SIZE, tile_camera, tile_rects
 from noisenerf.train.scene.scene import Scene
@@ -37,7 +38,7 @@ class HideConfig:
     tile_size: int = DEFAULT_TILE_SIZE
     view: int = 0
     seed: int = 0
-    chunk_pixels: int = 16384  # exact method: pixels per solved (and resumable) chunk; CLI: its solver's chunk_pixels
+    chunk_pixels: int = CPU_CHUNK_PIXELS  # exact method: pixels per solved (and resumable) chunk; CLI: chunk_pixels_for
     network: str | None = None  # coarse | fine
     settings: tuple = ()
 

@@ -65,11 +65,11 @@ def hide(scene: Scene, secret: np.ndarray, output: Path, config: HideConfig, dev
         for k, tile in enumerate(hide_plan.tiles):
             tile_start = time.perf_counter()
             x0, y0, w, h = tile.rect
-            view = SecretView(scene.fields()[tile.network], tile, scene.config.render, device)
+            secret_view = SecretView(scene.fields()[tile.network], tile, scene.config.render, device)
             pixels = torch.tensor(secret[y0:y0 + h, x0:x0 + w].reshape(-1, 3), device=device)
             with solver.threads(device):  # the check below is a few large passes, for every core
-                solved = solver.solve_tile(view, pixels, (h, w), config, progress, k, bar, pool)
-            colors = view.render_all(solved.noise, pass_samples_for(device))
+                solved = solver.solve_tile(secret_view, pixels, (h, w), config, progress, k, bar, pool)
+            colors = secret_view.render_all(solved.noise, pass_samples_for(device))
             quality = tile_quality(colors.cpu().numpy(), pixels.cpu().numpy(), (h, w))
             if solver.exact and quality["inexact_pixels"] and not allow_inexact:
                 raise InexactResult(

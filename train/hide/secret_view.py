@@ -132,11 +132,11 @@ class BranchView:
 
     n_samples = 1
 
-    def __init__(self, view: SecretView, xyz_noise: torch.Tensor):
-        if view.n_samples != 1:
+    def __init__(self, secret_view: SecretView, xyz_noise: torch.Tensor):
+        if secret_view.n_samples != 1:
             raise ValueError("a BranchView needs a secret view with one sample per ray")
-        self.field, self.xyz_dims = view.field, view.field.config.xyz_dims
-        encoded = view.encodings(torch.arange(view.n_rays, device=view.device))[:, 0]
+        self.field, self.xyz_dims = secret_view.field, secret_view.field.config.xyz_dims
+        encoded = secret_view.encodings(torch.arange(secret_view.n_rays, device=secret_view.device))[:, 0]
         with torch.no_grad():
             self.density, self.feature = self.field.trunk_outputs(encoded[:, :self.xyz_dims] + xyz_noise)
         self.encoded_dirs = encoded[:, self.xyz_dims:]

@@ -120,7 +120,7 @@ class Solver:
         """A context in which the solve runs (thread settings); nothing by default."""
         return contextlib.nullcontext()
 
-    def solve_tile(self, view: SecretView, pixels: torch.Tensor, shape: tuple[int, int], config: HideConfig,
+    def solve_tile(self, secret_view: SecretView, pixels: torch.Tensor, shape: tuple[int, int], config: HideConfig,
                    progress: Progress, k: int, bar, pool: ChunkPool) -> TileSolution:
         """Solve tile k: pixels (n, 3) uint8 of a (height, width) tile, saving resumable parts in progress;
         independent parts may go to the pool's workers."""
