@@ -28,8 +28,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from conftest import make_tiny_scene  # noqa: E402
+from helpers import make_tiny_scene
 
 REPO = Path(__file__).resolve().parents[1]
 WEB = REPO / "web"
