@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import hashlib
 import io
 import json
 import os
@@ -41,19 +42,33 @@ def write_array(folder: Path, name: str, array: np.ndarray) -> dict:
     return {"file": f"{name}.bin", "dtype": array.dtype.name, "shape": list(array.shape)}
 
 
-def cli_error(folder: Path) -> str:
-    """The one line `noisenerf-reveal model.onnx secret.bundle` prints on stderr in `folder`, without its prefix."""
+def run_cli(folder: Path, passphrase: str | None = None, output: str = "revealed.png") -> tuple[int, str]:
+    """`noisenerf-reveal model.onnx secret.bundle -o OUTPUT` in `folder` (the passphrase from a file, never from
+    the environment) -> exit code, stderr."""
     from noisenerf.cli.reveal import main
 
     stderr, cwd = io.StringIO(), os.getcwd()
+    args = ["model.onnx", "secret.bundle", "-o", output]
+    if passphrase is not None:
+        (folder / "passphrase.txt").write_text(passphrase)
+        args += ["--passphrase-file", "passphrase.txt"]
+    saved = os.environ.pop("NOISENERF_PASSPHRASE", None)
     try:
         os.chdir(folder)
-        with contextlib.redirect_stderr(stderr):
-            code = main(["model.onnx", "secret.bundle", "-o", "revealed.png"])
+        with contextlib.redirect_stderr(stderr), contextlib.redirect_stdout(io.StringIO()):
+            code = main(args)
     finally:
         os.chdir(cwd)
-    assert code == 2, f"expected a refusal in {folder}, got exit code {code}: {stderr.getvalue()}"
-    line = stderr.getvalue().strip().splitlines()[-1]
+        if saved is not None:
+            os.environ["NOISENERF_PASSPHRASE"] = saved
+    return code, stderr.getvalue()
+
+
+def cli_error(folder: Path, passphrase: str | None = None) -> str:
+    """The one line `noisenerf-reveal model.onnx secret.bundle` prints on stderr in `folder`, without its prefix."""
+    code, stderr = run_cli(folder, passphrase)
+    assert code == 2, f"expected a refusal in {folder}, got exit code {code}: {stderr}"
+    line = stderr.strip().splitlines()[-1]
     prefix = "noisenerf-reveal: error: "
     assert line.startswith(prefix), line
     return line[len(prefix):]
@@ -110,14 +125,50 @@ def with_escape(path: Path) -> None:
     dataclasses.replace(bundle, tiles=tiles).save(path)
 
 
-def tamper(fixtures: Path, source: str, case: str, edit_bundle=None, edit_model=None) -> dict:
-    """A copy of fixture `source` with its bundle or model edited, and the CLI's message for it."""
+def tamper(fixtures: Path, source: str, case: str, edit_bundle=None, edit_model=None,
+           passphrase: str | None = None) -> dict:
+    """A copy of fixture `source` with its bundle or model edited, and the CLI's message for it (revealed with
+    `passphrase`, if any)."""
     folder = fixtures / "tampered" / case
     folder.mkdir(parents=True)
     for name, edit in (("model.onnx", edit_model), ("secret.bundle", edit_bundle)):
         data = (fixtures / source / name).read_bytes()
         (folder / name).write_bytes(edit(data) if edit else data)
-    return {"case": case, "source": source, "folder": f"tampered/{case}", "message": cli_error(folder)}
+    return {"case": case, "source": source, "folder": f"tampered/{case}", "passphrase": passphrase,
+            "message": cli_error(folder, passphrase)}
+
+
+def payload_golden(folder: Path, passphrase: str | None) -> dict:
+    """What `noisenerf-reveal` writes for a payload bundle: its bytes (payload.out) and report."""
+    code, stderr = run_cli(folder, passphrase, output="payload.out")
+    assert code == 0, stderr
+    from noisenerf.runtime.bundle import load_bundle
+
+    bundle = load_bundle(folder / "secret.bundle")
+    data = (folder / "payload.out").read_bytes()
+    return {"file": "payload.out", "passphrase": passphrase, "sealed": passphrase is not None,
+            "width": bundle.width, "height": bundle.height, "sha256": hashlib.sha256(data).hexdigest()}
+
+
+def first_float32(data: bytes) -> bytes:
+    """A bundle with the lowest mantissa byte of its first float32 tensor flipped (still a readable bundle)."""
+    size = int.from_bytes(data[:8], "little")
+    header = json.loads(data[8:8 + size])
+    name = next(name for name, info in header.items() if name != "__metadata__" and info["dtype"] == "F32")
+    at = 8 + size + header[name]["data_offsets"][0]
+    return data[:at] + bytes([data[at] ^ 1]) + data[at + 1:]
+
+
+def reformatted(data: bytes) -> bytes:
+    """A bundle whose safetensors header is written with other spacing (same JSON value: the tag still holds)."""
+    size = int.from_bytes(data[:8], "little")
+    text = json.dumps(json.loads(data[8:8 + size]), indent=1).encode()
+    text += b" " * (-len(text) % 8)
+    return len(text).to_bytes(8, "little") + text + data[8 + size:]
+
+
+PAYLOAD = b"the eagle lands at noon\n\x00\xff binary tail"
+PASSPHRASE = "r\u00e9f\u00e9rence"  # not ASCII: the page sends UTF-8, as the CLI's prompt does
 
 
 def changed_weight(data: bytes) -> bytes:
@@ -167,7 +218,8 @@ def write_fixtures(root: Path) -> dict:
     rng = np.random.default_rng(7)
     secret = rng.integers(0, 256, (20, 24, 3), dtype=np.uint8)
     scenes = {"plain": make_tiny_scene(seed=0), "fine": make_tiny_scene(seed=3, fine=True),
-              "ndc": make_tiny_scene(seed=1, ndc=True)}
+              "ndc": make_tiny_scene(seed=1, ndc=True),
+              "wide": make_tiny_scene(seed=0, width=64, depth=4)}  # tests/test_reference.py's payload scene
     paper = (PaperSettings(iters=4, record_at=(4,)),)
     cases = {  # name -> scene, secret, hide config
         "compact_tiles": ("plain", secret, HideConfig(tile_size=16)),
@@ -196,9 +248,46 @@ def write_fixtures(root: Path) -> dict:
             if name == "compact_tiles":
                 with_escape(folder / "secret.bundle")
             manifest["fixtures"][name] = golden(folder)
+        from noisenerf.runtime.payload import Record
+        from noisenerf.runtime.sealing import ScryptParams, new_seal
+        from noisenerf.train.hide.payload import hide_payload
+
+        record = Record("file", PAYLOAD, "n\u00f6te.txt".encode())
+        manifest["payloads"] = {}
+        for name, passphrase in (("payload", None), ("payload_sealed", PASSPHRASE)):
+            folder = root / name
+            folder.mkdir(parents=True)
+            shutil.copyfile(root / "scenes" / "wide.onnx", folder / "model.onnx")
+            seal = new_seal(ScryptParams(log2_n=10, r=8, p=1), salt=bytes(range(16)), nonce=bytes(range(12)))
+            hide_payload(scenes["wide"], record, folder / "secret.bundle", HideConfig(tile_size=16), cpu,
+                         passphrase=None if passphrase is None else passphrase.encode(), seal=seal,
+                         show_progress=False, workers=1)
+            manifest["payloads"][name] = {**payload_golden(folder, passphrase), "name": "n\u00f6te.txt"}
+            assert (folder / "payload.out").read_bytes() == PAYLOAD
+        shutil.copytree(root / "payload_sealed", root / "payload_sealed_reformatted",
+                        ignore=shutil.ignore_patterns("payload.out", "passphrase.txt"))
+        path = root / "payload_sealed_reformatted" / "secret.bundle"
+        path.write_bytes(reformatted(path.read_bytes()))
+        manifest["payloads"]["payload_sealed_reformatted"] = {
+            **payload_golden(root / "payload_sealed_reformatted", PASSPHRASE), "name": "n\u00f6te.txt"}
     finally:
         torch.set_num_threads(threads)
     manifest["tampered"] = [
+        tamper(root, "payload_sealed", "sealed_wrong_passphrase", passphrase="reference"),
+        tamper(root, "payload_sealed", "sealed_no_passphrase"),
+        tamper(root, "payload_sealed", "sealed_empty_passphrase", passphrase=""),
+        tamper(root, "payload_sealed", "sealed_noise_byte", edit_bundle=first_float32, passphrase=PASSPHRASE),
+        tamper(root, "payload_sealed", "sealed_metadata", passphrase=PASSPHRASE,
+               edit_bundle=bundle_metadata_edit(lambda meta: meta.setdefault("extra", {}).update(note="x"))),
+        tamper(root, "payload_sealed", "sealed_other_model", passphrase=PASSPHRASE,
+               edit_model=lambda data: (root / "scenes" / "ndc.onnx").read_bytes()),
+        tamper(root, "payload_sealed", "sealed_kdf_cap", passphrase=PASSPHRASE, edit_bundle=bundle_metadata_edit(
+            lambda meta: meta["payload"]["sealed"]["kdf"].update(log2_n=24))),
+        tamper(root, "payload_sealed", "sealed_extra_field", passphrase=PASSPHRASE, edit_bundle=bundle_metadata_edit(
+            lambda meta: meta["payload"]["sealed"].update(more=1))),
+        tamper(root, "payload", "payload_version", edit_bundle=bundle_metadata_edit(
+            lambda meta: meta["payload"].update(version=2))),
+
         tamper(root, "ray", "changed_weight", edit_model=changed_weight),
         tamper(root, "ray", "other_model", edit_bundle=bundle_metadata_edit(
             lambda meta: meta.update(model_fingerprint="0" * 64))),

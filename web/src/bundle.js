@@ -12,6 +12,7 @@ import {
 import { cameraFromDict } from "./camera.js";
 import { fmaf32 } from "./float32.js";
 import { samplingFromDict } from "./sampling.js";
+import { checkedPayload } from "./payload.js";
 
 const { XzReadableStream } = xz;
 const f32 = Math.fround;
@@ -347,7 +348,7 @@ export async function loadBundle(data, source = "secret.bundle") {
   for (let i = 0; i < tileData.length; i++) tiles.push(await parseTile(i, tileData[i], tensors, header));
   const bundle = { modelFingerprint: fingerprint, width, height, secretSha256: sha256, layout: header.layout,
     noiseDims: header.dims, dtype: header.dtype, tiles, coefficients: header.coefficients,
-    payload: meta.payload === undefined || meta.payload === null ? null : meta.payload };
+    payload: meta.payload === undefined || meta.payload === null ? null : checkedPayload(meta.payload) };
   validate(bundle);
   for (const tile of bundle.tiles) {
     if (tile.noise.kind === "vector") tile.noise.values = tile.noise.tensor.values;

@@ -131,8 +131,18 @@ function dumpString(s) {
   return out + '"';
 }
 
-/** Python's json.dumps(value, sort_keys=True): ", " and ": " separators, ASCII escapes, floats as repr. */
-export function dumpsSorted(value) {
+// Python sorts str keys by code point; JS's < compares UTF-16 code units (they differ past U+FFFF)
+const codePoints = (s) => Array.from(s, (ch) => ch.codePointAt(0));
+function pyCompare(a, b) {
+  const x = codePoints(a), y = codePoints(b);
+  for (let i = 0; i < Math.min(x.length, y.length); i++) if (x[i] !== y[i]) return x[i] - y[i];
+  return x.length - y.length;
+}
+
+/** Python's json.dumps(value, sort_keys=True): ", " and ": " separators (or the given ones), ASCII escapes,
+ * floats as repr. */
+export function dumpsSorted(value, item = ", ", key = ": ") {
+  const dump = (v) => dumpsSorted(v, item, key);
   if (value === null) return "null";
   if (value === true) return "true";
   if (value === false) return "false";
@@ -140,9 +150,28 @@ export function dumpsSorted(value) {
   if (typeof value === "number") return Number.isInteger(value) ? String(value) : floatJson(value);
   if (value instanceof PyFloat) return floatJson(value.value);
   if (typeof value === "string") return dumpString(value);
-  if (Array.isArray(value)) return `[${value.map(dumpsSorted).join(", ")}]`;
-  const keys = Object.keys(value).sort((a, b) => (a < b ? -1 : a > b ? 1 : 0));
-  return `{${keys.map((k) => `${dumpString(k)}: ${dumpsSorted(value[k])}`).join(", ")}}`;
+  if (Array.isArray(value)) return `[${value.map(dump).join(item)}]`;
+  const keys = Object.keys(value).sort(pyCompare);
+  return `{${keys.map((k) => `${dumpString(k)}${key}${dump(value[k])}`).join(item)}}`;
+}
+
+/** runtime/sealing.py canonical_json: sorted keys, no spaces, ASCII, as UTF-8 bytes. */
+export function canonicalJson(value) {
+  return new TextEncoder().encode(dumpsSorted(value, ",", ":"));
+}
+
+/** Python's == between two JSON values (1 == 1.0 == True; dicts by keys and values; lists by items). */
+export function pyEqual(a, b) {
+  const number = (v) => (v === true ? 1 : v === false ? 0 : v instanceof PyFloat ? v.value
+    : typeof v === "number" || typeof v === "bigint" ? v : undefined);
+  const [x, y] = [number(a), number(b)];
+  if (x !== undefined || y !== undefined) return x !== undefined && y !== undefined && x == y; // eslint-disable-line eqeqeq
+  if (a === null || b === null || typeof a === "string" || typeof b === "string") return a === b;
+  if (Array.isArray(a) || Array.isArray(b)) {
+    return Array.isArray(a) && Array.isArray(b) && a.length === b.length && a.every((v, i) => pyEqual(v, b[i]));
+  }
+  const ka = Object.keys(a), kb = Object.keys(b);
+  return ka.length === kb.length && ka.every((k) => Object.hasOwn(b, k) && pyEqual(a[k], b[k]));
 }
 
 function floatJson(x) {
