@@ -1,0 +1,327 @@
+"""The browser reveal (web/, JavaScript on onnxruntime-web) against golden files the Python runtime writes.
+
+`write_fixtures` builds tiny scenes from seeds, hides secrets in them (every layout: compact with an
+escaped pixel, ray, sample; a fine network and the coarse one of a hierarchical scene; an NDC scene; a
+multi-tile bundle), exports the models, and writes beside each model.onnx and secret.bundle what the
+Python runtime computes on them: per tile the rays (runtime.rays.camera_ray_batch), the expanded noise
+(the tile noise's `rows`), the rendered colours (runtime.reveal.render_tile), and the revealed 8-bit
+pixels, digest and exactness (runtime.reveal.reveal). Tampered copies carry the one-line message
+`noisenerf-reveal` prints for them. Then `node --test` runs web/test/ with NOISENERF_WEB_FIXTURES pointing
+there: the JavaScript port must give the same pixels byte for byte and the same refusals.
+
+Run by hand: `python tests/test_web.py DIR` writes the fixtures into DIR (then `npm test` in web/ with
+NOISENERF_WEB_FIXTURES=DIR).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+import hashlib
+import io
+import json
+import os
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from helpers import make_tiny_scene
+
+REPO = Path(__file__).resolve().parents[1]
+WEB = REPO / "web"
+
+
+def write_array(folder: Path, name: str, array: np.ndarray) -> dict:
+    """A float32 or uint8 array as raw little-endian bytes, described in the manifest."""
+    array = np.ascontiguousarray(array)
+    (folder / f"{name}.bin").write_bytes(array.astype(array.dtype.newbyteorder("<")).tobytes())
+    return {"file": f"{name}.bin", "dtype": array.dtype.name, "shape": list(array.shape)}
+
+
+def run_cli(folder: Path, passphrase: str | None = None, output: str = "revealed.png") -> tuple[int, str]:
+    """`noisenerf-reveal model.onnx secret.bundle -o OUTPUT` in `folder` (the passphrase from a file, never from
+    the environment) -> exit code, stderr."""
+    from noisenerf.cli.reveal import main
+
+    stderr, cwd = io.StringIO(), os.getcwd()
+    args = ["model.onnx", "secret.bundle", "-o", output]
+    if passphrase is not None:
+        (folder / "passphrase.txt").write_text(passphrase)
+        args += ["--passphrase-file", "passphrase.txt"]
+    saved = os.environ.pop("NOISENERF_PASSPHRASE", None)
+    try:
+        os.chdir(folder)
+        with contextlib.redirect_stderr(stderr), contextlib.redirect_stdout(io.StringIO()):
+            code = main(args)
+    finally:
+        os.chdir(cwd)
+        if saved is not None:
+            os.environ["NOISENERF_PASSPHRASE"] = saved
+    return code, stderr.getvalue()
+
+
+def cli_error(folder: Path, passphrase: str | None = None) -> str:
+    """The one line `noisenerf-reveal model.onnx secret.bundle` prints on stderr in `folder`, without its prefix."""
+    code, stderr = run_cli(folder, passphrase)
+    assert code == 2, f"expected a refusal in {folder}, got exit code {code}: {stderr}"
+    line = stderr.strip().splitlines()[-1]
+    prefix = "noisenerf-reveal: error: "
+    assert line.startswith(prefix), line
+    return line[len(prefix):]
+
+
+def golden(folder: Path) -> dict:
+    """What the Python runtime computes on folder's model.onnx and secret.bundle, written beside them."""
+    from noisenerf.runtime.bundle import load_bundle
+    from noisenerf.runtime.model import check_bundle, load_model
+    from noisenerf.runtime.rays import camera_ray_batch
+    from noisenerf.runtime.reveal import render_tile, reveal, tile_field
+
+    model, bundle = load_model(folder / "model.onnx", threads=1), load_bundle(folder / "secret.bundle")
+    check_bundle(model, bundle)
+    fields = model.fields()
+    tiles = []
+    for i, tile in enumerate(bundle.tiles):
+        rays = camera_ray_batch(tile.camera, model.render_config)
+        n = tile.rect[2] * tile.rect[3]
+        escapes = getattr(tile.noise, "basis", None)
+        tiles.append({
+            "rect": list(tile.rect), "network": tile.network,
+            "escapes": [] if escapes is None else escapes.escapes.tolist(),
+            "origins": write_array(folder, f"tile{i}_origins", rays.origins),
+            "directions": write_array(folder, f"tile{i}_directions", rays.directions),
+            "viewdirs": write_array(folder, f"tile{i}_viewdirs", rays.viewdirs),
+            "noise": write_array(folder, f"tile{i}_noise", tile.noise.rows(0, n)),
+            "colors": write_array(folder, f"tile{i}_colors",
+                                  render_tile(tile, model.render_config, tile_field(tile, fields))),
+        })
+    revealed = reveal(bundle, model.render_config, fields)
+    return {"width": bundle.width, "height": bundle.height, "layout": bundle.layout, "exact": revealed.exact,
+            "sha256": bundle.secret_sha256, "fingerprint": model.fingerprint, "tiles": tiles,
+            "image": write_array(folder, "image", revealed.image),
+            "pixels": write_array(folder, "pixels", revealed.pixels)}
+
+
+def with_escape(path: Path) -> None:
+    """Rewrite a compact bundle so that tile 0's pixel 5 escapes: its coefficients 0, its noise the float16
+    of what they expanded to (the reveal's golden is what Python then reveals, exact or not)."""
+    from noisenerf.runtime.bundle import CompactBasis, CompactNoise, load_bundle
+
+    bundle = load_bundle(path)
+    tile = bundle.tiles[0]
+    n = tile.rect[2] * tile.rect[3]
+    noise = tile.noise.rows(0, n)[:, 0]
+    coefficients = tile.noise.coefficients.copy()
+    coefficients.reshape(n, -1)[[5, 9]] = 0
+    basis = dataclasses.replace(tile.noise.basis, escapes=np.array([5, 9], np.int32),
+                                escape_noise=noise[[5, 9]].astype(np.float16))
+    assert isinstance(basis, CompactBasis)
+    tiles = (dataclasses.replace(tile, noise=CompactNoise(coefficients, basis)),) + bundle.tiles[1:]
+    path.unlink()
+    dataclasses.replace(bundle, tiles=tiles).save(path)
+
+
+def tamper(fixtures: Path, source: str, case: str, edit_bundle=None, edit_model=None,
+           passphrase: str | None = None) -> dict:
+    """A copy of fixture `source` with its bundle or model edited, and the CLI's message for it (revealed with
+    `passphrase`, if any)."""
+    folder = fixtures / "tampered" / case
+    folder.mkdir(parents=True)
+    for name, edit in (("model.onnx", edit_model), ("secret.bundle", edit_bundle)):
+        data = (fixtures / source / name).read_bytes()
+        (folder / name).write_bytes(edit(data) if edit else data)
+    return {"case": case, "source": source, "folder": f"tampered/{case}", "passphrase": passphrase,
+            "message": cli_error(folder, passphrase)}
+
+
+def payload_golden(folder: Path, passphrase: str | None) -> dict:
+    """What `noisenerf-reveal` writes for a payload bundle: its bytes (payload.out) and report."""
+    code, stderr = run_cli(folder, passphrase, output="payload.out")
+    assert code == 0, stderr
+    from noisenerf.runtime.bundle import load_bundle
+
+    bundle = load_bundle(folder / "secret.bundle")
+    data = (folder / "payload.out").read_bytes()
+    return {"file": "payload.out", "passphrase": passphrase, "sealed": passphrase is not None,
+            "width": bundle.width, "height": bundle.height, "sha256": hashlib.sha256(data).hexdigest()}
+
+
+def first_float32(data: bytes) -> bytes:
+    """A bundle with the lowest mantissa byte of its first float32 tensor flipped (still a readable bundle)."""
+    size = int.from_bytes(data[:8], "little")
+    header = json.loads(data[8:8 + size])
+    name = next(name for name, info in header.items() if name != "__metadata__" and info["dtype"] == "F32")
+    at = 8 + size + header[name]["data_offsets"][0]
+    return data[:at] + bytes([data[at] ^ 1]) + data[at + 1:]
+
+
+def reformatted(data: bytes) -> bytes:
+    """A bundle whose safetensors header is written with other spacing (same JSON value: the tag still holds)."""
+    size = int.from_bytes(data[:8], "little")
+    text = json.dumps(json.loads(data[8:8 + size]), indent=1).encode()
+    text += b" " * (-len(text) % 8)
+    return len(text).to_bytes(8, "little") + text + data[8 + size:]
+
+
+PAYLOAD = b"the eagle lands at noon\n\x00\xff binary tail"
+PASSPHRASE = "r\u00e9f\u00e9rence"  # not ASCII: the page sends UTF-8, as the CLI's prompt does
+
+
+def changed_weight(data: bytes) -> bytes:
+    """The model with one byte of its first weight's raw data changed (a weight's low mantissa bit)."""
+    from noisenerf.runtime.onnx_file import parse_model
+
+    weights = [r for r in parse_model(data, "model").initializers if r.name.endswith(".weight")]
+    record = weights[0]
+    at = data.index(record.raw_data)
+    return data[:at] + bytes([data[at] ^ 1]) + data[at + 1:]
+
+
+def bundle_metadata_edit(edit):
+    """Edit a bundle's JSON metadata (safetensors header), keeping its tensors."""
+    def apply(data: bytes) -> bytes:
+        size = int.from_bytes(data[:8], "little")
+        header = json.loads(data[8:8 + size])
+        meta = json.loads(header["__metadata__"]["noisenerf_bundle"])
+        edit(meta)
+        header["__metadata__"]["noisenerf_bundle"] = json.dumps(meta, sort_keys=True)
+        text = json.dumps(header).encode()
+        text += b" " * (-len(text) % 8)
+        return len(text).to_bytes(8, "little") + text + data[8 + size:]
+    return apply
+
+
+def corrupt_tensor(name: str, position: int):
+    """Flip one byte of a bundle tensor's data."""
+    def apply(data: bytes) -> bytes:
+        size = int.from_bytes(data[:8], "little")
+        begin = json.loads(data[8:8 + size])[name]["data_offsets"][0]
+        at = 8 + size + begin + position
+        return data[:at] + bytes([data[at] ^ 0x55]) + data[at + 1:]
+    return apply
+
+
+def write_fixtures(root: Path) -> dict:
+    """Every fixture under root, and root/manifest.json describing them."""
+    import torch
+
+    from noisenerf.export.onnx_export import export_scene
+    from noisenerf.train.hide.paper import PaperSettings
+    from noisenerf.train.hide.plan import HideConfig
+    from noisenerf.train.hide.run import hide
+
+    cpu = torch.device("cpu")
+    rng = np.random.default_rng(7)
+    secret = rng.integers(0, 256, (20, 24, 3), dtype=np.uint8)
+    scenes = {"plain": make_tiny_scene(seed=0), "fine": make_tiny_scene(seed=3, fine=True),
+              "ndc": make_tiny_scene(seed=1, ndc=True),
+              "wide": make_tiny_scene(seed=0, width=64, depth=4)}  # tests/test_reference.py's payload scene
+    paper = (PaperSettings(iters=4, record_at=(4,)),)
+    cases = {  # name -> scene, secret, hide config
+        "compact_tiles": ("plain", secret, HideConfig(tile_size=16)),
+        "ray": ("plain", secret[:6, :8], HideConfig(layout="ray", tile_size=16, view=2, seed=5)),
+        "ray_float32": ("plain", secret[:5, :7], HideConfig(layout="ray", dtype="float32", tile_size=16, view=1)),
+        "sample": ("plain", secret[:6, :8], HideConfig(method="paper", tile_size=16, n_samples=8, settings=paper)),
+        "fine_compact": ("fine", secret[:8, :8], HideConfig(tile_size=16)),
+        "fine_coarse_sample": ("fine", secret[:6, :8], HideConfig(method="paper", tile_size=16, n_samples=8,
+                                                                  settings=paper)),
+        "ndc_compact": ("ndc", secret[:8, :12], HideConfig(tile_size=16)),
+    }
+    manifest = {"fixtures": {}, "tampered": []}
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    (root / "scenes").mkdir()
+    try:
+        for scene_name, scene in scenes.items():
+            scene.save(root / "scenes" / scene_name)
+            export_scene(root / "scenes" / scene_name, root / "scenes" / f"{scene_name}.onnx")
+        for name, (scene_name, part, config) in cases.items():
+            folder = root / name
+            folder.mkdir(parents=True)
+            shutil.copyfile(root / "scenes" / f"{scene_name}.onnx", folder / "model.onnx")
+            hide(scenes[scene_name], part, folder / "secret.bundle", config, cpu, show_progress=False, workers=1,
+                 allow_inexact=True)
+            if name == "compact_tiles":
+                with_escape(folder / "secret.bundle")
+            manifest["fixtures"][name] = golden(folder)
+        from noisenerf.runtime.payload import Record
+        from noisenerf.runtime.sealing import ScryptParams, new_seal
+        from noisenerf.train.hide.payload import hide_payload
+
+        record = Record("file", PAYLOAD, "n\u00f6te.txt".encode())
+        manifest["payloads"] = {}
+        for name, passphrase in (("payload", None), ("payload_sealed", PASSPHRASE)):
+            folder = root / name
+            folder.mkdir(parents=True)
+            shutil.copyfile(root / "scenes" / "wide.onnx", folder / "model.onnx")
+            seal = new_seal(ScryptParams(log2_n=10, r=8, p=1), salt=bytes(range(16)), nonce=bytes(range(12)))
+            hide_payload(scenes["wide"], record, folder / "secret.bundle", HideConfig(tile_size=16), cpu,
+                         passphrase=None if passphrase is None else passphrase.encode(), seal=seal,
+                         show_progress=False, workers=1)
+            manifest["payloads"][name] = {**payload_golden(folder, passphrase), "name": "n\u00f6te.txt"}
+            assert (folder / "payload.out").read_bytes() == PAYLOAD
+        shutil.copytree(root / "payload_sealed", root / "payload_sealed_reformatted",
+                        ignore=shutil.ignore_patterns("payload.out", "passphrase.txt"))
+        path = root / "payload_sealed_reformatted" / "secret.bundle"
+        path.write_bytes(reformatted(path.read_bytes()))
+        manifest["payloads"]["payload_sealed_reformatted"] = {
+            **payload_golden(root / "payload_sealed_reformatted", PASSPHRASE), "name": "n\u00f6te.txt"}
+    finally:
+        torch.set_num_threads(threads)
+    manifest["tampered"] = [
+        tamper(root, "payload_sealed", "sealed_wrong_passphrase", passphrase="reference"),
+        tamper(root, "payload_sealed", "sealed_no_passphrase"),
+        tamper(root, "payload_sealed", "sealed_empty_passphrase", passphrase=""),
+        tamper(root, "payload_sealed", "sealed_noise_byte", edit_bundle=first_float32, passphrase=PASSPHRASE),
+        tamper(root, "payload_sealed", "sealed_metadata", passphrase=PASSPHRASE,
+               edit_bundle=bundle_metadata_edit(lambda meta: meta.setdefault("extra", {}).update(note="x"))),
+        tamper(root, "payload_sealed", "sealed_other_model", passphrase=PASSPHRASE,
+               edit_model=lambda data: (root / "scenes" / "ndc.onnx").read_bytes()),
+        tamper(root, "payload_sealed", "sealed_kdf_cap", passphrase=PASSPHRASE, edit_bundle=bundle_metadata_edit(
+            lambda meta: meta["payload"]["sealed"]["kdf"].update(log2_n=24))),
+        tamper(root, "payload_sealed", "sealed_extra_field", passphrase=PASSPHRASE, edit_bundle=bundle_metadata_edit(
+            lambda meta: meta["payload"]["sealed"].update(more=1))),
+        tamper(root, "payload", "payload_version", edit_bundle=bundle_metadata_edit(
+            lambda meta: meta["payload"].update(version=2))),
+
+        tamper(root, "ray", "changed_weight", edit_model=changed_weight),
+        tamper(root, "ray", "other_model", edit_bundle=bundle_metadata_edit(
+            lambda meta: meta.update(model_fingerprint="0" * 64))),
+        tamper(root, "ray", "tile_outside", edit_bundle=bundle_metadata_edit(
+            lambda meta: meta["tiles"][0]["rect"].__setitem__(0, 3))),
+        tamper(root, "ray", "format_3", edit_bundle=bundle_metadata_edit(lambda meta: meta.update(format_version=3))),
+        tamper(root, "compact_tiles", "xz_corrupt", edit_bundle=corrupt_tensor("tile_0001", 40)),
+        tamper(root, "compact_tiles", "codec", edit_bundle=bundle_metadata_edit(
+            lambda meta: meta["noise"].update(codec="zstd"))),
+        tamper(root, "fine_compact", "wrong_model", edit_model=lambda data: (root / "scenes" / "plain.onnx").read_bytes()),
+    ]
+    (root / "manifest.json").write_text(json.dumps(manifest, indent=1))
+    return manifest
+
+
+@pytest.fixture(scope="module")
+def fixtures(tmp_path_factory) -> Path:
+    if shutil.which("node") is None:
+        pytest.skip("node is not installed: the browser reveal's Node tests need Node 20 (CI installs it)")
+    if not (WEB / "node_modules").is_dir():
+        pytest.skip("web/node_modules is missing: run `npm ci` in web/ first (CI does)")
+    root = tmp_path_factory.mktemp("web_fixtures")
+    write_fixtures(root)
+    return root
+
+
+def test_the_javascript_reveal_matches_the_python_runtime(fixtures):
+    result = subprocess.run(["node", "--test", "--test-reporter=spec", "test/"], cwd=WEB, capture_output=True,
+                            text=True, env={**os.environ, "NOISENERF_WEB_FIXTURES": str(fixtures)}, timeout=900)
+    print(result.stdout[-20000:])
+    assert result.returncode == 0, result.stdout[-6000:] + result.stderr[-3000:]
+
+
+if __name__ == "__main__":
+    target = Path(sys.argv[1])
+    target.mkdir(parents=True, exist_ok=True)
+    print(json.dumps(write_fixtures(target)["tampered"], indent=1))

@@ -1,0 +1,116 @@
+// Mirrors runtime/camera.py (cameras, ray directions, pixel centres, NDC) and runtime/rays.py (rays in the
+// field's space: view directions, then NDC). numpy computes these in float32; here every float32 step is a
+// Math.fround in numpy's operation order. The one matmul, pixel_rays' `dirs @ c2w[:3, :3].T`, is numpy's
+// float32 matmul, OpenBLAS's sgemm: on FMA hardware a fused multiply-add chain over k = 0, 1, 2, reproduced
+// here (fmaf32); the golden rays measure it (see web/test).
+
+import { UserError } from "./errors.js";
+import { checkedFloat, checkedImageSize, num } from "./limits.js";
+import { fmaf32 } from "./float32.js";
+
+const f32 = Math.fround;
+
+/** Camera.from_dict: integer size within the caps, finite intrinsics, finite pose. */
+export function cameraFromDict(data) {
+  if (data === null || typeof data !== "object" || Array.isArray(data)) throw new UserError("malformed camera: expected an object");
+  try {
+    for (const key of ["c2w", "width", "height", "fx", "fy", "cx", "cy"]) {
+      if (!Object.hasOwn(data, key)) throw new UserError(`malformed camera: '${key}'`);
+    }
+    let rows = data.c2w;
+    const bad = () => new UserError("malformed camera: c2w must be a finite 4x4 matrix");
+    if (!Array.isArray(rows) || !rows.every((row) => Array.isArray(row))) throw bad();
+    let matrix = rows.map((row) => row.map((v) => { const n = num(v); if (n === undefined || typeof v === "boolean") throw bad(); return n; }));
+    if (matrix.length === 3 && matrix.every((row) => row.length === 4)) matrix = [...matrix, [0, 0, 0, 1]];
+    if (matrix.length !== 4 || !matrix.every((row) => row.length === 4) || !matrix.flat().every(Number.isFinite)) throw bad();
+    const [width, height] = checkedImageSize(data.width, data.height, "camera");
+    const fx = checkedFloat(data.fx, "camera fx", 1e-6, 1e9), fy = checkedFloat(data.fy, "camera fy", 1e-6, 1e9);
+    const cx = checkedFloat(data.cx, "camera cx", -1e9, 1e9), cy = checkedFloat(data.cy, "camera cy", -1e9, 1e9);
+    return { c2w: matrix, width, height, fx, fy, cx, cy };
+  } catch (error) {
+    if (error instanceof UserError && !error.message.startsWith("malformed camera")) throw new UserError(`malformed camera: ${error.message}`);
+    throw error;
+  }
+}
+
+/** NDCSpace.from_dict. */
+export function ndcFromDict(data) {
+  const keys = data && typeof data === "object" && !Array.isArray(data) ? Object.keys(data) : null;
+  const allowed = ["tan_half_fov_x", "tan_half_fov_y", "near_plane"];
+  if (!keys || !keys.includes("tan_half_fov_x") || !keys.includes("tan_half_fov_y") || !keys.every((k) => allowed.includes(k))) {
+    throw new UserError("ndc must be an object with tan_half_fov_x, tan_half_fov_y and near_plane");
+  }
+  const space = { near_plane: 1.0 };
+  for (const [name, value] of Object.entries(data)) space[name] = checkedFloat(value, `ndc ${name}`, 1e-6, 1e6);
+  return space;
+}
+
+/** camera_rays + pixel_rays: world rays of a camera's pixels, row-major. -> {origins, directions} Float32Array (n*3). */
+export function cameraRays(camera, pixelCenter) {
+  const { width, height } = camera;
+  const n = width * height;
+  const origins = new Float32Array(n * 3), directions = new Float32Array(n * 3);
+  const R = camera.c2w.slice(0, 3).map((row) => row.slice(0, 3).map(f32));
+  const t = camera.c2w.slice(0, 3).map((row) => f32(row[3]));
+  const pc = f32(pixelCenter), cx = f32(camera.cx), cy = f32(camera.cy), fx = f32(camera.fx), fy = f32(camera.fy);
+  for (let j = 0; j < height; j++) {
+    const py = f32(j + pc);
+    const dy = -f32(f32(py - cy) / fy);
+    for (let i = 0; i < width; i++) {
+      const px = f32(i + pc);
+      const dx = f32(f32(px - cx) / fx);
+      const d = [dx, dy, -1];
+      const at = (j * width + i) * 3;
+      for (let r = 0; r < 3; r++) {
+        directions[at + r] = fmaf32(d[2], R[r][2], fmaf32(d[1], R[r][1], f32(d[0] * R[r][0])));
+        origins[at + r] = t[r];
+      }
+    }
+  }
+  return { origins, directions };
+}
+
+/** normalize_directions: unit view directions (float32 norm: squares summed in order, sqrt). */
+export function normalizeDirections(directions) {
+  const n = directions.length / 3;
+  const out = new Float32Array(directions.length);
+  for (let k = 0; k < n; k++) {
+    const x = directions[3 * k], y = directions[3 * k + 1], z = directions[3 * k + 2];
+    const norm = f32(Math.sqrt(f32(f32(f32(x * x) + f32(y * y)) + f32(z * z))));
+    if (!(norm > 0)) throw new UserError("a ray has a zero-length direction");
+    out[3 * k] = f32(x / norm);
+    out[3 * k + 1] = f32(y / norm);
+    out[3 * k + 2] = f32(z / norm);
+  }
+  return out;
+}
+
+/** ndc_rays: nerf-pytorch's projection, float32 with Python scalars cast to float32 as numpy does. */
+export function ndcRays(space, origins, directions) {
+  const n = origins.length / 3;
+  const o = new Float32Array(origins.length), d = new Float32Array(directions.length);
+  const near = f32(space.near_plane);
+  const ax = f32(-1.0 / space.tan_half_fov_x), ay = f32(-1.0 / space.tan_half_fov_y);
+  const twoNear = f32(2.0 * space.near_plane), minusTwoNear = f32(-2.0 * space.near_plane);
+  for (let k = 0; k < n; k++) {
+    const [rox, roy, roz] = [origins[3 * k], origins[3 * k + 1], origins[3 * k + 2]];
+    const [dx, dy, dz] = [directions[3 * k], directions[3 * k + 1], directions[3 * k + 2]];
+    const t = f32(-f32(near + roz) / dz);
+    const ox = f32(rox + f32(t * dx)), oy = f32(roy + f32(t * dy)), oz = f32(roz + f32(t * dz));
+    o[3 * k] = f32(f32(ax * ox) / oz);
+    o[3 * k + 1] = f32(f32(ay * oy) / oz);
+    o[3 * k + 2] = f32(1.0 + f32(twoNear / oz));
+    d[3 * k] = f32(ax * f32(f32(dx / dz) - f32(ox / oz)));
+    d[3 * k + 1] = f32(ay * f32(f32(dy / dz) - f32(oy / oz)));
+    d[3 * k + 2] = f32(minusTwoNear / oz);
+  }
+  return { origins: o, directions: d };
+}
+
+/** rays.camera_ray_batch: every pixel's ray in the field's space -> {origins, directions, viewdirs}. */
+export function cameraRayBatch(camera, config) {
+  const world = cameraRays(camera, config.pixelCenter);
+  const viewdirs = normalizeDirections(world.directions);
+  const rays = config.ndc ? ndcRays(config.ndc, world.origins, world.directions) : world;
+  return { origins: rays.origins, directions: rays.directions, viewdirs, length: camera.width * camera.height };
+}

@@ -1,0 +1,68 @@
+// The stable API: `await reveal({model, bundle, passphrase})`, the browser's `noisenerf-reveal` (cli/reveal.py run):
+// the bundle is read and checked first, a sealed one's tag checked under the passphrase, then the model (graph and
+// fingerprint), then the bundle against the model, then every tile renders; a payload is opened from the revealed
+// pixels (cli/reveal.py write_payload). Every refusal is an Error (UserError) with the CLI's one-line message.
+
+import { sha256 as sha256Of } from "@noble/hashes/sha2.js";
+import { bytesToHex } from "@noble/hashes/utils.js";
+import { UserError } from "./errors.js";
+import { loadBundle } from "./bundle.js";
+import { checkModel, checkBundle } from "./model.js";
+import { OnnxField, revealBundle } from "./reveal.js";
+import { encodePng } from "./png.js";
+import { INEXACT, openPayload, sealOf } from "./payload.js";
+import { NO_PASSPHRASE, passphraseBytes, unsealKeys } from "./sealing.js";
+
+export { UserError } from "./errors.js";
+
+/** Whether a bundle's bytes are a sealed payload (the page asks for a passphrase then); throws as reveal would. */
+export async function inspectBundle(bundle) {
+  const secret = await loadBundle(bundle, "secret.bundle");
+  return { payload: secret.payload !== null, sealed: secret.payload !== null && secret.payload.sealed !== null,
+    width: secret.width, height: secret.height, tiles: secret.tiles.length };
+}
+
+/**
+ * model, bundle: Uint8Array; passphrase: string or Uint8Array (sealed bundles only).
+ * onProgress({stage: "kdf" | "render", done, total}), optional.
+ * -> {kind: "image", bytes (PNG), name, width, height, exact, sha256, pixels}
+ *  | {kind: "file", bytes, name (the payload's own, or null), width, height (the secret's), exact: true, sha256 (of
+ *     the bytes), sealed}; a sealed image payload comes back as kind "image" with its PNG.
+ */
+export async function reveal({ model, bundle, passphrase = null, onProgress = null, sessionOptions = {} }) {
+  if (!(model instanceof Uint8Array) || !(bundle instanceof Uint8Array)) throw new TypeError("model and bundle must be Uint8Arrays");
+  const secret = await loadBundle(bundle, "secret.bundle");
+  const seal = secret.payload === null ? null : sealOf(secret.payload);
+  let keys = null;
+  if (seal !== null) {
+    const phrase = passphraseBytes(passphrase);
+    if (phrase === null) throw new UserError(NO_PASSPHRASE);
+    keys = await unsealKeys(bundle, seal, phrase, onProgress && ((done) => onProgress({ stage: "kdf", done, total: 1 })));
+  }
+  const checked = checkModel(model, "model.onnx");
+  checkBundle(checked, secret);
+  const total = secret.tiles.reduce((n, tile) => n + tile.rect[2] * tile.rect[3], 0);
+  let done = 0;
+  const progress = onProgress && ((rays) => onProgress({ stage: "render", done: (done += rays), total }));
+  const field = await OnnxField.create(model, checked.networks, sessionOptions);
+  let revealed;
+  try {
+    revealed = await revealBundle(secret, checked.metadata.renderConfig, field, progress);
+  } finally {
+    await field.session.release?.();
+  }
+  const { width, height } = secret;
+  if (secret.payload === null) {
+    return { kind: "image", bytes: encodePng(revealed.pixels, width, height), name: "revealed.png", width, height,
+      exact: revealed.exact, sha256: revealed.sha256, pixels: revealed.pixels, image: revealed.image };
+  }
+  if (!revealed.exact) throw new UserError(INEXACT);
+  const record = openPayload(revealed.pixels, width, height, secret.payload, checked.metadata.fingerprint, keys);
+  const name = record.name.length ? new TextDecoder("utf-8").decode(record.name) : null;
+  const sha256 = bytesToHex(sha256Of(record.body));
+  if (record.kind === "image") {
+    return { kind: "image", bytes: encodePng(record.body, record.width, record.height), name: name ?? "revealed.png",
+      width: record.width, height: record.height, exact: true, sha256, pixels: record.body, sealed: keys !== null };
+  }
+  return { kind: "file", bytes: record.body, name, width, height, exact: true, sha256, sealed: keys !== null };
+}

@@ -1,0 +1,181 @@
+// Mirrors runtime/files.py parse_json (Python's json.loads, nesting at most MAX_JSON_DEPTH) and json.dumps with
+// sort_keys=True (the fingerprint's canonical JSON). Python tells 16 from 16.0, so this parser does too: integer
+// literals are JS numbers (BigInt beyond 2^53), every other number is a PyFloat; NaN and Infinity parse, as in
+// Python, and are refused where a number is used (limits.js).
+
+import { UserError, PyFloat, reprFloat } from "./errors.js";
+import { MAX_JSON_DEPTH } from "./limits.js";
+
+class JsonError extends Error {}
+
+export function loads(textValue) {
+  let i = 0;
+  const s = textValue;
+  const ws = () => { while (i < s.length && " \t\n\r".includes(s[i])) i++; };
+  const fail = (what) => { throw new JsonError(`${what}: char ${i}`); };
+  let depth = 0, deepest = 0;
+  function value() {
+    ws();
+    const c = s[i];
+    if (c === "{") {
+      i++; depth++; deepest = Math.max(deepest, depth);
+      if (depth > MAX_JSON_DEPTH + 1) throw new RangeError("too deep");
+      const obj = {};
+      ws();
+      if (s[i] === "}") { i++; depth--; return obj; }
+      for (;;) {
+        ws();
+        if (s[i] !== '"') fail("Expecting property name enclosed in double quotes");
+        const key = string();
+        ws();
+        if (s[i] !== ":") fail("Expecting ':' delimiter");
+        i++;
+        Object.defineProperty(obj, key, { value: value(), enumerable: true, writable: true, configurable: true });
+        ws();
+        if (s[i] === ",") { i++; continue; }
+        if (s[i] === "}") { i++; depth--; return obj; }
+        fail("Expecting ',' delimiter");
+      }
+    }
+    if (c === "[") {
+      i++; depth++; deepest = Math.max(deepest, depth);
+      if (depth > MAX_JSON_DEPTH + 1) throw new RangeError("too deep");
+      const arr = [];
+      ws();
+      if (s[i] === "]") { i++; depth--; return arr; }
+      for (;;) {
+        arr.push(value());
+        ws();
+        if (s[i] === ",") { i++; continue; }
+        if (s[i] === "]") { i++; depth--; return arr; }
+        fail("Expecting ',' delimiter");
+      }
+    }
+    if (c === '"') return string();
+    for (const [word, v] of [["true", true], ["false", false], ["null", null], ["NaN", new PyFloat(NaN)],
+      ["Infinity", new PyFloat(Infinity)], ["-Infinity", new PyFloat(-Infinity)]]) {
+      if (s.startsWith(word, i)) { i += word.length; return v; }
+    }
+    const m = /^-?(?:0|[1-9]\d*)(\.\d+)?([eE][-+]?\d+)?/.exec(s.slice(i, i + 400));
+    if (!m) fail("Expecting value");
+    i += m[0].length;
+    if (m[1] === undefined && m[2] === undefined) {
+      const big = BigInt(m[0]);
+      return big >= -BigInt(Number.MAX_SAFE_INTEGER) && big <= BigInt(Number.MAX_SAFE_INTEGER) ? Number(big) : big;
+    }
+    return new PyFloat(Number(m[0]));
+  }
+  function string() {
+    i++;
+    let out = "";
+    for (;;) {
+      if (i >= s.length) fail("Unterminated string starting at");
+      const c = s[i];
+      if (c === '"') { i++; return out; }
+      if (c === "\\") {
+        const e = s[i + 1];
+        const map = { '"': '"', "\\": "\\", "/": "/", b: "\b", f: "\f", n: "\n", r: "\r", t: "\t" };
+        if (e in map) { out += map[e]; i += 2; continue; }
+        if (e === "u") {
+          const hex = s.slice(i + 2, i + 6);
+          if (!/^[0-9a-fA-F]{4}$/.test(hex)) fail("Invalid \\uXXXX escape");
+          out += String.fromCharCode(parseInt(hex, 16)); i += 6; continue;
+        }
+        fail("Invalid \\escape");
+      }
+      if (c.charCodeAt(0) < 0x20) fail("Invalid control character at");
+      out += c; i++;
+    }
+  }
+  const result = value();
+  ws();
+  if (i !== s.length) fail("Extra data");
+  return { result, deepest };
+}
+
+/** parse_json: JSON text (or UTF-8 bytes) someone else made -> value, one UserError when malformed or deep. */
+export function parseJson(input, what, source = "") {
+  let data;
+  try {
+    const textValue = typeof input === "string" ? input : new TextDecoder("utf-8", { fatal: true }).decode(input);
+    const { result, deepest } = loads(textValue);
+    if (deepest > MAX_JSON_DEPTH) throw new RangeError("too deep");
+    data = result;
+  } catch (error) {
+    if (error instanceof RangeError) {
+      throw new UserError(`${what} is nested deeper than ${MAX_JSON_DEPTH} levels${source ? `: ${source}` : ""}`);
+    }
+    throw new UserError(`${what} is not valid JSON${source ? `: ${source}` : ""} (${error.message.split(/\s+/).join(" ").slice(0, 160)})`);
+  }
+  return data;
+}
+
+function dumpString(s) {
+  let out = '"';
+  for (const ch of s) {
+    const c = ch.codePointAt(0);
+    if (ch === '"') out += '\\"';
+    else if (ch === "\\") out += "\\\\";
+    else if (ch === "\n") out += "\\n";
+    else if (ch === "\r") out += "\\r";
+    else if (ch === "\t") out += "\\t";
+    else if (ch === "\b") out += "\\b";
+    else if (ch === "\f") out += "\\f";
+    else if (c < 0x20 || c > 0x7e) {
+      if (c > 0xffff) {
+        const v = c - 0x10000;
+        out += `\\u${(0xd800 + (v >> 10)).toString(16).padStart(4, "0")}\\u${(0xdc00 + (v & 0x3ff)).toString(16).padStart(4, "0")}`;
+      } else out += `\\u${c.toString(16).padStart(4, "0")}`;
+    } else out += ch;
+  }
+  return out + '"';
+}
+
+// Python sorts str keys by code point; JS's < compares UTF-16 code units (they differ past U+FFFF)
+const codePoints = (s) => Array.from(s, (ch) => ch.codePointAt(0));
+function pyCompare(a, b) {
+  const x = codePoints(a), y = codePoints(b);
+  for (let i = 0; i < Math.min(x.length, y.length); i++) if (x[i] !== y[i]) return x[i] - y[i];
+  return x.length - y.length;
+}
+
+/** Python's json.dumps(value, sort_keys=True): ", " and ": " separators (or the given ones), ASCII escapes,
+ * floats as repr. */
+export function dumpsSorted(value, item = ", ", key = ": ") {
+  const dump = (v) => dumpsSorted(v, item, key);
+  if (value === null) return "null";
+  if (value === true) return "true";
+  if (value === false) return "false";
+  if (typeof value === "bigint") return value.toString();
+  if (typeof value === "number") return Number.isInteger(value) ? String(value) : floatJson(value);
+  if (value instanceof PyFloat) return floatJson(value.value);
+  if (typeof value === "string") return dumpString(value);
+  if (Array.isArray(value)) return `[${value.map(dump).join(item)}]`;
+  const keys = Object.keys(value).sort(pyCompare);
+  return `{${keys.map((k) => `${dumpString(k)}${key}${dump(value[k])}`).join(item)}}`;
+}
+
+/** runtime/sealing.py canonical_json: sorted keys, no spaces, ASCII, as UTF-8 bytes. */
+export function canonicalJson(value) {
+  return new TextEncoder().encode(dumpsSorted(value, ",", ":"));
+}
+
+/** Python's == between two JSON values (1 == 1.0 == True; dicts by keys and values; lists by items). */
+export function pyEqual(a, b) {
+  const number = (v) => (v === true ? 1 : v === false ? 0 : v instanceof PyFloat ? v.value
+    : typeof v === "number" || typeof v === "bigint" ? v : undefined);
+  const [x, y] = [number(a), number(b)];
+  if (x !== undefined || y !== undefined) return x !== undefined && y !== undefined && x == y; // eslint-disable-line eqeqeq
+  if (a === null || b === null || typeof a === "string" || typeof b === "string") return a === b;
+  if (Array.isArray(a) || Array.isArray(b)) {
+    return Array.isArray(a) && Array.isArray(b) && a.length === b.length && a.every((v, i) => pyEqual(v, b[i]));
+  }
+  const ka = Object.keys(a), kb = Object.keys(b);
+  return ka.length === kb.length && ka.every((k) => Object.hasOwn(b, k) && pyEqual(a[k], b[k]));
+}
+
+function floatJson(x) {
+  if (Number.isNaN(x)) return "NaN";
+  if (!Number.isFinite(x)) return x > 0 ? "Infinity" : "-Infinity";
+  return reprFloat(x);
+}

@@ -1,0 +1,195 @@
+// The reveal page: pick or drop model.onnx and the bundle, a passphrase field when the bundle is sealed, a progress
+// bar, the revealed image shown and downloadable as the library's PNG (never a canvas export), or the payload
+// saved under the name the user chooses. The reveal runs in a Web Worker (worker.js). Every refusal is one
+// message in the page and nothing is downloaded. `window.noisenerf = {reveal, inspect}` is the library's API
+// through the worker: `await noisenerf.reveal({model, bundle, passphrase})` returns the library's object.
+//
+// The two builds (build.mjs) differ in where the worker and onnxruntime's WASM come from: the static site loads
+// worker.js and the .wasm beside index.html; the single file carries both inline (the worker as a Blob URL, the
+// WASM handed over as bytes) and runs single-threaded, since a page opened from disk is not cross-origin isolated.
+
+import { workerCode, wasmBase64 } from "noisenerf-embedded";
+
+let worker = null, ready = null, nextId = 0;
+const pending = new Map();
+
+function startWorker() {
+  if (ready) return ready;
+  worker = workerCode
+    ? new Worker(URL.createObjectURL(new Blob([workerCode], { type: "text/javascript" })))
+    : new Worker(new URL("./worker.js", import.meta.url), { type: "module" });
+  worker.onmessage = ({ data }) => {
+    const call = pending.get(data.id);
+    if (!call) return;
+    if (data.type === "progress") call.onProgress?.(data.progress);
+    else {
+      pending.delete(data.id);
+      if (data.type === "done") call.resolve(data.result);
+      else {
+        const error = new Error(data.message);
+        if (data.userError) error.name = "UserError";
+        call.reject(error);
+      }
+    }
+  };
+  worker.onerror = (event) => {
+    const error = new Error(`the reveal worker failed to start: ${event.message ?? "unknown error"}`);
+    for (const call of pending.values()) call.reject(error);
+    pending.clear();
+  };
+  const init = wasmBase64 ? { wasmBinary: decodeBase64(wasmBase64), numThreads: 1 } : {};
+  ready = call("init", init, null, init.wasmBinary ? [init.wasmBinary.buffer] : []);
+  return ready;
+}
+
+function decodeBase64(text) {
+  const binary = atob(text);
+  const bytes = new Uint8Array(binary.length);
+  for (let i = 0; i < binary.length; i++) bytes[i] = binary.charCodeAt(i);
+  return bytes;
+}
+
+function call(type, data, onProgress = null, transfer = []) {
+  return new Promise((resolve, reject) => {
+    const id = nextId++;
+    pending.set(id, { resolve, reject, onProgress });
+    worker.postMessage({ id, type, ...data }, transfer);
+  });
+}
+
+/** The library's reveal, run in the worker: same arguments (Uint8Arrays), same result, same refusals. */
+export async function reveal({ model, bundle, passphrase = null, onProgress = null }) {
+  if (!(model instanceof Uint8Array) || !(bundle instanceof Uint8Array)) throw new TypeError("model and bundle must be Uint8Arrays");
+  await startWorker();
+  return call("reveal", { model, bundle, passphrase }, onProgress);
+}
+
+/** Whether a bundle is a payload and sealed (inspectBundle), run in the worker. */
+export async function inspect(bundle) {
+  await startWorker();
+  return call("inspect", { bundle });
+}
+
+window.noisenerf = { reveal, inspect };
+
+// ---- the page ----
+
+const $ = (id) => document.getElementById(id);
+const files = { model: null, bundle: null };
+let sealed = false, shown = null;
+
+function message(text, kind = "error") {
+  $("message").textContent = text;
+  $("message").className = kind;
+}
+
+function clearResult() {
+  if (shown) URL.revokeObjectURL(shown);
+  shown = null;
+  $("result").hidden = true;
+  $("image-result").hidden = true;
+  $("file-result").hidden = true;
+}
+
+async function readFile(file) {
+  return new Uint8Array(await file.arrayBuffer());
+}
+
+async function setFile(kind, file) {
+  files[kind] = file;
+  $(`${kind}-name`).textContent = file ? file.name : "none";
+  clearResult();
+  message("", "");
+  if (kind === "bundle") {
+    sealed = false;
+    $("passphrase-row").hidden = true;
+    if (file) {
+      try {
+        const info = await inspect(await readFile(file));
+        sealed = info.sealed;
+        $("passphrase-row").hidden = !sealed;
+      } catch (error) {
+        files.bundle = null;
+        $("bundle-name").textContent = "none";
+        message(error.message);
+      }
+    }
+  }
+  $("reveal").disabled = !(files.model && files.bundle);
+}
+
+function download(bytes, name, type) {
+  const url = URL.createObjectURL(new Blob([bytes], { type }));
+  const link = document.createElement("a");
+  link.href = url;
+  link.download = name;
+  document.body.append(link);
+  link.click();
+  link.remove();
+  setTimeout(() => URL.revokeObjectURL(url), 60_000);
+}
+
+async function onReveal() {
+  clearResult();
+  if (!files.model || !files.bundle) return message("pick model.onnx and the bundle first");
+  const passphrase = sealed ? $("passphrase").value : null;
+  if (sealed && !passphrase) return message("the bundle is sealed: give its passphrase");
+  $("reveal").disabled = true;
+  $("progress").value = 0;
+  $("progress").hidden = false;
+  message("revealing…", "info");
+  try {
+    const started = performance.now();
+    const result = await reveal({ model: await readFile(files.model), bundle: await readFile(files.bundle), passphrase,
+      onProgress: ({ stage, done, total }) => {
+        $("progress").value = stage === "kdf" ? 0.05 * done : 0.05 + 0.95 * (done / total);
+        message(stage === "kdf" ? "checking the passphrase…" : `revealing… ${done} of ${total} rays`, "info");
+      } });
+    const seconds = ((performance.now() - started) / 1000).toFixed(2);
+    $("progress").value = 1;
+    $("result").hidden = false;
+    if (result.kind === "image") {
+      shown = URL.createObjectURL(new Blob([result.bytes], { type: "image/png" }));
+      $("image").src = shown;
+      $("image-result").hidden = false;
+      $("image-result").dataset.name = result.name;
+      window.noisenerfLast = result;
+      message(`exact: ${result.exact} · ${result.width}x${result.height} · sha256 ${result.sha256} · ${seconds} s`,
+        result.exact ? "ok" : "warn");
+    } else {
+      $("save-name").value = result.name ?? "payload.bin";
+      $("file-result").hidden = false;
+      window.noisenerfLast = result;
+      message(`payload: file${result.name ? ` '${result.name}'` : ""}, ${result.bytes.length} bytes, sha256 ` +
+        `${result.sha256}${result.sealed ? ", sealed" : ""} · ${seconds} s`, "ok");
+    }
+  } catch (error) {
+    message(error.message);
+  } finally {
+    $("progress").hidden = true;
+    $("reveal").disabled = !(files.model && files.bundle);
+  }
+}
+
+function onDrop(event) {
+  event.preventDefault();
+  $("drop").classList.remove("over");
+  for (const file of event.dataTransfer.files) setFile(file.name.toLowerCase().endsWith(".onnx") ? "model" : "bundle", file);
+}
+
+document.addEventListener("DOMContentLoaded", () => {
+  $("model").addEventListener("change", (e) => setFile("model", e.target.files[0] ?? null));
+  $("bundle").addEventListener("change", (e) => setFile("bundle", e.target.files[0] ?? null));
+  $("reveal").addEventListener("click", onReveal);
+  $("save-image").addEventListener("click", () => window.noisenerfLast && download(window.noisenerfLast.bytes, window.noisenerfLast.name, "image/png"));
+  $("save").addEventListener("click", () => {
+    const name = $("save-name").value.trim();
+    if (!name) return message("give the file a name");
+    download(window.noisenerfLast.bytes, name, "application/octet-stream");
+  });
+  const drop = $("drop");
+  drop.addEventListener("dragover", (e) => { e.preventDefault(); drop.classList.add("over"); });
+  drop.addEventListener("dragleave", () => drop.classList.remove("over"));
+  drop.addEventListener("drop", onDrop);
+  startWorker().catch((error) => message(error.message));
+});

@@ -1,0 +1,140 @@
+// Mirrors runtime/reveal.py (render_tile, tile_field, reveal), with runtime/render.py's chunking (rays_per_chunk,
+// render_in_chunks), runtime/marching.py's front-to-back march (16 samples at a time, early_stop 0: only rays
+// whose transmittance is exactly 0 stop), runtime/networks.py's render network, and runtime/session.py's points
+// per onnxruntime run (DEFAULT_CHUNK). A chunk of rays holds its own noise only: memory is bounded by the chunk.
+
+import * as ort from "onnxruntime-web";
+import { sha256 } from "@noble/hashes/sha2.js";
+import { bytesToHex } from "@noble/hashes/utils.js";
+import { UserError, repr, tuple } from "./errors.js";
+import { OUTPUT_NAMES, COARSE_OUTPUT_NAMES, INPUT_NAMES } from "./graph.js";
+import { cameraRayBatch } from "./camera.js";
+import { samplePositions, sampleAlong } from "./sampling.js";
+import { compositeRays, opticalDepth, pairwiseSum, toUint8 } from "./compositing.js";
+import { tileRows } from "./bundle.js";
+
+const f32 = Math.fround;
+export const CHUNK_SAMPLES = 1 << 17;
+export const CHUNK_RAYS = 4096;
+export const DEFAULT_CHUNK = 16384;
+const MARCH_SAMPLES = 16;
+
+export const renderNetwork = (names) => (names.includes("fine") ? "fine" : "coarse");
+export const raysPerChunk = (nSamples, mostRays = CHUNK_RAYS) => Math.max(1, Math.min(mostRays, Math.floor(CHUNK_SAMPLES / nSamples)));
+
+/** An onnxruntime-web session over the model's bytes, answering for one network (its outputs). */
+export class OnnxField {
+  static async create(modelBytes, networks, options = {}) {
+    const session = await ort.InferenceSession.create(modelBytes, { executionProviders: ["wasm"], ...options });
+    return new OnnxField(session, networks);
+  }
+  constructor(session, networks) {
+    this.session = session;
+    this.networks = networks;
+  }
+  outputsOf(name) {
+    return name === renderNetwork(this.networks) ? OUTPUT_NAMES : COARSE_OUTPUT_NAMES;
+  }
+  /** points (m·3), viewdirs (m·3), noise (m·dims) -> {rgb (m·3), sigma (m)}, DEFAULT_CHUNK points per run. */
+  async evaluate(network, points, viewdirs, noise, m, dims) {
+    const [rgbName, sigmaName] = this.outputsOf(network);
+    const rgb = new Float32Array(m * 3), sigma = new Float32Array(m);
+    for (let start = 0; start < m; start += DEFAULT_CHUNK) {
+      const n = Math.min(DEFAULT_CHUNK, m - start);
+      const feeds = {
+        [INPUT_NAMES[0]]: new ort.Tensor("float32", points.subarray(start * 3, (start + n) * 3), [n, 3]),
+        [INPUT_NAMES[1]]: new ort.Tensor("float32", viewdirs.subarray(start * 3, (start + n) * 3), [n, 3]),
+        [INPUT_NAMES[2]]: new ort.Tensor("float32", noise.subarray(start * dims, (start + n) * dims), [n, dims]),
+      };
+      let result;
+      try {
+        result = await this.session.run(feeds, [rgbName, sigmaName]);
+      } catch (error) {
+        throw new UserError(`model.onnx failed to evaluate: ${String(error.message ?? error).split(/\s+/).join(" ").slice(0, 200)}`);
+      }
+      rgb.set(result[rgbName].data, start * 3);
+      sigma.set(result[sigmaName].data, start);
+      for (const tensor of Object.values(result)) tensor.dispose?.();
+    }
+    return { rgb, sigma };
+  }
+}
+
+/** The noisy field evaluated front to back over m rays of S samples (march_rays with no grid). */
+async function marchRays(field, network, points, viewdirs, deltas, rows, start, m, S, dims) {
+  const sigmas = new Float32Array(m * S), rgbs = new Float32Array(m * S * 3);
+  const depthSoFar = new Float32Array(m);
+  const chunkDepths = new Float32Array(MARCH_SAMPLES);
+  for (let s0 = 0; s0 < S; s0 += MARCH_SAMPLES) {
+    const s1 = Math.min(s0 + MARCH_SAMPLES, S);
+    const chosen = [];
+    for (let r = 0; r < m; r++) {
+      if (f32(Math.exp(-depthSoFar[r])) > 0) for (let s = s0; s < s1; s++) chosen.push(r * S + s);
+    }
+    if (chosen.length) {
+      const n = chosen.length;
+      const p = new Float32Array(n * 3), v = new Float32Array(n * 3), noise = new Float32Array(n * dims);
+      for (let q = 0; q < n; q++) {
+        const index = chosen[q], r = Math.floor(index / S), s = index % S;
+        p.set(points.subarray(index * 3, index * 3 + 3), q * 3);
+        v.set(viewdirs.subarray((start + r) * 3, (start + r) * 3 + 3), q * 3);
+        const row = (r * rows.perSample + (rows.perSample === 1 ? 0 : s)) * dims;
+        noise.set(rows.values.subarray(row, row + dims), q * dims);
+      }
+      const out = await field.evaluate(network, p, v, noise, n, dims);
+      for (let q = 0; q < n; q++) {
+        const index = chosen[q];
+        sigmas[index] = out.sigma[q];
+        rgbs.set(out.rgb.subarray(q * 3, q * 3 + 3), index * 3);
+      }
+    }
+    for (let r = 0; r < m; r++) {
+      for (let s = s0; s < s1; s++) chunkDepths[s - s0] = opticalDepth(sigmas[r * S + s], deltas[r * S + s]);
+      depthSoFar[r] = f32(depthSoFar[r] + pairwiseSum(chunkDepths, 0, s1 - s0));
+    }
+  }
+  return { sigmas, rgbs };
+}
+
+/** render_tile: a tile's secret view, (height·width·3) float32, a chunk of rays (and of noise) at a time. */
+export async function renderTile(tile, bundle, config, field, network, progress) {
+  const rays = cameraRayBatch(tile.camera, config);
+  const tVals = samplePositions(tile.sampling);
+  const S = tVals.length, n = rays.length, dims = bundle.noiseDims;
+  const colors = new Float32Array(n * 3);
+  const chunk = raysPerChunk(S);
+  for (let start = 0; start < n; start += chunk) {
+    const stop = Math.min(start + chunk, n), m = stop - start;
+    const rows = tileRows(tile, bundle, start, stop);
+    const { points, deltas } = sampleAlong(rays, start, stop, tVals);
+    const { sigmas, rgbs } = await marchRays(field, network, points, rays.viewdirs, deltas, rows, start, m, S, dims);
+    colors.set(compositeRays(sigmas, rgbs, deltas, m, S, config.background), start * 3);
+    progress?.(m);
+  }
+  return colors;
+}
+
+/** tile_field: the network a tile's noise was trained through, refusing one the model lacks. */
+export function tileNetwork(tile, networks) {
+  const name = tile.network ?? renderNetwork(networks);
+  if (!networks.includes(name)) {
+    throw new UserError(`bundle tile at ${repr(tuple(tile.rect[0], tile.rect[1]))} needs the ${name} network; this model has only ${networks.join(" and ")}`);
+  }
+  return name;
+}
+
+/** reveal: every tile rendered and stitched, quantised, its SHA-256 checked -> {image, pixels, exact, sha256}. */
+export async function revealBundle(bundle, config, field, progress) {
+  const chosen = bundle.tiles.map((tile) => tileNetwork(tile, field.networks));
+  const { width, height } = bundle;
+  const image = new Float32Array(width * height * 3);
+  for (let t = 0; t < bundle.tiles.length; t++) {
+    const tile = bundle.tiles[t];
+    const [x0, y0, w, h] = tile.rect;
+    const colors = await renderTile(tile, bundle, config, field, chosen[t], progress);
+    for (let y = 0; y < h; y++) image.set(colors.subarray(y * w * 3, (y + 1) * w * 3), ((y0 + y) * width + x0) * 3);
+  }
+  const pixels = toUint8(image);
+  const digest = bytesToHex(sha256(pixels));
+  return { image, pixels, exact: digest === bundle.secretSha256, sha256: digest };
+}
