@@ -59,10 +59,9 @@ export function cameraRays(camera, pixelCenter) {
     for (let i = 0; i < width; i++) {
       const px = f32(i + pc);
       const dx = f32(f32(px - cx) / fx);
-      const d = [dx, dy, -1];
       const at = (j * width + i) * 3;
       for (let r = 0; r < 3; r++) {
-        directions[at + r] = fmaf32(d[2], R[r][2], fmaf32(d[1], R[r][1], f32(d[0] * R[r][0])));
+        directions[at + r] = fmaf32(-1, R[r][2], fmaf32(dy, R[r][1], f32(dx * R[r][0])));
         origins[at + r] = t[r];
       }
     }

@@ -8,11 +8,11 @@ export function fmaf32(a, b, c) {
   const p = a * b; // exact: 24 + 24 bits
   const s = p + c;
   const r = Math.fround(s);
-  if (r === s || !Number.isFinite(s)) return r;
-  const bb = s - p;
-  const err = (p - (s - bb)) + (c - bb); // two-sum: s + err == p + c exactly
-  if (err === 0) return r;
+  if (r === s) return r; // also ±Infinity; NaN falls through to the next test
   const other = 2 * s - r; // r's float32 neighbour across s, if s is their midpoint
   if (Math.fround(other) !== other) return r; // s is no midpoint: r is the exact sum's nearest float32
+  const bb = s - p;
+  const err = (p - (s - bb)) + (c - bb); // two-sum: s + err == p + c exactly
+  if (err === 0) return r; // the exact sum is the midpoint: Math.fround broke the tie to even, as fmaf does
   return (err > 0) === (other > r) ? other : r;
 }

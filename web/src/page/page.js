@@ -37,7 +37,9 @@ function startWorker() {
     for (const call of pending.values()) call.reject(error);
     pending.clear();
   };
-  const init = wasmBase64 ? { wasmBinary: decodeBase64(wasmBase64), numThreads: 1 } : {};
+  // WASM threads need cross-origin isolation; onnxruntime-web's own default is half the cores, so say all
+  const threads = self.crossOriginIsolated ? navigator.hardwareConcurrency || 1 : 1;
+  const init = wasmBase64 ? { wasmBinary: decodeBase64(wasmBase64), numThreads: 1 } : { numThreads: threads };
   ready = call("init", init, null, init.wasmBinary ? [init.wasmBinary.buffer] : []);
   return ready;
 }
