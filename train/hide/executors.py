@@ -15,7 +15,7 @@ from typing import Iterator
 
 import torch
 
-from noisenerf.train.hide.jobs import FieldWeights, Job, run_job
+from noisenerf.train.hide.jobs import FieldWeights, Job, forget, run_job
 
 EXECUTORS = ("local", "ray")
 
@@ -34,7 +34,7 @@ class Executor:
         return self
 
     def __exit__(self, *exc) -> None:
-        pass
+        forget()  # the views the driver assembled with, and those of jobs run in this process
 
 
 POOL_WEIGHTS: FieldWeights | None = None  # a pool worker's copy of the hide's weights (start_worker)
@@ -97,6 +97,7 @@ class LocalExecutor(Executor):
                                   error_callback=lambda error, job=job: self.finished.put((job, None, error)))
 
     def __exit__(self, *exc) -> None:
+        super().__exit__(*exc)
         if self.pool is not None:  # every result is in hand, or the hide failed: nothing to wait for
             self.pool.terminate()  # (a clean close waited ~0.5 s for the workers' interpreters to exit)
             self.pool.join()

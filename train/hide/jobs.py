@@ -72,6 +72,12 @@ def kept(cache: OrderedDict, key, size: int, build):
     return cache[key]
 
 
+def forget() -> None:
+    """Drop this process's fields and views: a hide whose jobs ran here leaves no device memory behind."""
+    FIELDS.clear()
+    VIEWS.clear()
+
+
 def build_field(weights: FieldWeights, device: torch.device) -> NeRFField:
     field = NeRFField(weights.config)
     field.load_state_dict({name: torch.from_numpy(value.copy()) for name, value in weights.arrays.items()})

@@ -68,6 +68,7 @@ class RayExecutor(Executor):
             yield job, result
 
     def __exit__(self, *exc) -> None:
+        super().__exit__(*exc)
         for reference in self.pending:  # a failed or interrupted hide leaves nothing running
             self.ray.cancel(reference, force=True)
         if self.started:

@@ -26,11 +26,11 @@ from noisenerf.runtime.files import check_output_path
 from noisenerf.runtime.limits import MAX_RAY_LAYOUT_SAMPLES, checked_image_size
 from noisenerf.runtime.metrics import tile_quality
 from noisenerf.train.hide.executors import EXECUTORS, open_executor
-from noisenerf.train.hide.jobs import PREPARE, FieldWeights, Job
+from noisenerf.train.hide.jobs import PREPARE, FieldWeights, Job, tile_view
 from noisenerf.train.hide.methods import METHODS
 from noisenerf.train.hide.plan import HideConfig, plan, run_key
 from noisenerf.train.hide.progress import Progress
-from noisenerf.train.hide.secret_view import SecretView, pass_samples_for
+from noisenerf.train.hide.secret_view import pass_samples_for
 from noisenerf.train.scene.scene import Scene
 
 
@@ -93,7 +93,7 @@ def hide(scene: Scene, secret: np.ndarray, output: Path, config: HideConfig, dev
         def finish(work: TileWork) -> None:
             """The tile assembled from its parts and checked by rendering it whole."""
             x0, y0, w, h = work.tile.rect
-            secret_view = SecretView(scene.fields()[work.tile.network], work.tile, scene.config.render, device)
+            secret_view = tile_view(weights, work.tile, device)  # the jobs' own where they ran in this process
             pixels = work.pixels.to(device)
             solved = solver.assemble(secret_view, pixels, (h, w), config, work.prepared,
                                      [work.solved.pop(c) for c in range(len(work.parts))])
