@@ -89,6 +89,12 @@ def cmd_hide(args) -> None:
         raise UserError("give exactly one of SECRET_IMAGE or --file PAYLOAD")
     if args.workers is not None and args.workers < 1:
         raise UserError(f"--workers must be at least 1, got {args.workers}")
+    if args.ray_address is not None and args.executor != "ray":
+        raise UserError("--ray-address is for --executor ray")
+    if args.executor == "ray":  # before the scene loads: a missing extra is one line at once
+        from noisenerf.train.hide.ray_executor import import_ray
+
+        import_ray()
     passphrase = sealing_passphrase(args)
     if args.allow_inexact and (args.file is not None or passphrase is not None):
         raise UserError(PAYLOAD_IS_EXACT)
@@ -111,7 +117,8 @@ def cmd_hide(args) -> None:
         report = hide_record(args, scene, record, output, config, device, passphrase)
     else:
         report = hide(scene, secret, output, config, device, force=args.force, show_progress=not args.quiet,
-                      workers=args.workers, allow_inexact=args.allow_inexact)
+                      workers=args.workers, allow_inexact=args.allow_inexact, executor=args.executor,
+                      ray_address=args.ray_address)
         if METHODS[args.method].exact and not report["exact"]:
             off = [f"tile {k}: {t['inexact_pixels']} px off by up to {t['max_error']}"
                    for k, t in enumerate(report["tiles"]) if t["inexact_pixels"]]
@@ -147,7 +154,8 @@ def hide_record(args, scene, record, output: Path, config, device, passphrase: b
                   f"expect about {room['expected_seconds']} s of hiding on 2 CPU cores", file=sys.stderr, flush=True)
 
     return hide_payload(scene, record, output, config, device, passphrase=passphrase, force=args.force,
-                        show_progress=not args.quiet, announce=announce, workers=args.workers)
+                        show_progress=not args.quiet, announce=announce, workers=args.workers,
+                        executor=args.executor, ray_address=args.ray_address)
 
 
 def cmd_export(args) -> None:
@@ -245,6 +253,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--workers", type=int, help="exact method on a CPU: processes its chunks are spread over "
                    "(default: every core this process may use; the bundle is the same for any number)")
+    p.add_argument("--executor", choices=("local", "ray"), default="local",  # executors.EXECUTORS (torch-free here)
+                   help="where the jobs run: local (this machine's processes) or ray (a Ray cluster; the bundle "
+                        "is the same; needs pip install 'noisenerf[cluster]')")
+    p.add_argument("--ray-address", help="the Ray cluster to use (default: RAY_ADDRESS, else a local cluster "
+                   "started for the hide)")
     p.add_argument("--force", action="store_true", help="overwrite an existing bundle")
     p.add_argument("--allow-inexact", action="store_true",
                    help="exact method: write the bundle even if some pixels are off (says so on stderr); by "

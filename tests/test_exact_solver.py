@@ -1,13 +1,11 @@
 """The exact solver's steps between phases (lattice candidates, entering a compact tile's integer lattice,
-the chord warm start), its settings' checks, and the pool of worker processes chunks are spread over."""
-
-import math
-import os
+the chord warm start), its settings' checks, and the local executor's worker processes chunks are spread over."""
 
 import numpy as np
 import pytest
 import torch
 
+from helpers import make_tiny_scene
 from noisenerf.cli.demo import DEMO_VIEW
 from noisenerf.runtime.errors import UserError
 from noisenerf.train.hide.compact import LIFT_MARGIN, CompactSettings, lift_density, solver_view, tile_space
@@ -16,7 +14,8 @@ from noisenerf.train.hide.exact import (ChunkProblem, ExactSettings, NoiseSpace,
                                         residuals, round_to_lattice)
 from noisenerf.train.hide.plan import HideConfig, plan
 from noisenerf.train.hide.secret_view import BranchView, SecretView
-from noisenerf.train.hide.solver import ChunkPool
+from noisenerf.train.hide.executors import LocalExecutor
+from noisenerf.train.hide.jobs import FieldWeights, Job, run_job
 from noisenerf.train.scene.procedural import DEMO_SCENE, procedural_secret
 from noisenerf.train.scene.scene import load_scene
 
@@ -183,13 +182,26 @@ def test_impossible_solver_settings_are_refused(field, value):
         ExactSettings(**{field: value})
 
 
-def test_chunk_pool_spreads_jobs_over_other_processes_and_stops_on_an_error():
-    with ChunkPool(2) as pool:
-        assert dict(pool.solve_all(math.sqrt, [(4.0,), (9.0,), (16.0,)])) == {0: 2.0, 1: 3.0, 2: 4.0}
-        pids = {pid for _, pid in pool.solve_all(os.getpid, [()] * 8)}
-        assert os.getpid() not in pids
-    with pytest.raises(ValueError, match="math domain error"), ChunkPool(2) as pool:
-        dict(pool.solve_all(math.sqrt, [(4.0,), (-1.0,), (9.0,)]))
+def test_local_executor_spreads_jobs_over_other_processes_and_stops_on_an_error():
+    scene = make_tiny_scene(seed=0)
+    config = HideConfig(layout="ray", chunk_pixels=24)
+    secret = np.random.default_rng(0).integers(0, 256, (8, 8, 3), dtype=np.uint8)
+    tile = plan(scene, secret, config).tiles[0]
+    pixels = torch.tensor(secret.reshape(-1, 3))
+    weights = FieldWeights.of(scene, tile.network)
+    jobs = [Job(0, c, tile, range(s, min(s + 24, 64)), pixels[s:s + 24], config, "cpu")
+            for c, s in enumerate(range(0, 64, 24))]
+    with LocalExecutor(weights, workers=2) as executor:
+        for job in jobs:
+            executor.submit(job)
+        spread = {job.part: result for job, result in executor.results()}
+        assert executor.pool is not None  # three jobs waited at once: they went to the workers
+    for job in jobs:  # the same tensors as solved here
+        assert all(torch.equal(spread[job.part][name], value) for name, value in run_job(weights, job).items())
+    with pytest.raises(IndexError), LocalExecutor(weights, workers=2) as executor:
+        for rows in (range(0, 24), range(0, 10 ** 6)):  # a job past the tile's rays fails in its worker
+            executor.submit(Job(0, 0, tile, rows, pixels[:24], config, "cpu"))
+        list(executor.results())
 
 
 def test_a_basis_that_ignores_what_it_missed_is_refused():

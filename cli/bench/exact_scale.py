@@ -161,7 +161,7 @@ def describe_contention(context: BenchContext, measured: Measured) -> list[str]:
     lines = [f"`{Path(context.config.secret).name}` at {width}×{height}, view {context.config.view}, hidden twice "
              f"alone and twice beside one `python -c 'while True: pass'` on {available_cores()} cores: its "
              f"{math.ceil(width * height / chunk_pixels)} chunk(s) of {chunk_pixels:,} pixels spread over "
-             f"{available_cores()} worker processes of one torch thread each (train/hide/solver.ChunkPool, "
+             f"{available_cores()} worker processes of one torch thread each (train/hide/executors.LocalExecutor, "
              "ExactSolver.threads).", "",
              f"- hide alone {alone:.2f} s, beside a busy process {busy:.2f} s: **{busy / alone:.1f}×** "
              f"(goal ≤ {CONTENTION_GOAL}: {verdict(busy / alone, CONTENTION_GOAL, lower_is_better=True)}).",

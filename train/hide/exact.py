@@ -156,9 +156,13 @@ class NoiseSpace:
         limit = INTEGER_LIMITS[self.storage]
         return torch.clamp(torch.round(params / self.scale), -limit, limit).to(self.storage)
 
+    def width(self, dims: int) -> int:
+        """P, the params per pixel for noise of `dims` values."""
+        return dims if self.basis is None else self.basis.shape[1]
+
     def zeros(self, m: int, dims: int, device: torch.device) -> torch.Tensor:
         """Params of zero noise offset: (m, P)."""
-        return torch.zeros(m, dims if self.basis is None else self.basis.shape[1], device=device)
+        return torch.zeros(m, self.width(dims), device=device)
 
 
 def sample_outputs(secret_view: SolverView, index: torch.Tensor, noise: torch.Tensor) -> torch.Tensor:

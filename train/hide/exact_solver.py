@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Callable
 
 import torch
 
@@ -15,23 +15,14 @@ from noisenerf.train.hide.compact import CompactSettings, in_basis, solver_view,
 from noisenerf.train.hide.exact import (ChunkProblem, ExactSettings, NoiseSpace, SolveCounts, is_lifted, rescue,
                                         solve_exact)
 from noisenerf.train.hide.secret_view import BranchView, SecretView
-from noisenerf.train.hide.solver import ChunkPool, Solver, TileSolution, chunk_seed, storage_dtype
+from noisenerf.train.hide.solver import Solver, TileSolution, chunk_seed, storage_dtype
 
 if TYPE_CHECKING:
     from noisenerf.train.hide.plan import HideConfig
-    from noisenerf.train.hide.progress import Progress
 
 CPU_THREADS = 1  # see ExactSolver.threads
 ESCAPE_DTYPE = torch.float16  # a compact tile's escaped pixels store full noise as the ray layout does
 COUNTS = ("iterations", "jacobians", "renders", "restarts")
-
-
-def exact_space(secret_view: SecretView, config: HideConfig, k: int, pixels: torch.Tensor) -> NoiseSpace:
-    """Where tile k's exact solve looks for noise: the tile's compact basis, or the full float noise."""
-    if config.layout == "compact":
-        return tile_space(secret_view, pixels, config.get(CompactSettings), config.get(ExactSettings),
-                          storage_dtype(config.dtype), chunk_seed(config, k, -1))
-    return NoiseSpace(storage_dtype(config.dtype))
 
 
 def stored_noise(space: NoiseSpace, params: torch.Tensor, escaped: torch.Tensor, escape_noise: torch.Tensor,
@@ -94,6 +85,7 @@ class ExactSolver(Solver):
     layouts = ("compact", "ray", "sample")
     default_samples = 1  # see exact.py: one sample per ray makes every pixel a piecewise-linear problem
     exact = True
+    spreads = True
 
     def check(self, config: HideConfig) -> None:
         if config.n_samples != 1:
@@ -117,47 +109,53 @@ class ExactSolver(Solver):
         finally:
             torch.set_num_threads(before)
 
-    def solve_tile(self, secret_view: SecretView, pixels: torch.Tensor, shape: tuple[int, int], config: HideConfig,
-                   progress: Progress, k: int, bar, pool: ChunkPool) -> TileSolution:
-        """Solve a tile chunk by chunk, resuming saved chunks and spreading the others over the pool's
-        workers (each gets its chunk's rays alone); the report has the solver's counts and the number of
-        escaped pixels."""
-        space = exact_space(secret_view, config, k, pixels)
-        n, dims = secret_view.n_rays, secret_view.noise_dims
-        params = space.zeros(n, dims, pixels.device)
-        escaped = torch.zeros(n, dtype=torch.bool, device=pixels.device)
-        escape_noise = torch.zeros(n, dims, device=pixels.device)
-        totals = dict.fromkeys(COUNTS, 0)
-        chunks = [torch.arange(start, min(start + config.chunk_pixels, n), device=pixels.device)
-                  for start in range(0, n, config.chunk_pixels)]
+    def prepares(self, config: HideConfig) -> bool:
+        return config.layout == "compact"
 
-        def merge_chunk(index: torch.Tensor, saved: dict[str, torch.Tensor]) -> None:
-            """A solved chunk's params, escapes and counts into the tile's; the bar advances."""
-            nonlocal totals
-            params[index] = saved["noise"].to(params.device)
-            if "escaped" in saved:
-                escaped[index] = saved["escaped"].bool().to(escaped.device)
-                escape_noise[index] = saved["escape_noise"].to(escape_noise.device)
-            counts = dict(zip(totals, saved["counts"].tolist()))
-            totals = {name: max(value, counts[name]) if name == "iterations" else value + counts[name]
-                      for name, value in totals.items()}
-            bar.update(len(index))
+    def prepare(self, secret_view: SecretView, pixels: torch.Tensor, config: HideConfig, k: int) -> NoiseSpace:
+        """A compact tile's basis, from its own seed (chunk_seed's chunk −1)."""
+        return tile_space(secret_view, pixels, config.get(CompactSettings), config.get(ExactSettings),
+                          storage_dtype(config.dtype), chunk_seed(config, k, -1))
 
-        unsolved = []
-        for c, index in enumerate(chunks):
-            layout = {"noise": ((len(index), params.shape[1]), torch.float32), "counts": ((len(totals),), torch.int64)}
-            if space.basis is not None:
-                layout.update(escaped=((len(index),), torch.uint8), escape_noise=((len(index), dims), torch.float32))
-            saved = progress.load(k, c, layout, lambda tensors: sound_chunk(tensors, space))
-            if saved is None:
-                unsolved.append(c)
-            else:
-                merge_chunk(index, saved)
-        jobs = [(secret_view.subset(chunks[c]), torch.arange(len(chunks[c]), device=pixels.device), pixels[chunks[c]],
-                 space, config, chunk_seed(config, k, c)) for c in unsolved]
-        for i, saved in pool.solve_all(solve_chunk, jobs):
-            progress.save(k, unsolved[i], saved)
-            merge_chunk(chunks[unsolved[i]], saved)
+    def part_pixels(self, config: HideConfig) -> int:
+        return config.chunk_pixels
+
+    def solve_part(self, secret_view: SecretView, rows: range, pixels: torch.Tensor, config: HideConfig, k: int,
+                   part: int, prepared: NoiseSpace | None) -> dict[str, torch.Tensor]:
+        """Chunk `part`: solved in a view of its rays alone (ray i being ray rows[i] of the tile)."""
+        index = torch.arange(rows.start, rows.stop, device=pixels.device)
+        return solve_chunk(secret_view.subset(index), torch.arange(len(rows), device=pixels.device), pixels,
+                           chunk_space(config, prepared), config, chunk_seed(config, k, part))
+
+    def part_layout(self, config: HideConfig, rows: int, dims: int, prepared: NoiseSpace | None
+                    ) -> tuple[dict, Callable]:
+        space = chunk_space(config, prepared)
+        layout = {"noise": ((rows, space.width(dims)), torch.float32), "counts": ((len(COUNTS),), torch.int64)}
+        if space.basis is not None:
+            layout.update(escaped=((rows,), torch.uint8), escape_noise=((rows, dims), torch.float32))
+        return layout, lambda tensors: sound_chunk(tensors, space)
+
+    def assemble(self, secret_view: SecretView, pixels: torch.Tensor, shape: tuple[int, int], config: HideConfig,
+                 prepared: NoiseSpace | None, parts: list[dict[str, torch.Tensor]]) -> TileSolution:
+        """The chunks' params, escapes and counts merged; the report has the solver's counts and the number
+        of escaped pixels."""
+        space = chunk_space(config, prepared)
+        device = pixels.device
+        params = torch.cat([part["noise"] for part in parts]).to(device)
+        counts = torch.stack([part["counts"] for part in parts])
+        totals = {name: int(counts[:, i].max() if name == "iterations" else counts[:, i].sum())
+                  for i, name in enumerate(COUNTS)}
+        if space.basis is None:
+            escaped = torch.zeros(len(params), dtype=torch.bool, device=device)
+            escape_noise = torch.zeros(len(params), secret_view.noise_dims, device=device)
+        else:
+            escaped = torch.cat([part["escaped"] for part in parts]).bool().to(device)
+            escape_noise = torch.cat([part["escape_noise"] for part in parts]).to(device)
         noise = torch.where(escaped[:, None, None], escape_noise[:, None, :], space.expand(params))
         stored = stored_noise(space, params, escaped, escape_noise, noise_shape(config.layout, *shape, 1, -1))
         return TileSolution(noise, {**totals, "escaped": int(escaped.sum())}, stored)
+
+
+def chunk_space(config: HideConfig, prepared: NoiseSpace | None) -> NoiseSpace:
+    """Where a tile's chunks look for noise: its compact basis, or the full noise in the storage dtype."""
+    return prepared if prepared is not None else NoiseSpace(storage_dtype(config.dtype))

@@ -315,19 +315,23 @@ def solve_blocks(secret_view: SecretView, pixels: torch.Tensor, layout_samples: 
                  cached: Callable[[int], dict | None] = lambda b: None) -> Iterator[BlockResult]:
     """The view's blocks one after another, each solved (or taken from cached(b), a dict with "noise"
     and "colors" as BlockResult has them). pixels: (n_rays, 3) uint8."""
-    n_points = len(recorded_points(settings))
     for b, start in enumerate(range(0, secret_view.n_rays, settings.block_pixels)):
         index = torch.arange(start, min(start + settings.block_pixels, secret_view.n_rays), device=pixels.device)
         saved = cached(b)
         if saved is not None:
             yield BlockResult(index, saved["noise"], saved["colors"], solved=False)
             continue
-        recorded = []
-        noise = solve_block(secret_view, index, pixels[index],
-                            start_noise(secret_view, index, pixels[index], layout_samples, clean, settings),
-                            clean.colors[index], settings, lambda t, colors, loss: recorded.append(colors.cpu()))
-        colors = torch.stack(recorded) if recorded else torch.zeros(n_points, index.numel(), 3)
-        yield BlockResult(index, noise.to(dtype).cpu(), colors, solved=True)
+        yield solved_block(secret_view, index, pixels[index], layout_samples, settings, clean, dtype)
+
+
+def solved_block(secret_view: SecretView, index: torch.Tensor, pixels: torch.Tensor, layout_samples: int,
+                 settings: PaperSettings, clean: ViewSurvey, dtype: torch.dtype) -> BlockResult:
+    """One block of rays `index` (m,) solved toward its pixels (m, 3) uint8 from its revival start."""
+    recorded = []
+    noise = solve_block(secret_view, index, pixels, start_noise(secret_view, index, pixels, layout_samples, clean, settings),
+                        clean.colors[index], settings, lambda t, colors, loss: recorded.append(colors.cpu()))
+    colors = torch.stack(recorded) if recorded else torch.zeros(len(recorded_points(settings)), index.numel(), 3)
+    return BlockResult(index, noise.to(dtype).cpu(), colors, solved=True)
 
 
 def start_noise(secret_view: SecretView, index: torch.Tensor, pixels: torch.Tensor, layout_samples: int,

@@ -1,22 +1,21 @@
-"""`--method paper`: the paper's optimisation (paper.py), a tile's blocks one after another, each saved
-so a hide resumes per block; noise per sample (the paper's layout) or per ray."""
+"""`--method paper`: the paper's optimisation (paper.py), a tile's blocks as parts (each saved so a hide
+resumes per block) after a survey of its clean view; noise per sample (the paper's layout) or per ray."""
 
 from __future__ import annotations
 
 import argparse
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Callable
 
 import torch
 
 from noisenerf.runtime.bundle import VectorNoise, noise_shape
 from noisenerf.runtime.metrics import tile_quality
-from noisenerf.train.hide.paper import PaperSettings, recipe, recorded_points, solve_blocks, survey
+from noisenerf.train.hide.paper import PaperSettings, ViewSurvey, recipe, recorded_points, solved_block, survey
 from noisenerf.train.hide.secret_view import SecretView, pass_samples_for
-from noisenerf.train.hide.solver import ChunkPool, Solver, TileSolution, storage_dtype
+from noisenerf.train.hide.solver import Solver, TileSolution, storage_dtype
 
 if TYPE_CHECKING:
     from noisenerf.train.hide.plan import HideConfig
-    from noisenerf.train.hide.progress import Progress
 
 
 class PaperSolver(Solver):
@@ -31,35 +30,45 @@ class PaperSolver(Solver):
                      if value is not None}
         return (recipe(args.recipe, pass_samples=pass_samples_for(device), **overrides),)
 
-    def solve_tile(self, secret_view: SecretView, pixels: torch.Tensor, shape: tuple[int, int], config: HideConfig,
-                   progress: Progress, k: int, bar, pool: ChunkPool) -> TileSolution:
-        """The tile's blocks (resuming saved ones). Its noise waits on the CPU in the storage dtype, so
-        device memory holds one block. The report has the tile's quality at each recorded iteration and
-        how many of its rays were dead (every density ≤ 0) before solving. Blocks run one after another
-        in this process (each already fills the device); the pool is left unused."""
-        settings = config.get(PaperSettings)
-        points = recorded_points(settings)
-        clean = survey(secret_view, settings.pass_samples)
-        stored_shape = noise_shape(config.layout, *shape, secret_view.n_samples, secret_view.noise_dims)
-        layout_samples = stored_shape[2] if config.layout == "sample" else 1
-        noise = torch.zeros(secret_view.n_rays, layout_samples, secret_view.noise_dims,
-                            dtype=storage_dtype(config.dtype))
-        colors = torch.zeros(len(points), secret_view.n_rays, 3)
+    def prepares(self, config: HideConfig) -> bool:
+        return True
 
-        def saved_block(b: int) -> dict | None:
-            m = min(settings.block_pixels, secret_view.n_rays - b * settings.block_pixels)
-            return progress.load(k, b, {"noise": ((m, *noise.shape[1:]), noise.dtype),
-                                               "colors": ((len(points), m, 3), torch.float32)})
+    def prepare(self, secret_view: SecretView, pixels: torch.Tensor, config: HideConfig, k: int) -> ViewSurvey:
+        """The clean view: revival's donors and the report's dead rays."""
+        return survey(secret_view, config.get(PaperSettings).pass_samples)
 
-        for b, block in enumerate(solve_blocks(secret_view, pixels, layout_samples, settings, clean, noise.dtype,
-                                               saved_block)):
-            if block.solved:
-                progress.save(k, b, {"noise": block.noise, "colors": block.colors})
-            noise[block.index.cpu()] = block.noise
-            colors[:, block.index.cpu()] = block.colors
-            bar.update(block.index.numel())
+    def part_pixels(self, config: HideConfig) -> int:
+        return config.get(PaperSettings).block_pixels
+
+    def solve_part(self, secret_view: SecretView, rows: range, pixels: torch.Tensor, config: HideConfig, k: int,
+                   part: int, prepared: ViewSurvey) -> dict[str, torch.Tensor]:
+        """Block `part`, its noise on the CPU in the storage dtype (so device memory holds one block), and
+        its colours at each recorded iteration."""
+        index = torch.arange(rows.start, rows.stop, device=pixels.device)
+        block = solved_block(secret_view, index, pixels, layout_samples(config), config.get(PaperSettings), prepared,
+                             storage_dtype(config.dtype))
+        return {"noise": block.noise, "colors": block.colors}
+
+    def part_layout(self, config: HideConfig, rows: int, dims: int, prepared: ViewSurvey) -> tuple[dict, Callable]:
+        points = recorded_points(config.get(PaperSettings))
+        return ({"noise": ((rows, layout_samples(config), dims), storage_dtype(config.dtype)),
+                 "colors": ((len(points), rows, 3), torch.float32)}, lambda tensors: True)
+
+    def assemble(self, secret_view: SecretView, pixels: torch.Tensor, shape: tuple[int, int], config: HideConfig,
+                 prepared: ViewSurvey, parts: list[dict[str, torch.Tensor]]) -> TileSolution:
+        """The blocks' noise; the report has the tile's quality at each recorded iteration and how many of
+        its rays were dead (every density ≤ 0) before solving."""
+        points = recorded_points(config.get(PaperSettings))
+        noise = torch.cat([part["noise"] for part in parts])
+        colors = torch.cat([part["colors"] for part in parts], dim=1)
         target = pixels.cpu().float() / 255.0
         records = [{"iteration": t, "loss": float(((colors[i] - target) ** 2).sum(-1).mean()),
                     **tile_quality(colors[i].numpy(), pixels.cpu().numpy(), shape)} for i, t in enumerate(points)]
-        report = {"records": records, "dead_rays": int((~clean.alive).sum())}
+        report = {"records": records, "dead_rays": int((~prepared.alive).sum())}
+        stored_shape = noise_shape(config.layout, *shape, secret_view.n_samples, secret_view.noise_dims)
         return TileSolution(noise, report, VectorNoise(noise.reshape(stored_shape).numpy()))
+
+
+def layout_samples(config: HideConfig) -> int:
+    """Noise vectors per ray the layout stores: one per sample (the paper's), or one per ray."""
+    return config.n_samples if config.layout == "sample" else 1

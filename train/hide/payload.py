@@ -39,10 +39,10 @@ def capacity(secret: np.ndarray, tile_size: int) -> dict:
 def hide_payload(scene: Scene, record: Record, output: Path, config: HideConfig, device: torch.device,
                  passphrase: bytes | None = None, seal: Seal | None = None, force: bool = False,
                  show_progress: bool = True, announce: Callable[[dict], None] | None = None,
-                 workers: int | None = None) -> dict:
+                 workers: int | None = None, executor: str = "local", ray_address: str | None = None) -> dict:
     """Hide a record; sealed under `passphrase` when one is given, with `seal` (default: a fresh one,
     random salt and nonce; tests pass a fixed one). announce(capacity) is called before the hide starts;
-    workers as run.hide takes them."""
+    workers, executor and ray_address as run.hide takes them."""
     if config.method != "exact":
         raise UserError("a file or sealed payload needs --method exact (the paper's method does not reproduce "
                         "every byte)")
@@ -56,7 +56,7 @@ def hide_payload(scene: Scene, record: Record, output: Path, config: HideConfig,
     if announce is not None:
         announce(room)
     report = hide(scene, secret, output, config, device, force=force, show_progress=show_progress, payload=payload,
-                  workers=workers)
+                  workers=workers, executor=executor, ray_address=ray_address)
     if sealing is not None:
         try:
             add_bundle_tag(output, sealing[1])

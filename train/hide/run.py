@@ -1,15 +1,17 @@
 """`noisenerf hide`: train the noise that makes a frozen scene render a secret (Noise-NeRF).
 
-The secret is planned into tiles (plan.py), one viewpoint each; each tile's secret view (secret_view.py)
-goes to the chosen method (methods.py), which solves it in resumable parts saved beside the output
-(OUT.partial/, progress.py), so an interrupted hide run again with the same arguments resumes where it
-stopped and writes a byte-identical bundle.
+The secret is planned into tiles (plan.py), one viewpoint each; the chosen method (methods.py) cuts each
+tile into parts, solved as pure jobs (jobs.py) wherever the executor runs them (executors.py), every tile
+at once. This driver alone saves each finished part beside the output (OUT.partial/, progress.py), so an
+interrupted hide run again with the same arguments resumes where it stopped and writes a byte-identical
+bundle, and assembles the tiles and the bundle.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import time
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -17,72 +19,129 @@ import torch
 from tqdm import tqdm
 
 import noisenerf
-from noisenerf.runtime.bundle import Bundle, secret_digest
+from noisenerf.runtime.bundle import Bundle, Tile, secret_digest
 from noisenerf.runtime.cores import available_cores
 from noisenerf.runtime.errors import InexactResult, UserError
 from noisenerf.runtime.files import check_output_path
 from noisenerf.runtime.limits import MAX_RAY_LAYOUT_SAMPLES, checked_image_size
 from noisenerf.runtime.metrics import tile_quality
+from noisenerf.train.hide.executors import EXECUTORS, open_executor
+from noisenerf.train.hide.jobs import PREPARE, FieldWeights, Job, tile_view
 from noisenerf.train.hide.methods import METHODS
 from noisenerf.train.hide.plan import HideConfig, plan, run_key
 from noisenerf.train.hide.progress import Progress
-from noisenerf.train.hide.secret_view import SecretView, pass_samples_for
-from noisenerf.train.hide.solver import ChunkPool
+from noisenerf.train.hide.secret_view import pass_samples_for
 from noisenerf.train.scene.scene import Scene
 
 
 PAYLOAD_IS_EXACT = "a payload is revealed whole or not at all: --allow-inexact is for images"
 
 
+@dataclass
+class TileWork:
+    """A tile on its way through the hide: its pixels (n, 3) uint8 on the CPU, its parts' rows, its shared
+    result once known, and its parts' results as they come."""
+
+    k: int
+    tile: Tile
+    pixels: torch.Tensor
+    parts: list[range]
+    started: float
+    prepared: object = None
+    solved: dict = field(default_factory=dict)
+
+
 def hide(scene: Scene, secret: np.ndarray, output: Path, config: HideConfig, device: torch.device,
          force: bool = False, show_progress: bool = True, payload: dict | None = None,
-         workers: int | None = None, allow_inexact: bool = False) -> dict:
+         workers: int | None = None, allow_inexact: bool = False, executor: str = "local",
+         ray_address: str | None = None) -> dict:
     """Hide `secret` (H, W, 3) uint8 in the scene; write the bundle to `output`; return the report.
     payload: the bundle's payload object when the secret carries one (train.payload), else None.
     A method that promises exactness (Solver.exact) and leaves a tile's pixels off raises InexactResult at
-    that tile, writing no bundle and keeping the solved chunks for a resume, unless allow_inexact (never for
+    that tile, writing no bundle and keeping the solved parts for a resume, unless allow_inexact (never for
     a payload, which is revealed whole or not at all).
-    workers: processes a CPU solve may spread its chunks over (None: every core this process may use);
-    the bundle's bytes never depend on it. They are spawned, so a script that calls hide on a secret of
-    several chunks guards its top level with `if __name__ == "__main__":`, as multiprocessing requires."""
+    executor: where the jobs run (executors.py): "local", over `workers` processes on a CPU (None: every
+    core this process may use), or "ray", at ray_address (None: RAY_ADDRESS, else a local cluster); the
+    bundle's bytes never depend on either. Local workers are spawned, so a script that calls hide on a
+    secret of several jobs guards its top level with `if __name__ == "__main__":`, as multiprocessing requires."""
     output = check_output_path(output, force=force)
     checked_image_size(secret.shape[1], secret.shape[0], "the secret image")  # what a bundle may hold
     if config.layout == "ray" and config.n_samples > MAX_RAY_LAYOUT_SAMPLES:
         raise UserError(f"the ray layout serves at most {MAX_RAY_LAYOUT_SAMPLES} samples per ray, "
                         f"not {config.n_samples}")
+    if executor not in EXECUTORS:
+        raise UserError(f"unknown executor {executor!r} ({' or '.join(EXECUTORS)})")
     hide_plan = plan(scene, secret, config)
     scene.to(device)
-    field = scene.render_field
+    noise_dims = scene.render_field.config.noise_dims
     solver = METHODS[config.method]
     if allow_inexact and payload is not None:
         raise UserError(PAYLOAD_IS_EXACT)
-    workers = (available_cores() if workers is None else workers) if device.type == "cpu" else 1
-    with Progress(output, run_key(scene, secret, config)) as progress, ChunkPool(workers) as pool:
-        tiles, reports = [], []
+    workers = (available_cores() if workers is None else workers) if device.type == "cpu" and solver.spreads else 1
+    weights = FieldWeights.of(scene, hide_plan.tiles[0].network)
+    with Progress(output, run_key(scene, secret, config)) as progress, \
+            open_executor(executor, weights, workers, device, ray_address) as jobs:
         started = time.perf_counter()
         bar = tqdm(total=secret.shape[0] * secret.shape[1], unit="px", desc=f"hide ({config.method})",
                    disable=not show_progress, dynamic_ncols=True)
-        for k, tile in enumerate(hide_plan.tiles):
-            tile_start = time.perf_counter()
-            x0, y0, w, h = tile.rect
-            secret_view = SecretView(scene.fields()[tile.network], tile, scene.config.render, device)
-            pixels = torch.tensor(secret[y0:y0 + h, x0:x0 + w].reshape(-1, 3), device=device)
-            with solver.threads(device):  # the check below is a few large passes, for every core
-                solved = solver.solve_tile(secret_view, pixels, (h, w), config, progress, k, bar, pool)
+        works = [tile_work(k, tile, secret, solver.part_pixels(config)) for k, tile in enumerate(hide_plan.tiles)]
+        tiles, reports = [None] * len(works), [None] * len(works)
+
+        def job(work: TileWork, part: int, rows: range) -> Job:
+            return Job(work.k, part, work.tile, rows, work.pixels[rows.start:rows.stop], config, str(device))
+
+        def finish(work: TileWork) -> None:
+            """The tile assembled from its parts and checked by rendering it whole."""
+            x0, y0, w, h = work.tile.rect
+            secret_view = tile_view(weights, work.tile, device)  # the jobs' own where they ran in this process
+            pixels = work.pixels.to(device)
+            solved = solver.assemble(secret_view, pixels, (h, w), config, work.prepared,
+                                     [work.solved.pop(c) for c in range(len(work.parts))])
             colors = secret_view.render_all(solved.noise, pass_samples_for(device))
             quality = tile_quality(colors.cpu().numpy(), pixels.cpu().numpy(), (h, w))
             if solver.exact and quality["inexact_pixels"] and not allow_inexact:
                 raise InexactResult(
-                    f"tile {k} (view {tile.view}, {w}x{h} px at x={x0}, y={y0}) has {quality['inexact_pixels']} "
-                    f"pixels off, by up to {quality['max_error']} levels; no bundle written (solved parts kept in "
-                    f"{progress.directory} for a resume; --allow-inexact writes the bundle anyway)")
-            tiles.append(dataclasses.replace(tile, noise=solved.stored))
-            reports.append({"rect": list(tile.rect), "view": tile.view, **quality,
-                            **solved.report, "seconds": round(time.perf_counter() - tile_start, 2)})
+                    f"tile {work.k} (view {work.tile.view}, {w}x{h} px at x={x0}, y={y0}) has "
+                    f"{quality['inexact_pixels']} pixels off, by up to {quality['max_error']} levels; no bundle "
+                    f"written (solved parts kept in {progress.directory} for a resume; --allow-inexact writes the "
+                    f"bundle anyway)")
+            tiles[work.k] = dataclasses.replace(work.tile, noise=solved.stored)
+            reports[work.k] = {"rect": list(work.tile.rect), "view": work.tile.view, **quality, **solved.report,
+                               "seconds": round(time.perf_counter() - work.started, 2)}
+
+        def start_parts(work: TileWork) -> None:
+            """The tile's saved parts taken, the others submitted; a tile with none left is finished."""
+            for c, rows in enumerate(work.parts):
+                layout, sound = solver.part_layout(config, len(rows), noise_dims, work.prepared)
+                saved = progress.load(work.k, c, layout, sound)
+                if saved is None:
+                    jobs.submit(job(work, c, rows), work.prepared)
+                else:
+                    work.solved[c] = saved
+                    bar.update(len(rows))
+            if len(work.solved) == len(work.parts):
+                finish(work)
+
+        for work in works:  # every tile's jobs at once: tiles are independent
+            if solver.prepares(config):
+                jobs.submit(job(work, PREPARE, range(len(work.pixels))))
+            else:
+                start_parts(work)
+        for done, result in jobs.results():
+            work = works[done.k]
+            if done.part == PREPARE:
+                work.prepared = result
+                start_parts(work)
+                continue
+            progress.save(done.k, done.part, result)
+            work.solved[done.part] = result
+            bar.update(len(done.rows))
+            if len(work.solved) == len(work.parts):
+                finish(work)
         bar.close()
         bundle = Bundle(model_fingerprint=scene.fingerprint(), width=secret.shape[1], height=secret.shape[0],
                         secret_sha256=secret_digest(secret), layout=config.layout,
-                        noise_dims=field.config.noise_dims, dtype=config.dtype, tiles=tuple(tiles),
+                        noise_dims=noise_dims, dtype=config.dtype, tiles=tuple(tiles),
                         extra={"method": config.method, "noisenerf": noisenerf.__version__,
                                "config": config.to_dict()}, payload=payload,
                         coefficients=tiles[0].noise.stored.shape[-1] if config.layout == "compact" else None)
@@ -97,3 +156,12 @@ def hide(scene: Scene, secret: np.ndarray, output: Path, config: HideConfig, dev
         "bundle_bytes": output.stat().st_size, "bytes_per_pixel": output.stat().st_size / n_pixels,
         "seconds": round(time.perf_counter() - started, 2),
     }
+
+
+def tile_work(k: int, tile: Tile, secret: np.ndarray, part_pixels: int) -> TileWork:
+    """Tile k's pixels and its parts of `part_pixels` rays each."""
+    x0, y0, w, h = tile.rect
+    n = w * h
+    return TileWork(k, tile, torch.tensor(secret[y0:y0 + h, x0:x0 + w].reshape(-1, 3)),
+                    [range(start, min(start + part_pixels, n)) for start in range(0, n, part_pixels)],
+                    time.perf_counter())

@@ -3,20 +3,18 @@
 A method (`--method NAME`) is one Solver: it owns its settings dataclasses (each recorded in the bundle
 under its `key`), its defaults (layouts, samples per ray, network), its checks, its CLI flags and how it
 solves one tile, resumably (its flags are declared in cli/main.py, torch-free). `methods.py` registers
-them; `run.hide` plans tiles, renders each tile's secret view and hands it to the method, with a
-ChunkPool of worker processes for independent parts. A new method is one module with a Solver plus one
-registry line.
+them. A method cuts a tile into parts (`part_pixels` rays each), solved independently by `solve_part`,
+after the tile's shared job `prepare` where it `prepares`; both are pure (jobs.py runs them wherever an
+executor puts them), and `assemble` makes the tile from the parts' results. `run.hide` plans, saves parts
+for a resume, and assembles. A new method is one module with a Solver plus one registry line.
 """
 
 from __future__ import annotations
 
 import argparse
 import contextlib
-import multiprocessing
-import pickle
-import signal
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Callable, ClassVar, Iterator
+from typing import TYPE_CHECKING, Callable, ClassVar
 
 import torch
 
@@ -25,7 +23,6 @@ from noisenerf.train.hide.secret_view import SecretView
 
 if TYPE_CHECKING:
     from noisenerf.train.hide.plan import HideConfig
-    from noisenerf.train.hide.progress import Progress
 
 
 @dataclass(frozen=True)
@@ -50,56 +47,8 @@ def chunk_seed(config: HideConfig, tile: int, chunk: int) -> int:
     return config.seed * 1_000_003 + tile * 10_007 + chunk
 
 
-def run_job(item: tuple[int, Callable, bytes]) -> tuple[int, bytes]:
-    """A worker's side of ChunkPool.solve_all: (i, solve, pickled args) -> (i, pickled result). Plain pickle
-    (between our own processes, never from a file) keeps tensors out of shared memory, where
-    multiprocessing's torch reducers would put them, and no_grad keeps results picklable."""
-    i, solve, job = item
-    with torch.no_grad():
-        return i, pickle.dumps(solve(*pickle.loads(job)))
-
-
-def start_worker() -> None:
-    """One torch thread (ExactSolver.threads' reasons); Ctrl-C is the parent's to handle."""
-    torch.set_num_threads(1)
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
-
-
-class ChunkPool:
-    """Worker processes a solver may spread independent chunks over, each with one torch thread (the
-    reasons of ExactSolver.threads: no OpenMP pool spinning beside other work). They start at the first
-    `solve_all` with more than one job, so a hide of one chunk never pays their start (~1 s), and stop
-    with the hide, at once (terminated). Results never depend on the number of workers: each chunk is
-    solved from its own inputs and seed, exactly as in one process."""
-
-    def __init__(self, workers: int):
-        self.workers = max(1, workers)
-        self.pool = None
-
-    def solve_all(self, solve: Callable, jobs: list[tuple]) -> Iterator[tuple[int, object]]:
-        """(i, solve(*jobs[i])) for every job, in the order they finish; `solve` must be a module-level
-        function when there are workers. A job that raises stops the rest."""
-        if self.workers == 1 or len(jobs) <= 1:
-            for i, job in enumerate(jobs):
-                yield i, solve(*job)
-            return
-        if self.pool is None:
-            self.pool = multiprocessing.get_context("spawn").Pool(self.workers, initializer=start_worker)
-        pickled = [(i, solve, pickle.dumps(job)) for i, job in enumerate(jobs)]
-        for i, result in self.pool.imap_unordered(run_job, pickled):
-            yield i, pickle.loads(result)
-
-    def __enter__(self) -> ChunkPool:
-        return self
-
-    def __exit__(self, *exc) -> None:
-        if self.pool is not None:  # every result is in hand, or the hide failed: nothing to wait for
-            self.pool.terminate()  # (a clean close waited ~0.5 s for the workers' interpreters to exit)
-            self.pool.join()
-
-
 class Solver:
-    """A hiding method. Subclasses set the class attributes and implement solve_tile."""
+    """A hiding method. Subclasses set the class attributes and implement the parts' methods."""
 
     name: ClassVar[str]  # the --method value, recorded in bundles
     settings_types: ClassVar[tuple[type, ...]]  # frozen dataclasses with a `key`, their defaults in every config
@@ -107,6 +56,7 @@ class Solver:
     default_samples: ClassVar[int]  # samples per ray of its secret view
     default_network: ClassVar[str | None] = None  # None: the scene's render network
     exact: ClassVar[bool] = False  # whether it promises every 8-bit value: run.hide then refuses to write less
+    spreads: ClassVar[bool] = False  # whether the local executor spreads its parts over processes on a CPU
 
     def check(self, config: HideConfig) -> None:
         """Refuse settings this method cannot honour (UserError)."""
@@ -120,8 +70,30 @@ class Solver:
         """A context in which the solve runs (thread settings); nothing by default."""
         return contextlib.nullcontext()
 
-    def solve_tile(self, secret_view: SecretView, pixels: torch.Tensor, shape: tuple[int, int], config: HideConfig,
-                   progress: Progress, k: int, bar, pool: ChunkPool) -> TileSolution:
-        """Solve tile k: pixels (n, 3) uint8 of a (height, width) tile, saving resumable parts in progress;
-        independent parts may go to the pool's workers."""
+    def prepares(self, config: HideConfig) -> bool:
+        """Whether a tile's parts need a shared result (`prepare`) first."""
+        return False
+
+    def prepare(self, secret_view: SecretView, pixels: torch.Tensor, config: HideConfig, k: int) -> object:
+        """Tile k's shared result from its view and pixels (n, 3) uint8: pure, run as a job."""
+        raise NotImplementedError
+
+    def part_pixels(self, config: HideConfig) -> int:
+        """Rays per part: solved, saved and resumed together."""
+        raise NotImplementedError
+
+    def solve_part(self, secret_view: SecretView, rows: range, pixels: torch.Tensor, config: HideConfig, k: int,
+                   part: int, prepared: object) -> dict[str, torch.Tensor]:
+        """Part `part` of tile k, the tile's rays `rows` with their pixels (m, 3) uint8: its tensors as
+        saved for a resume. Pure, run as a job; `prepared` is the tile's shared result (None without one)."""
+        raise NotImplementedError
+
+    def part_layout(self, config: HideConfig, rows: int, dims: int, prepared: object) -> tuple[dict, Callable]:
+        """What a saved part of `rows` rays must hold, (shape, dtype) by name, and the check of its values
+        beyond that (Progress.load)."""
+        raise NotImplementedError
+
+    def assemble(self, secret_view: SecretView, pixels: torch.Tensor, shape: tuple[int, int], config: HideConfig,
+                 prepared: object, parts: list[dict[str, torch.Tensor]]) -> TileSolution:
+        """The solved tile from its parts' results, in order; pixels (n, 3) uint8 of a (height, width) tile."""
         raise NotImplementedError

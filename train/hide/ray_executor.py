@@ -1,0 +1,85 @@
+"""`--executor ray`: a hide's jobs as Ray tasks, on a running cluster or a local one started for the hide.
+
+The field's weights go to the object store once (ray.put) and every task reads them from there; a
+tile's shared result likewise, once per tile. A task asks for one CPU, or one GPU on CUDA. Ray retries a
+task whose worker died (MAX_RETRIES); a task that fails for good stops the hide with one line. Ray is an
+optional extra, imported only here, when the executor is chosen.
+"""
+
+from __future__ import annotations
+
+from typing import Iterator
+
+import torch
+
+from noisenerf.runtime.errors import UserError
+from noisenerf.train.hide.executors import Executor
+from noisenerf.train.hide.jobs import PREPARE, FieldWeights, Job, run_job
+
+MAX_RETRIES = 3  # a task's reruns after its worker dies (a node lost, a process killed); not for errors
+INSTALL = "--executor ray needs Ray: pip install 'noisenerf[cluster]'"
+
+
+def import_ray():
+    """The ray module, or one clear line on how to install it."""
+    try:
+        import ray
+    except ModuleNotFoundError as error:
+        if error.name != "ray":
+            raise
+        raise UserError(INSTALL) from None
+    return ray
+
+
+class RayExecutor(Executor):
+    """Jobs as Ray tasks. Connects to `address` (None: RAY_ADDRESS, else a local cluster it starts and
+    stops), unless this process is connected already (then it leaves the connection as it found it)."""
+
+    def __init__(self, weights: FieldWeights, device: torch.device, address: str | None):
+        self.ray = import_ray()
+        self.started = not self.ray.is_initialized()
+        if self.started:
+            try:
+                self.ray.init(address=address, include_dashboard=False, log_to_driver=False)
+            except ConnectionError as error:
+                raise UserError(f"cannot connect to the Ray cluster at {address or 'RAY_ADDRESS'}: {error}") from None
+        resources = {"num_gpus": 1} if device.type == "cuda" else {"num_cpus": 1}
+        self.task = self.ray.remote(run_job).options(max_retries=MAX_RETRIES, **resources)
+        self.weights = self.ray.put(weights)
+        self.prepared: dict[int, tuple[object, object]] = {}  # tile -> (its shared result, its object ref)
+        self.pending: dict = {}  # object ref -> job
+
+    def submit(self, job: Job, prepared: object = None) -> None:
+        if prepared is not None and self.prepared.get(job.k, (None,))[0] is not prepared:
+            self.prepared[job.k] = (prepared, self.ray.put(prepared))
+        reference = self.prepared[job.k][1] if prepared is not None else None
+        self.pending[self.task.remote(self.weights, job, reference)] = job
+
+    def results(self) -> Iterator[tuple[Job, object]]:
+        while self.pending:
+            [ready], _ = self.ray.wait(list(self.pending), num_returns=1)
+            job = self.pending.pop(ready)
+            try:
+                result = self.ray.get(ready)
+            except self.ray.exceptions.RayError as error:
+                raise UserError(f"{describe(job)} failed on the Ray cluster: {cause(error)}") from None
+            if all(other.k != job.k for other in self.pending.values()):  # the tile's last job for now
+                self.prepared.pop(job.k, None)
+            yield job, result
+
+    def __exit__(self, *exc) -> None:
+        super().__exit__(*exc)
+        for reference in self.pending:  # a failed or interrupted hide leaves nothing running
+            self.ray.cancel(reference, force=True)
+        if self.started:
+            self.ray.shutdown()
+
+
+def describe(job: Job) -> str:
+    return f"tile {job.k}'s {'shared job' if job.part == PREPARE else f'part {job.part}'}"
+
+
+def cause(error: Exception) -> str:
+    """One line for a task's failure: the job's own exception where it raised one, else Ray's."""
+    inner = getattr(error, "cause", None) or error
+    return f"{type(inner).__name__}: {str(inner).strip().splitlines()[-1] if str(inner).strip() else ''}"
