@@ -73,6 +73,16 @@ def assert_refused(result: Result | subprocess.CompletedProcess, output: Path | 
     assert output is None or not os.path.lexists(output), output
 
 
+def flip_first_float32(data: bytes) -> bytes:
+    """A bundle's bytes with the lowest byte of its first float32 tensor flipped: still a readable bundle
+    (a sealed one's tag fails)."""
+    size = int.from_bytes(data[:8], "little")
+    header = json.loads(data[8:8 + size])
+    name = next(name for name, info in header.items() if name != "__metadata__" and info["dtype"] == "F32")
+    at = 8 + size + header[name]["data_offsets"][0]
+    return data[:at] + bytes([data[at] ^ 1]) + data[at + 1:]
+
+
 # ---- tiny scenes and the reveal's inputs ----------------------------------------------------------
 
 def make_tiny_scene(seed: int = 0, **kwargs):

@@ -29,7 +29,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from helpers import make_tiny_scene
+from helpers import flip_first_float32, make_tiny_scene
 
 REPO = Path(__file__).resolve().parents[1]
 WEB = REPO / "web"
@@ -150,15 +150,6 @@ def payload_golden(folder: Path, passphrase: str | None) -> dict:
             "width": bundle.width, "height": bundle.height, "sha256": hashlib.sha256(data).hexdigest()}
 
 
-def first_float32(data: bytes) -> bytes:
-    """A bundle with the lowest mantissa byte of its first float32 tensor flipped (still a readable bundle)."""
-    size = int.from_bytes(data[:8], "little")
-    header = json.loads(data[8:8 + size])
-    name = next(name for name, info in header.items() if name != "__metadata__" and info["dtype"] == "F32")
-    at = 8 + size + header[name]["data_offsets"][0]
-    return data[:at] + bytes([data[at] ^ 1]) + data[at + 1:]
-
-
 def reformatted(data: bytes) -> bytes:
     """A bundle whose safetensors header is written with other spacing (same JSON value: the tag still holds)."""
     size = int.from_bytes(data[:8], "little")
@@ -276,7 +267,7 @@ def write_fixtures(root: Path) -> dict:
         tamper(root, "payload_sealed", "sealed_wrong_passphrase", passphrase="reference"),
         tamper(root, "payload_sealed", "sealed_no_passphrase"),
         tamper(root, "payload_sealed", "sealed_empty_passphrase", passphrase=""),
-        tamper(root, "payload_sealed", "sealed_noise_byte", edit_bundle=first_float32, passphrase=PASSPHRASE),
+        tamper(root, "payload_sealed", "sealed_noise_byte", edit_bundle=flip_first_float32, passphrase=PASSPHRASE),
         tamper(root, "payload_sealed", "sealed_metadata", passphrase=PASSPHRASE,
                edit_bundle=bundle_metadata_edit(lambda meta: meta.setdefault("extra", {}).update(note="x"))),
         tamper(root, "payload_sealed", "sealed_other_model", passphrase=PASSPHRASE,

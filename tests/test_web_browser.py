@@ -24,7 +24,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from helpers import run_reveal
+from helpers import flip_first_float32, run_reveal
 
 REPO = Path(__file__).resolve().parents[1]
 WEB = REPO / "web"
@@ -118,15 +118,6 @@ def png_pixels(data: bytes, folder: Path) -> np.ndarray:
     return load_secret(path)[0]
 
 
-def flipped_float(data: bytes) -> bytes:
-    """A sealed bundle with the lowest byte of its first float32 tensor flipped (still readable; its tag fails)."""
-    size = int.from_bytes(data[:8], "little")
-    header = json.loads(data[8:8 + size])
-    name = next(k for k, v in header.items() if k != "__metadata__" and v["dtype"] == "F32")
-    at = 8 + size + header[name]["data_offsets"][0]
-    return data[:at] + bytes([data[at] ^ 1]) + data[at + 1:]
-
-
 def test_the_demo_secret_is_the_clis_pixels(page, demo, tmp_path):
     started = time.perf_counter()
     cli = run_reveal(demo / "model.onnx", demo / "secret.bundle", "-o", tmp_path / "cli.png", "--json")
@@ -158,7 +149,7 @@ def test_refusals_read_as_the_clis(page, demo, tmp_path, case):
     passphrase = {"wrong passphrase": "not the demo's", "tampered bundle": DEMO_PASSPHRASE}.get(case)
     if case == "tampered bundle":
         bundle = tmp_path / "note.bundle"
-        bundle.write_bytes(flipped_float((demo / "note.bundle").read_bytes()))
+        bundle.write_bytes(flip_first_float32((demo / "note.bundle").read_bytes()))
     cli = run_reveal(demo / "model.onnx", bundle, "-o", tmp_path / "out.txt",
                      passphrase=None if passphrase is None else passphrase.encode())
     got = browser_reveal(page, demo / "model.onnx", bundle, passphrase)
