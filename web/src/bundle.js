@@ -199,14 +199,22 @@ async function unpackCoefficients(packed, shape, dtype, what) {
 export function expandCoefficients(coefficients, k, basis, start, stop) {
   const dims = basis.offset.length, m = stop - start;
   const out = new Float32Array(m * dims);
-  const scale = f32(basis.scale);
+  const scale = f32(basis.scale), matrix = basis.basis, offset = basis.offset;
   const params = new Float32Array(k);
+  // A zero basis entry adds +0 to a sum that is never −0, so leaving it out changes no bit; a compact tile's
+  // basis is zero on every γ(x) row (its noise moves the view direction only), most of the work.
+  // terms[first[d] .. first[d + 1]) are row d's nonzero entries, in the order numpy sums them.
+  const first = new Int32Array(dims + 1), terms = new Int32Array(dims * k);
+  for (let d = 0, n = 0; d < dims; d++, first[d] = n) {
+    for (let c = 0; c < k; c++) if (matrix[d * k + c] !== 0) terms[n++] = c;
+  }
   for (let p = 0; p < m; p++) {
-    for (let c = 0; c < k; c++) params[c] = f32(coefficients[(start + p) * k + c] * scale);
+    const row = (start + p) * k;
+    for (let c = 0; c < k; c++) params[c] = f32(coefficients[row + c] * scale);
     for (let d = 0; d < dims; d++) {
       let dot = 0;
-      for (let c = 0; c < k; c++) dot = fmaf32(params[c], basis.basis[d * k + c], dot);
-      out[p * dims + d] = f32(basis.offset[d] + dot);
+      for (let t = first[d]; t < first[d + 1]; t++) dot = fmaf32(params[terms[t]], matrix[d * k + terms[t]], dot);
+      out[p * dims + d] = f32(offset[d] + dot);
     }
   }
   const escapes = basis.escapes;
