@@ -36,6 +36,14 @@ def resolve_device(name: str):
     return torch.device(name)
 
 
+def size_argument(text: str, flag: str) -> tuple[int, int]:
+    """WIDTHxHEIGHT (e.g. 4032x3024), each 1 to 5 digits."""
+    match = re.fullmatch(r"([1-9][0-9]{0,4})x([1-9][0-9]{0,4})", text)
+    if match is None:
+        raise UserError(f"{flag} takes WIDTHxHEIGHT, e.g. 4032x3024; got {text!r:.40}")
+    return int(match[1]), int(match[2])
+
+
 def emit(report: dict, as_json: bool, lines: list[str]) -> None:
     """The result: one JSON object on stdout with --json, else readable lines."""
     if as_json:
@@ -180,7 +188,8 @@ def cmd_bench(args) -> None:
     config = BenchConfig(scene=args.scene, secret=args.secret, data=args.data, photos=tuple(args.photos),
                          view=args.view, small_width=args.small_width, twok_rows=args.twok_rows,
                          paper_width=args.paper_width, paper_iters=args.paper_iters, payload_bytes=args.payload_bytes,
-                         browser_size=args.browser_size,
+                         browser_size=args.browser_size, cluster_size=args.cluster_size,
+                         cluster_tile=args.cluster_tile, cluster_photo=size_argument(args.cluster_photo, "--cluster-photo"),
                          device=str(resolve_device(args.device)),
                          experiments=tuple(args.only.split(",")) if args.only else None)
     command = "noisenerf " + " ".join(sys.argv[1:]) if sys.argv[0].endswith("noisenerf") else "noisenerf bench ..."
@@ -286,6 +295,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--twok-rows", type=int, default=1, help="tile rows of the 2048² secret actually hidden (1-4)")
     p.add_argument("--payload-bytes", type=int, default=1 << 20, help="size of the payload experiment's file")
     p.add_argument("--browser-size", type=int, default=2048, help="side of the browser experiment's tiled secret")
+    p.add_argument("--cluster-size", type=int, default=512, help="side of the cluster experiment's multi-tile secret")
+    p.add_argument("--cluster-tile", type=int, default=128, help="its tile size")
+    p.add_argument("--cluster-photo", default="4032x3024", help="WxH of the photo the cluster experiment hides through Ray")
     p.add_argument("--only", help="comma-separated experiments, run with those they need (default: all)")
     add_device(p)
     p.add_argument("--stress", action="store_true", help="also run the full numerical stress suite")

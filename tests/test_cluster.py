@@ -9,6 +9,7 @@ where Ray or unshare is missing. CI needs `pip install '.[cluster]'` and unshare
 
 from __future__ import annotations
 
+import csv
 import importlib.util
 import json
 import os
@@ -23,6 +24,7 @@ import torch
 from helpers import assert_refused, run_main
 from noisenerf.cli.demo import DEMO_VIEW, SECRET_SIZE, TILE_SIZE
 from noisenerf.cli.main import main
+from noisenerf.runtime.images import write_image
 from noisenerf.train.hide.plan import HideConfig
 from noisenerf.train.hide.run import hide
 from noisenerf.train.scene.procedural import DEMO_SCENE, procedural_secret
@@ -90,3 +92,23 @@ def test_without_ray_the_executor_is_one_line_on_how_to_install_it(tmp_path, mon
     result = run_main(main, ["hide", str(DEMO_SCENE), str(tmp_path / "s.png"), "-o", str(tmp_path / "s.bundle"),
                              "--executor", "ray"], capfd)
     assert_refused(result, tmp_path / "s.bundle", "--executor ray needs Ray: pip install 'noisenerf[cluster]'")
+
+
+def test_the_bench_measures_ray_against_local_with_identical_bundles(tmp_path):
+    """`noisenerf bench --only cluster` at tiny sizes, in the namespace: every Ray bundle is the local one."""
+    reason = loopback_only_namespace()
+    if reason:
+        pytest.skip(reason)
+    write_image(tmp_path / "secret.png", procedural_secret(24, 20, seed=2))
+    bench = (f"{sys.executable} -m noisenerf.cli.main bench --scene {DEMO_SCENE} --secret {tmp_path / 'secret.png'} "
+             f"--only cluster --cluster-size 32 --cluster-tile 16 --cluster-photo 40x30 -o {tmp_path / 'out'}")
+    done = subprocess.run(["unshare", "-n", "sh", "-c", f"ip link set lo up && exec {bench}"], capture_output=True,
+                          text=True, timeout=900, env={**os.environ, "RAY_AUTH_MODE": "disabled"})
+    assert done.returncode == 0, done.stderr[-3000:]
+    with open(tmp_path / "out" / "cluster.csv") as handle:
+        rows = list(csv.DictReader(handle))
+    assert [row["run"] for row in rows] == ["local, 2 workers", "ray, 1 workers", "ray, 2 workers",
+                                            "photo through ray, 2 workers"]
+    assert all(row["exact"] == "True" for row in rows)
+    assert [row["identical"] for row in rows[:3]] == ["True"] * 3
+    assert rows[3]["pixels"] == str(40 * 30)

@@ -42,11 +42,12 @@ class BenchContext:
         """Where the paper-mode experiments run (paper_quality, error_vs_time, ablation); the others use the CPU."""
         return torch.device(self.config.device)
 
-    def hide(self, secret: np.ndarray, name: str, config: HideConfig) -> dict:
+    def hide(self, secret: np.ndarray, name: str, config: HideConfig, **where) -> dict:
         """hide() on the CPU into WORK/<name>.bundle, overwriting it, without progress bars; its report. An
-        inexact hide still writes its bundle: the experiments report exactness rather than stop there."""
+        inexact hide still writes its bundle: the experiments report exactness rather than stop there.
+        where: hide()'s workers and executor, when an experiment chooses them."""
         return hide(self.scene, secret, self.work / f"{name}.bundle", config, torch.device("cpu"), force=True,
-                    show_progress=False, allow_inexact=True)
+                    show_progress=False, allow_inexact=True, **where)
 
     def hide_and_reveal(self, secret: np.ndarray, name: str, config: HideConfig) -> tuple[dict, Revealed, float]:
         """self.hide, then the bundle revealed with onnxruntime: hide's report, the reveal, its seconds."""

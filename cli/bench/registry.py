@@ -10,7 +10,7 @@ from typing import Any, Callable, Mapping
 
 from noisenerf.runtime.errors import UserError
 
-from noisenerf.cli.bench import browser, coverage, exact_cost, exact_scale, paper, payload
+from noisenerf.cli.bench import browser, cluster, coverage, exact_cost, exact_scale, paper, payload
 from noisenerf.cli.bench.context import BenchContext, Measured, Section
 
 
@@ -57,6 +57,7 @@ REGISTRY = (
                coverage.describe_coverage),
     Experiment("payload", "File payloads, plain and sealed", payload.measure_payload, payload.describe_payload),
     Experiment("browser", "Reveal in a browser", browser.measure_browser, browser.describe_browser),
+    Experiment("cluster", "Hiding on Ray", cluster.measure_cluster, cluster.describe_cluster),
 )
 EXPERIMENTS = tuple(experiment.name for experiment in REGISTRY)
 
