@@ -107,8 +107,8 @@ def test_the_bench_measures_ray_against_local_with_identical_bundles(tmp_path):
     assert done.returncode == 0, done.stderr[-3000:]
     with open(tmp_path / "out" / "cluster.csv") as handle:
         rows = list(csv.DictReader(handle))
-    assert [row["run"] for row in rows] == ["local, 2 workers", "ray, 1 workers", "ray, 2 workers",
+    assert [row["run"] for row in rows] == ["local, 1 workers", "ray, 1 workers", "local, 2 workers", "ray, 2 workers",
                                             "photo through ray, 2 workers"]
     assert all(row["exact"] == "True" for row in rows)
-    assert [row["identical"] for row in rows[:3]] == ["True"] * 3
-    assert rows[3]["pixels"] == str(40 * 30)
+    assert [row["identical"] for row in rows[:4]] == ["True"] * 4
+    assert rows[4]["pixels"] == str(40 * 30)
