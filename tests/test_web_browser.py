@@ -25,11 +25,10 @@ import numpy as np
 import pytest
 
 from helpers import flip_first_float32, run_reveal
+from noisenerf.cli.bench.browser import CHROMIUM, WEB_DIST
 
-REPO = Path(__file__).resolve().parents[1]
-WEB = REPO / "web"
-SINGLE = WEB / "dist" / "noisenerf-reveal.html"
-CHROMIUM = Path("/usr/lib/chromium/chromium")
+WEB = WEB_DIST.parent
+SINGLE = WEB_DIST / "noisenerf-reveal.html"
 DEMO_PASSPHRASE = "noisenerf demo"  # cli/demo.py's, public
 
 
