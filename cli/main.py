@@ -187,7 +187,7 @@ def cmd_bench(args) -> None:
         raise UserError("--payload-bytes must be 0 or more")
     config = BenchConfig(scene=args.scene, secret=args.secret, data=args.data, photos=tuple(args.photos),
                          view=args.view, small_width=args.small_width, twok_rows=args.twok_rows,
-                         paper_width=args.paper_width, paper_iters=args.paper_iters, payload_bytes=args.payload_bytes,
+                         paper_width=args.paper_width, paper_iters=args.paper_iters, speed_width=args.speed_width, payload_bytes=args.payload_bytes,
                          browser_size=args.browser_size, cluster_size=args.cluster_size,
                          cluster_tile=args.cluster_tile, cluster_photo=size_argument(args.cluster_photo, "--cluster-photo"),
                          device=str(resolve_device(args.device)),
@@ -259,6 +259,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--iters", type=int, help="paper method: optimisation iterations (default 300)")
     p.add_argument("--revival", choices=("all", "dead", "off"),
                    help="paper method: which rays start from a colour donor (default all)")
+    p.add_argument("--no-skip", action="store_true",
+                   help="paper method: every sample of every ray through every iteration, the method as written "
+                   "(by default dead samples are skipped, and checked again every 10 iterations)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--workers", type=int, help="exact method on a CPU: processes its chunks are spread over "
                    "(default: every core this process may use; the bundle is the same for any number)")
@@ -291,6 +294,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--view", type=int, default=0, help="scene camera the secrets are hidden at")
     p.add_argument("--small-width", type=int, default=48, help="secret width for the paper-mode curves on a CPU")
     p.add_argument("--paper-width", type=int, help="paper-quality secret width (default: 400 on CUDA, --small-width on CPU)")
+    p.add_argument("--speed-width", type=int, default=64,
+                   help="paper_speed: the width of the square secrets hidden with and without skipping")
     p.add_argument("--paper-iters", type=int, default=300, help="paper-mode iterations (the paper's 300)")
     p.add_argument("--twok-rows", type=int, default=1, help="tile rows of the 2048² secret actually hidden (1-4)")
     p.add_argument("--payload-bytes", type=int, default=1 << 20, help="size of the payload experiment's file")

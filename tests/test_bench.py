@@ -99,6 +99,16 @@ def test_payload_rows_are_byte_exact_and_sealed_fills_its_bucket(report):
     assert (plain["secret"], sealed["secret"]) == ("10x9", "16x16") and sealed["kdf_seconds"] > 0
 
 
+def test_paper_speed_runs_each_secret_as_written_and_skipping(report):
+    _, sections = report
+    rows = sections["paper_speed"].rows
+    assert [r["run"] for r in rows] == ["no skip", "skip"]
+    written, skipping = rows
+    assert (written["skipped_samples"], written["checked_samples"]) == (0.0, 0.0)
+    assert skipping["skipped_samples"] > 0 and skipping["checked_samples"] == pytest.approx(0.1)  # every 10th of 60
+    assert all(r["seconds"] > 0 and r["gflops"] > 0 for r in rows)
+
+
 def test_retiring_finished_pixels_does_less_work(report):
     _, sections = report
     work = {row["variant"]: row["work"] for row in sections["skipping"].rows}

@@ -1,6 +1,7 @@
 """Hiding: exact recovery in the torch render, frozen weights, tiles, resume, and what a bundle holds."""
 
 import hashlib
+import json
 
 import numpy as np
 import pytest
@@ -122,6 +123,31 @@ def test_paper_method_runs_with_sample_layout_and_records_table3_points(scene, t
     assert [r["iteration"] for r in records] == [2, 6]
     assert records[1]["loss"] < records[0]["loss"]
     assert load_bundle(tmp_path / "p.bundle").tiles[0].noise.values.shape == (12, 12, 4, 90)
+
+
+def test_paper_hides_with_and_without_skipping_agree_within_the_ssim_bound(demo_scene, tmp_path, capfd):
+    """`--no-skip` against the default (dead samples checked every 10 iterations): the same quality (the
+    bound `noisenerf bench`'s paper_speed holds at 64² on lego is 0.002 of SSIM), a fraction of the
+    sample evaluations, and each bundle records how it ran."""
+    from helpers import run_main
+    from noisenerf.cli.main import main
+    from noisenerf.runtime.images import write_image
+    from noisenerf.train.scene.procedural import DEMO_SCENE, procedural_secret
+
+    write_image(tmp_path / "s.png", procedural_secret(12, 12))
+    bundles, tiles = {}, {}
+    for label, flags in (("skip", []), ("no skip", ["--no-skip"])):
+        out = tmp_path / f"{label}.bundle"
+        result = run_main(main, ["hide", DEMO_SCENE, tmp_path / "s.png", "-o", out, "--method", "paper",
+                                 "--samples", 16, "--quiet", "--json", *flags], capfd)
+        assert result.code == 0, result.err
+        bundles[label], tiles[label] = load_bundle(out), json.loads(result.out)["tiles"][0]
+    assert abs(tiles["skip"]["ssim"] - tiles["no skip"]["ssim"]) <= 0.002 and tiles["no skip"]["ssim"] > 0.97
+    assert tiles["no skip"]["skipping"] == {"skipped_samples": 0.0, "checked_samples": 0.0, "idle_pixels": 0.0}
+    assert tiles["skip"]["skipping"]["skipped_samples"] > 0.5 and tiles["skip"]["skipping"]["checked_samples"] == 0.1
+    recorded = {label: bundle.extra["config"]["paper"] for label, bundle in bundles.items()}
+    assert (recorded["skip"]["skip_dead"], recorded["skip"]["recheck_every"]) == (True, 10)
+    assert (recorded["no skip"]["skip_dead"], recorded["no skip"]["recheck_every"]) == (False, 1)
 
 
 @pytest.mark.parametrize("kwargs, message", [

@@ -7,8 +7,8 @@ from helpers import interrupted_after_saves
 from noisenerf.runtime.errors import UserError
 from noisenerf.runtime.images import to_uint8
 from noisenerf.runtime.metrics import ssim
-from noisenerf.train.hide.paper import (learning_rate, recipe, revival_noise, solve_block, solve_blocks,
-                                          start_noise, survey)
+from noisenerf.train.hide.paper import (NO_SKIP, gradient_samples, learning_rate, recipe, revival_noise,
+                                          solve_block, solve_blocks, start_noise, survey)
 from noisenerf.train.hide.plan import HideConfig, plan
 from noisenerf.train.hide.secret_view import SecretView
 from noisenerf.train.scene.procedural import procedural_secret
@@ -56,8 +56,8 @@ def test_a_dead_pixel_never_moves_without_revival_and_moves_with_it(view, secret
     colors = {}
     for revival in ("off", "dead"):
         settings = recipe("authors", iters=20, revival=revival, weight_decay=0.0, floor_weight=0.0, record_at=())
-        noise = solve_block(view, index, pixels, start_noise(view, index, pixels, 16, clean, settings), clean.colors,
-                            settings)
+        noise, _ = solve_block(view, index, pixels, start_noise(view, index, pixels, 16, clean, settings), clean.colors,
+                               settings)
         colors[revival] = view.render(dead, noise[dead])
     background = view.background
     assert torch.equal(colors["off"], background.expand_as(colors["off"]))  # zero gradient: stuck at the background
@@ -91,6 +91,38 @@ def test_recipes_follow_their_schedules():
         recipe("authors", revival="some")
     with pytest.raises(UserError, match="--iters"):
         recipe("authors", iters=0)
+    with pytest.raises(UserError, match="recheck_every"):
+        recipe("authors", recheck_every=0)
+
+
+def test_gradient_samples_are_the_live_ones_and_a_dead_rays_densest():
+    raw_density = torch.tensor([[-1.0, 0.5, 0.0, 2.0],    # live: two samples
+                                [-3.0, -0.5, -2.0, -0.5],  # dead: its densest (a tie) takes the floor term
+                                [0.2, -1.0, 0.1, -4.0]])  # live but below the floor: the densest is live anyway
+    assert gradient_samples(raw_density, None).tolist() == [[False, True, False, True], [False] * 4,
+                                                            [True, False, True, False]]
+    assert gradient_samples(raw_density, 1.0).tolist() == [[False, True, False, True], [False, True, False, True],
+                                                           [True, False, True, False]]
+
+
+@pytest.mark.parametrize("layout", ["sample", "ray"])
+@pytest.mark.parametrize("name", ["authors", "paper"])
+def test_skipping_dead_samples_with_a_check_every_iteration_gives_identical_noise(demo_scene, secret, layout, name):
+    """The exact skip: a dead sample's gradient is zero, so leaving it out of the backward pass (and its
+    rows out of Adam) changes no bit of the noise or of the recorded colours, with a fraction of the work."""
+    config = HideConfig(method="paper", layout=layout, n_samples=16, tile_size=16)
+    view = SecretView(demo_scene.coarse, plan(demo_scene, secret, config).tiles[0], demo_scene.config.render, CPU)
+    pixels = torch.from_numpy(secret.reshape(-1, 3).copy())
+    clean = survey(view, 1 << 12)
+    blocks = {label: next(solve_blocks(view, pixels, 16 if layout == "sample" else 1,
+                                       recipe(name, iters=60, record_at=(30, 60), **over), clean, torch.float32))
+              for label, over in (("as written", NO_SKIP), ("exact skip", {"recheck_every": 1}))}
+    written, skipped = blocks["as written"], blocks["exact skip"]
+    assert torch.equal(skipped.noise, written.noise) and torch.equal(skipped.colors, written.colors)
+    sample_iterations = view.n_rays * view.n_samples * 60
+    assert written.work.tolist() == [sample_iterations, 0, 0]
+    evaluated, checked, idle = skipped.work.tolist()
+    assert checked == sample_iterations and 0 < evaluated < 0.3 * sample_iterations
 
 
 def test_paper_mode_reaches_an_ssim_the_old_solver_missed(demo_scene, secret, view):

@@ -2,8 +2,8 @@
 
 The references were first written by main at e98c111, before train/ was split into layers (issue 9),
 and are rewritten (`python tests/test_reference.py`) only by a change that means to alter what is
-written, whose commit says why: last when the ONNX graph came to be written from runtime/graph.py
-instead of traced (issue 25: the model file's bytes changed, every bundle stayed byte-identical).
+written, whose commit says why: last when the paper's method came to skip dead samples (issue 24: its
+bundles record the two new settings; their noise stayed bit-identical, the other files byte-identical).
 `exact_compact.bundle` is the small exact bundle itself, and `digests.json` holds the SHA-256 of every
 artifact below (bundles of each method and layout, a plain and a sealed payload, a fitted scene's files
 and an exported ONNX file). Each artifact is rebuilt here from seeds alone and must match byte for byte.

@@ -21,6 +21,7 @@ class BenchConfig:
     paper_recipe: str = "authors"
     paper_width: int | None = None  # paper-quality secrets (square): None = 400 (the paper's) on CUDA, small_width on CPU
     paper_photos: int = 3
+    speed_width: int = 64  # the paper_speed experiment's secrets (square), hidden with and without skipping
     ablation_samples: int = 64
     ablation_width: int | None = None  # None = 100 (the authors' secret) on CUDA, small_width on CPU
     device: str = "cpu"  # where the paper-mode and error-vs-time experiments run (cpu or cuda)

@@ -13,7 +13,7 @@ import torch
 from noisenerf.runtime.images import to_uint8
 from noisenerf.runtime.metrics import ssim_authors, tile_quality
 from noisenerf.train.hide.exact import ChunkProblem, ExactSettings, NoiseSpace, Refinement, SolveCounts, solve_exact
-from noisenerf.train.hide.paper import PaperSettings, recorded_points, solve_blocks, survey
+from noisenerf.train.hide.paper import PaperSettings, recorded_points, skip_shares, solve_blocks, survey
 from noisenerf.train.hide.plan import HideConfig, plan
 from noisenerf.train.hide.secret_view import SecretView
 from noisenerf.train.hide.tiling import MIN_TILE_SIZE
@@ -97,6 +97,7 @@ class PaperRun:
     seconds: float
     peak_gib: float | None  # device memory (CUDA only)
     dead_fraction: float
+    skipping: dict[str, float]  # paper_solver.skip_shares: what skipping left out
     kept: PaperNoise | None = None  # the noise it found, when asked to keep it
 
 
@@ -113,9 +114,10 @@ def paper_curve(scene: Scene, secret: np.ndarray, view: int, n_samples: int, set
     clean = survey(tile_view, settings.pass_samples)
     points = recorded_points(settings)
     colors = torch.zeros(len(points), tile_view.n_rays, 3)
-    kept = []
+    kept, work = [], torch.zeros(3, dtype=torch.int64)
     for block in solve_blocks(tile_view, pixels, n_samples, settings, clean, torch.float32):
         colors[:, block.index.cpu()] = block.colors
+        work += block.work
         if keep_noise:
             kept.append(block.noise)
     seconds = synchronized_time(device) - started
@@ -127,4 +129,5 @@ def paper_curve(scene: Scene, secret: np.ndarray, view: int, n_samples: int, set
                      "loss": float(((colors[i] - pixels.cpu().float() / 255.0) ** 2).sum(-1).mean()),
                      **secret_quality(colors[i], secret), "ssim_authors": ssim_authors(image, secret / 255.0)})
     return PaperRun(rows, seconds, peak, float((~clean.alive).float().mean()),
+                    skip_shares(*work.tolist(), tile_view.n_rays, tile_view.n_samples, settings.iters),
                     PaperNoise(torch.cat(kept).float(), tile_view, secret) if keep_noise else None)

@@ -6,6 +6,7 @@ from __future__ import annotations
 import time
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Iterable
 
 import numpy as np
 import torch
@@ -35,7 +36,12 @@ SKIPPED_PSNR_GOAL_DB = 0.1  # how far skipping may move the test views' PSNR eit
 
 def field_flops(field: NeRFField) -> int:
     """Multiply-adds × 2 of one field evaluation (the linear layers; activations are noise)."""
-    return 2 * sum(m.in_features * m.out_features for m in field.modules() if isinstance(m, torch.nn.Linear))
+    return linear_flops(field.modules())
+
+
+def linear_flops(modules: Iterable[torch.nn.Module]) -> int:
+    """Multiply-adds × 2 of the linear layers among modules."""
+    return 2 * sum(m.in_features * m.out_features for m in modules if isinstance(m, torch.nn.Linear))
 
 
 @dataclass(frozen=True, kw_only=True)

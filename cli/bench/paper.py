@@ -11,15 +11,19 @@ from pathlib import Path
 import numpy as np
 
 from noisenerf.runtime.images import load_secret, resize_image, to_uint8
-from noisenerf.train.hide.paper import PaperSettings, recipe
+from noisenerf.train.hide.paper import NO_SKIP, PaperSettings, recipe
 from noisenerf.train.hide.secret_view import pass_samples_for
+from noisenerf.train.scene.field import NeRFField
 
 from noisenerf.cli.bench.context import BenchContext, Measured, peak_rss_gib, size_of, small_secret
 from noisenerf.cli.bench.curves import PaperNoise, PaperRun, exact_curve, paper_curve
+from noisenerf.cli.bench.exact_cost import field_flops, linear_flops
 from noisenerf.cli.bench.report import curves_plot, save_figure, verdict
 
 PAPER_SSIM_GOAL = 0.97  # mean SSIM (data_range 1, 11×11 Gaussian) over the photos after 300 iterations
 PAPER_GPU_MEMORY_GOAL_GIB = 8.0  # peak GPU memory of a run at twice the secret width (CUDA only)
+SKIP_SPEEDUP_GOAL = 5.0  # paper_speed: time without skipping ÷ time with it, the same secrets in one run
+SKIP_SSIM_BOUND = 0.002  # paper_speed: |mean SSIM with skipping − without|
 EXACT_OVER_PAPER_GOAL = 0.05  # exact-mode time ÷ paper-mode time, whole runs, with strictly better quality
 CURVE_POINTS = (1, 5, 10, 25, 50, 75, 100, 150, 200, 250, 300)
 
@@ -133,6 +137,61 @@ def plot_paper_quality(rows: list[dict], path: Path) -> None:
     axes[0].legend(fontsize=7)
     figure.tight_layout()
     save_figure(figure, path)
+
+
+def pass_flops(field: NeRFField) -> tuple[int, int]:
+    """Floating-point operations per sample: of a forward and backward pass (the backward to the input only,
+    the weights being frozen: one more product per layer), and of a density check (trunk and density layer)."""
+    density = field.alpha_linear if field.config.use_viewdirs else field.output_linear
+    return 2 * field_flops(field), linear_flops([*field.pts_linears, density])
+
+
+def measure_paper_speed(context: BenchContext) -> PaperCurves:
+    """The default recipe on the same secrets with skipping (the default) and without (`--no-skip`), one
+    after the other: time, SSIM, what skipping left out, and the arithmetic rate reached."""
+    config, device = context.config, context.device
+    settings = recipe(config.paper_recipe, iters=config.paper_iters, pass_samples=pass_samples_for(device),
+                      record_at=(config.paper_iters,))
+    full_flops, check_flops = pass_flops(context.scene.coarse)
+    rows = []
+    for path in config.photos[:config.paper_photos] or (config.secret,):
+        photo = square_secret(load_secret(path)[0], config.speed_width)
+        for label, run_settings in (("no skip", dataclasses.replace(settings, **NO_SKIP)), ("skip", settings)):
+            run = paper_curve(context.scene, photo, config.view, config.paper_samples, run_settings, device, label=label)
+            sample_iterations = photo.shape[0] * photo.shape[1] * config.paper_samples * config.paper_iters
+            flops = sample_iterations * ((1 - run.skipping["skipped_samples"]) * full_flops
+                                         + run.skipping["checked_samples"] * check_flops)
+            final = run.rows[-1]
+            rows.append({"photo": Path(path).name, "run": label, "seconds": run.seconds,
+                         "seconds_per_pixel": run.seconds / (photo.shape[0] * photo.shape[1]), "ssim": final["ssim"],
+                         "psnr": final["psnr"], **run.skipping, "gflops": flops / run.seconds / 1e9,
+                         "peak_gib": run.peak_gib})
+            print(f"paper_speed: {Path(path).name} {label}: {run.seconds:.1f} s, SSIM {final['ssim']:.4f}",
+                  file=sys.stderr, flush=True)
+    return PaperCurves(rows, (config.speed_width, config.speed_width), settings=settings)
+
+
+def describe_paper_speed(context: BenchContext, measured: PaperCurves) -> list[str]:
+    config, settings, (width, _) = context.config, measured.settings, measured.secret_size
+    runs = {label: [row for row in measured.rows if row["run"] == label] for label in ("no skip", "skip")}
+    speedup = sum(row["seconds"] for row in runs["no skip"]) / sum(row["seconds"] for row in runs["skip"])
+    ssim_gap = abs(float(np.mean([r["ssim"] for r in runs["skip"]])) - float(np.mean([r["ssim"] for r in runs["no skip"]])))
+    lines = [f"Recipe `{settings.recipe}` (revival `{settings.revival}`), {config.paper_samples} samples per ray, "
+             f"{settings.iters} iterations, secrets {width}×{width} at scene view {config.view}, on "
+             f"{context.device.type.upper()}; each secret without skipping (`--no-skip`, the method as written) "
+             f"and then with the defaults (dead samples skipped, checked again every {settings.recheck_every} "
+             "iterations). Skipped: sample-iterations left out of the forward and backward pass; checked: "
+             "density-only passes per sample-iteration; idle: pixel-iterations with nothing to evaluate.", "",
+             "| secret | run | seconds | s/pixel | SSIM | PSNR dB | skipped | checked | idle | GFLOP/s |",
+             "|---|---|---|---|---|---|---|---|---|---|"]
+    for row in measured.rows:
+        lines.append(f"| {row['photo']} | {row['run']} | {row['seconds']:.1f} | {row['seconds_per_pixel']:.4f} | "
+                     f"{row['ssim']:.4f} | {row['psnr']:.2f} | {row['skipped_samples']:.1%} | "
+                     f"{row['checked_samples']:.1%} | {row['idle_pixels']:.1%} | {row['gflops']:.1f} |")
+    met = verdict(speedup, SKIP_SPEEDUP_GOAL, lower_is_better=False, also=ssim_gap <= SKIP_SSIM_BOUND)
+    lines += ["", f"- time without skipping ÷ time with it (all secrets): **{speedup:.2f}×**, mean SSIM apart by "
+              f"**{ssim_gap:.4f}** (goal ≥ {SKIP_SPEEDUP_GOAL:g}× within {SKIP_SSIM_BOUND} of SSIM: {met})."]
+    return lines
 
 
 def measure_error_vs_time(context: BenchContext) -> ErrorVsTime:

@@ -41,6 +41,8 @@ REGISTRY = (
                paper.describe_error_vs_time, paper.plot_error_vs_time),
     Experiment("ablation", "The paper's Table 3 ablation (paper mode)", paper.measure_ablation, paper.describe_ablation,
                paper.plot_ablation),
+    Experiment("paper_speed", "The paper's method, skipping what cannot matter", paper.measure_paper_speed,
+               paper.describe_paper_speed),
     Experiment("cost", "Hide ÷ reveal cost", exact_cost.measure_cost, exact_cost.describe_cost),
     Experiment("throughput", "Reveal throughput", exact_cost.measure_throughput, exact_cost.describe_throughput,
                needs=("cost",)),  # it reveals cost's bundle

@@ -30,6 +30,20 @@ Revival (our addition, on by default; `revival="off"` is the paper as written) h
 Measured on the demo scene (12-px procedural secret, 64 samples, authors' recipe, 300 iterations):
 SSIM 0.83 with donor starts alone, 0.992 with both (BENCHMARKS.md has lego).
 
+Skipping (ours, on by default; `--no-skip` runs the method as written). A sample whose raw density is
+≤ 0 has zero weight (eq. 2), so neither its colour nor its density reaches the loss and its gradient is
+exactly zero; it is 81 % of the samples of a lego view at the start and 97 % by the end (the authors'
+weight decay pulls every encoded input toward 0, which lego's field leaves empty). Two settings:
+
+- `skip_dead` (exact): the colour branch and the backward pass run only on live samples (and on a
+  dead ray's densest sample, which the density floor term moves). The update is unchanged, bit for bit
+  on a CPU (rows are padded so that BLAS runs them through the kernel the full batch uses).
+- `recheck_every` (approximate when > 1): a dead sample is not evaluated at all until the next check,
+  every recheck_every iterations. Its noise still moves every step (Adam's momentum, weight decay), so
+  a sample that comes alive between checks joins at the next one; 1 checks every iteration (exact).
+  The sample layout only: in the ray layout a sample's noise is its ray's, which the ray's live samples
+  move at every step, so there every iteration is a check.
+
 Our reading of Adaptive Pixel Selection (the paper gives no formula): every iteration computes the loss
 gradient once on the largest batch, the whole block; for each size s in batch_fractions·(block size) the
 candidate update is the Adam step applied to the s pixels with the largest gradient norms; one forward
@@ -77,6 +91,8 @@ class PaperSettings:
     block_pixels: int = 6144  # pixels optimised together (the authors' block)
     pass_samples: int = 1 << 16  # samples per forward/backward pass (memory bound, not a result)
     record_at: tuple[int, ...] = (50, 200, 300)
+    skip_dead: bool = True  # exact: dead samples skip the colour branch and the backward pass (see the module docstring)
+    recheck_every: int = 10  # a dead sample is evaluated again every this many iterations (1: every one, exact)
     tf32: bool = True  # CUDA matmuls in TF32: ~3× faster on Ampere and later; this method is approximate anyway
 
     def __post_init__(self):
@@ -84,8 +100,8 @@ class PaperSettings:
             raise UserError(f"unknown lr schedule {self.lr_schedule!r}")
         if self.revival not in ("off", "dead", "all"):
             raise UserError(f"unknown revival {self.revival!r} (off, dead or all)")
-        if self.iters < 1 or self.block_pixels < 1 or self.pass_samples < 1:
-            raise UserError("--iters, block_pixels and pass_samples must be positive")
+        if self.iters < 1 or self.block_pixels < 1 or self.pass_samples < 1 or self.recheck_every < 1:
+            raise UserError("--iters, block_pixels, pass_samples and recheck_every must be positive")
 
 
 RECIPES = {
@@ -95,9 +111,17 @@ RECIPES = {
 }
 
 
+NO_SKIP = {"skip_dead": False, "recheck_every": 1}  # `--no-skip`: every sample of every ray, every iteration
+
+
 def recipe(name: str, **overrides) -> PaperSettings:
     """The named recipe with some settings replaced (iters, revival, the ablation switches, ...)."""
     return dataclasses.replace(RECIPES[name], **overrides)
+
+
+def floor_weight(settings: PaperSettings) -> float:
+    """The density floor term's weight: revival's, so zero without revival."""
+    return settings.floor_weight if settings.revival != "off" else 0.0
 
 
 def rgb_losses(colors: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
@@ -126,6 +150,17 @@ def density_shortfall(raw_density: torch.Tensor, floor: float) -> torch.Tensor:
     return torch.relu(floor - raw_density.amax(-1))
 
 
+def gradient_samples(raw_density: torch.Tensor, floor: float | None) -> torch.Tensor:
+    """The samples whose gradient can be nonzero: live ones (raw σ > 0; a dead sample has weight 0 in
+    eq. 2 and ReLU's zero slope), and with the density floor term (floor not None) the densest samples of
+    each ray below the floor (density_shortfall's gradient). raw_density: (m, n_samples) -> bool, same shape."""
+    active = raw_density > 0
+    if floor is not None:
+        densest = raw_density.amax(-1, keepdim=True)
+        active |= (raw_density == densest) & (densest < floor)
+    return active
+
+
 def learning_rate(settings: PaperSettings, t: int) -> float:
     """The step size at iteration t (1-based)."""
     if settings.lr_schedule == "step":
@@ -139,13 +174,18 @@ def decay_rate(settings: PaperSettings, t: int) -> float:
 
 
 def adam_direction(grad: torch.Tensor, moments: tuple[torch.Tensor, torch.Tensor], steps: torch.Tensor,
-                   betas=(0.9, 0.999), eps: float = 1e-8) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """Adam with a step count per pixel (APS updates pixels at different times).
-    grad, moments: (m, k, dims), steps: (m,) counts after this update -> direction, new moments."""
+                   pixels: torch.Tensor | None = None, betas=(0.9, 0.999), eps: float = 1e-8
+                   ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Adam with a step count per pixel (APS updates pixels at different times). grad, moments: (m, k, dims),
+    or (r, dims) rows of pixels `pixels` (r,); steps: (m,) counts after this update -> direction, new moments."""
     first = betas[0] * moments[0] + (1 - betas[0]) * grad
     second = betas[1] * moments[1] + (1 - betas[1]) * grad * grad
-    correction1 = (1 - betas[0] ** steps.float())[:, None, None]
-    correction2 = (1 - betas[1] ** steps.float())[:, None, None]
+    # per pixel, then per row: pow's vectorised and scalar paths round differently
+    correction1, correction2 = (1 - betas[0] ** steps.float()), (1 - betas[1] ** steps.float())
+    if pixels is None:
+        correction1, correction2 = correction1[:, None, None], correction2[:, None, None]
+    else:
+        correction1, correction2 = correction1[pixels, None], correction2[pixels, None]
     return (first / correction1) / ((second / correction2).sqrt() + eps), first, second
 
 
@@ -216,22 +256,58 @@ def select_pixels(gain: torch.Tensor, grad_norms: torch.Tensor, sizes: list[int]
 Recorder = Callable[[int, torch.Tensor, float], None]  # (iteration, colours (m, 3), mean L_rgb)
 
 
-class BlockProblem:
-    """One block's rays of a secret view, rendered in bounded passes."""
+Loss = Callable[[torch.Tensor, torch.Tensor, slice], torch.Tensor]  # (colours (p, 3), raw densities (p, n_samples), part) -> (p,)
 
-    def __init__(self, secret_view: SecretView, index: torch.Tensor, pass_samples: int):
-        self.secret_view, self.index = secret_view, index
-        self.parts = pass_slices(index.numel(), secret_view.n_samples, pass_samples)
+
+class BlockProblem:
+    """One block's rays of a secret view, rendered in bounded passes. With skipping, a pass evaluates only
+    the samples that were live at the last check (gradient_samples); the others keep the raw density that
+    check found (≤ 0: zero weight) and colour 0.
+
+    work counts [samples through the full forward and backward pass, samples through a density check,
+    pixel-iterations with no sample to evaluate]."""
+
+    def __init__(self, secret_view: SecretView, index: torch.Tensor, settings: PaperSettings):
+        self.secret_view, self.index, self.settings = secret_view, index, settings
+        self.parts = pass_slices(index.numel(), secret_view.n_samples, settings.pass_samples)
+        self.floor = settings.density_floor if floor_weight(settings) else None
+        self.checked_density: torch.Tensor | None = None  # (m, n_samples) at the last check
+        self.active: torch.Tensor | None = None  # (m, n_samples) bool: gradient_samples at the last check
+        self.work = torch.zeros(3, dtype=torch.int64)
 
     def render(self, noise: torch.Tensor) -> torch.Tensor:
-        """Colours (m, 3) with noise (m, k, dims), without gradients."""
+        """Colours (m, 3) with noise (m, k, dims), without gradients: of the checked live samples when dead
+        ones are skipped between checks, else of every sample."""
+        with torch.no_grad():
+            if self.settings.skip_dead and self.settings.recheck_every > 1 and noise.shape[1] == self.secret_view.n_samples:
+                return torch.cat([self.skipping_pass(noise[p], p, None)[0] for p in self.parts])
+            return self.render_all(noise)
+
+    def render_all(self, noise: torch.Tensor) -> torch.Tensor:
+        """Colours (m, 3) with noise (m, k, dims) from every sample, without gradients."""
         with torch.no_grad():
             return torch.cat([self.secret_view.render(self.index[p], noise[p]) for p in self.parts])
 
-    def losses_and_grad(self, noise: torch.Tensor, loss: Callable[[torch.Tensor, torch.Tensor, slice], torch.Tensor]
-                        ) -> tuple[torch.Tensor, torch.Tensor]:
-        """Colours (m, 3) and ∂Σloss/∂noise (m, k, dims), pass by pass;
-        loss(colors (p, 3), raw densities (p, n_samples), part) -> (p,)."""
+    def check(self, noise: torch.Tensor) -> None:
+        """Every sample's raw density with noise (m, k, dims): which samples the next passes evaluate."""
+        with torch.no_grad():
+            self.checked_density = torch.cat([self.secret_view.raw_density(self.index[p], noise[p]) for p in self.parts])
+        self.active = gradient_samples(self.checked_density, self.floor)
+        self.work[1] += self.checked_density.numel()
+
+    def losses_and_grad(self, noise: torch.Tensor, loss: Loss, t: int) -> tuple[torch.Tensor, torch.Tensor]:
+        """Colours (m, 3) and ∂Σloss/∂noise (m, k, dims) at iteration t, pass by pass."""
+        if not self.settings.skip_dead:
+            return self.full_losses_and_grad(noise, loss)
+        # in the ray layout a dead sample's noise is its ray's, which the live samples' gradients move
+        recheck_every = self.settings.recheck_every if noise.shape[1] == self.secret_view.n_samples else 1
+        if (t - 1) % recheck_every == 0:
+            self.check(noise)
+        colors, grads = zip(*(self.skipping_pass(noise[part], part, loss) for part in self.parts))
+        return torch.cat(colors), torch.cat(grads)
+
+    def full_losses_and_grad(self, noise: torch.Tensor, loss: Loss) -> tuple[torch.Tensor, torch.Tensor]:
+        """losses_and_grad through every sample (the method as written)."""
         colors, grads = [], []
         for part in self.parts:
             piece = noise[part].detach().requires_grad_(True)
@@ -240,7 +316,37 @@ class BlockProblem:
                 rendered = self.secret_view.shade(self.index[part], raw_rgb, raw_density)
                 grads.append(torch.autograd.grad(loss(rendered, raw_density, part).sum(), piece)[0])
             colors.append(rendered.detach())
+        self.work[0] += noise.shape[0] * self.secret_view.n_samples
         return torch.cat(colors), torch.cat(grads)
+
+    def skipping_pass(self, piece: torch.Tensor, part: slice, loss: Loss | None) -> tuple[torch.Tensor, torch.Tensor | None]:
+        """One pass's colours (p, 3) and, with a loss, ∂Σloss/∂noise (p, k, dims), evaluating only the
+        samples active at the last check."""
+        active = self.active[part]
+        samples = active.flatten().nonzero()[:, 0]
+        if loss is None or samples.numel() == 0:
+            with torch.no_grad():
+                raw_rgb, raw_density = self.secret_view.raw_of(self.index[part], piece, samples, self.checked_density[part])
+                colors = self.secret_view.shade(self.index[part], raw_rgb, raw_density)
+            return colors, None if loss is None else self.counted(active, torch.zeros_like(piece))
+        piece = piece.detach().requires_grad_(True)
+        with torch.enable_grad():
+            raw_rgb, raw_density = self.secret_view.raw_of(self.index[part], piece, samples, self.checked_density[part])
+            rendered = self.secret_view.shade(self.index[part], raw_rgb, raw_density)
+            grad = torch.autograd.grad(loss(rendered, raw_density, part).sum(), piece)[0]
+        return rendered.detach(), self.counted(active, grad)
+
+    def gradient_rows(self, k: int) -> torch.Tensor:
+        """Which noise rows (m, k) this iteration's gradient can reach (all of them without skipping)."""
+        if not self.settings.skip_dead:
+            return torch.ones(self.index.numel(), k, dtype=torch.bool, device=self.index.device)
+        return self.active if k == self.secret_view.n_samples else self.active.any(-1, keepdim=True)
+
+    def counted(self, active: torch.Tensor, grad: torch.Tensor) -> torch.Tensor:
+        """grad, after counting a pass's work: its active samples (p, n_samples) and its idle pixels."""
+        self.work[0] += int(active.sum())
+        self.work[2] += int((~active.any(-1)).sum())
+        return grad
 
 
 @contextlib.contextmanager
@@ -255,17 +361,19 @@ def matmul_precision(tf32: bool):
 
 
 def solve_block(secret_view: SecretView, index: torch.Tensor, pixels: torch.Tensor, noise: torch.Tensor,
-                clean: torch.Tensor, settings: PaperSettings, record: Recorder | None = None) -> torch.Tensor:
+                clean: torch.Tensor, settings: PaperSettings, record: Recorder | None = None
+                ) -> tuple[torch.Tensor, torch.Tensor]:
     """Optimise the noise of rays `index` (m,) toward 8-bit pixels (m, 3) from a starting noise
-    (m, k, dims) (k = 1 or n_samples), clean colours (m, 3) for eq. 7. Returns the noise (m, k, dims)."""
-    problem = BlockProblem(secret_view, index, settings.pass_samples)
+    (m, k, dims) (k = 1 or n_samples), clean colours (m, 3) for eq. 7. Returns the noise (m, k, dims) and
+    the block's work (BlockProblem.work)."""
+    problem = BlockProblem(secret_view, index, settings)
     target = pixels.float() / 255.0
     noise = noise.clone()
     # the encoded input the authors' weight decay shrinks: γ + δ, with γ broadcast to the noise's shape
     encoded = secret_view.encodings(index)
     encoded = encoded if noise.shape[1] == secret_view.n_samples else encoded.mean(1, keepdim=True)
     with matmul_precision(settings.tf32 and noise.is_cuda):
-        return optimise(problem, target, noise, clean, encoded, settings, record)
+        return optimise(problem, target, noise, clean, encoded, settings, record), problem.work
 
 
 def optimise(problem: BlockProblem, target: torch.Tensor, noise: torch.Tensor, clean: torch.Tensor,
@@ -274,17 +382,27 @@ def optimise(problem: BlockProblem, target: torch.Tensor, noise: torch.Tensor, c
     moments = (torch.zeros_like(noise), torch.zeros_like(noise))
     steps = torch.zeros(noise.shape[0], dtype=torch.int64, device=noise.device)
     sizes = sorted({max(1, int(round(f * noise.shape[0]))) for f in settings.batch_fractions})
-    floor_weight = settings.floor_weight if settings.revival != "off" else 0.0
+    weight = floor_weight(settings)
+    aps = settings.adaptive_selection and len(sizes) > 1
+    touched = torch.zeros(noise.shape[:2], dtype=torch.bool, device=noise.device)  # rows a gradient has reached
     for t in range(1, settings.iters + 1):
         lr = learning_rate(settings, t)
         colors, grad = problem.losses_and_grad(
             noise, lambda rendered, raw_density, part: total_losses(rendered, target[part], clean[part], t, settings)
-            + floor_weight * density_shortfall(raw_density, settings.density_floor))
-        direction, first, second = adam_direction(grad, moments, steps + 1)
-        tentative = noise - lr * direction
-        if settings.weight_decay:
-            tentative = tentative - lr * decay_rate(settings, t) * (encoded + noise)
-        if settings.adaptive_selection and len(sizes) > 1:
+            + weight * density_shortfall(raw_density, settings.density_floor), t)
+        decay = lr * decay_rate(settings, t) * (encoded + noise) if settings.weight_decay else None
+        # a row no gradient has reached has zero moments and so a zero Adam direction (exactly): skip it
+        touched |= problem.gradient_rows(noise.shape[1])
+        rows = touched.nonzero(as_tuple=True) if settings.skip_dead else (slice(None),)
+        direction, first_rows, second_rows = adam_direction(grad[rows], (moments[0][rows], moments[1][rows]), steps + 1,
+                                                            rows[0] if settings.skip_dead else None)
+        # APS keeps the old state of the pixels it does not choose; otherwise update in place
+        first, second, tentative = (moments[0].clone(), moments[1].clone(), noise.clone()) if aps else (*moments, noise)
+        first[rows], second[rows] = first_rows, second_rows
+        tentative[rows] = noise[rows] - lr * direction
+        if decay is not None:
+            tentative -= decay
+        if aps:
             gain = rgb_losses(colors, target) - rgb_losses(problem.render(tentative), target)
             chosen = select_pixels(gain, grad.flatten(1).norm(dim=-1), sizes)
             noise[chosen], steps[chosen] = tentative[chosen], steps[chosen] + 1
@@ -292,7 +410,7 @@ def optimise(problem: BlockProblem, target: torch.Tensor, noise: torch.Tensor, c
         else:
             noise, moments, steps = tentative, (first, second), steps + 1
         if record is not None and t in settings.record_at:
-            final = problem.render(noise)
+            final = problem.render_all(noise)
             record(t, final, float(rgb_losses(final, target).mean()))
     return noise
 
@@ -302,7 +420,17 @@ class BlockResult:
     index: torch.Tensor  # (m,) rays of the view
     noise: torch.Tensor  # (m, k, dims), on the CPU in the storage dtype
     colors: torch.Tensor  # (len(points), m, 3): the block's colours at each recorded iteration, on the CPU
+    work: torch.Tensor  # (3,) int64, BlockProblem.work
     solved: bool  # False where the result came from `cached`
+
+
+def skip_shares(evaluated: int, checked: int, idle: int, n_rays: int, n_samples: int, iters: int) -> dict[str, float]:
+    """What skipping left out, as shares of the method as written (every sample of every ray through the
+    forward and backward pass at every iteration): sample-iterations not through that pass, checks (a
+    density-only forward pass) per sample-iteration, and pixel-iterations with nothing evaluated."""
+    sample_iterations = n_rays * n_samples * iters
+    return {"skipped_samples": 1 - evaluated / sample_iterations, "checked_samples": checked / sample_iterations,
+            "idle_pixels": idle / (n_rays * iters)}
 
 
 def recorded_points(settings: PaperSettings) -> list[int]:
@@ -313,13 +441,13 @@ def recorded_points(settings: PaperSettings) -> list[int]:
 def solve_blocks(secret_view: SecretView, pixels: torch.Tensor, layout_samples: int, settings: PaperSettings,
                  clean: ViewSurvey, dtype: torch.dtype,
                  cached: Callable[[int], dict | None] = lambda b: None) -> Iterator[BlockResult]:
-    """The view's blocks one after another, each solved (or taken from cached(b), a dict with "noise"
-    and "colors" as BlockResult has them). pixels: (n_rays, 3) uint8."""
+    """The view's blocks one after another, each solved (or taken from cached(b), a dict with "noise",
+    "colors" and "work" as BlockResult has them). pixels: (n_rays, 3) uint8."""
     for b, start in enumerate(range(0, secret_view.n_rays, settings.block_pixels)):
         index = torch.arange(start, min(start + settings.block_pixels, secret_view.n_rays), device=pixels.device)
         saved = cached(b)
         if saved is not None:
-            yield BlockResult(index, saved["noise"], saved["colors"], solved=False)
+            yield BlockResult(index, saved["noise"], saved["colors"], saved["work"], solved=False)
             continue
         yield solved_block(secret_view, index, pixels[index], layout_samples, settings, clean, dtype)
 
@@ -328,10 +456,10 @@ def solved_block(secret_view: SecretView, index: torch.Tensor, pixels: torch.Ten
                  settings: PaperSettings, clean: ViewSurvey, dtype: torch.dtype) -> BlockResult:
     """One block of rays `index` (m,) solved toward its pixels (m, 3) uint8 from its revival start."""
     recorded = []
-    noise = solve_block(secret_view, index, pixels, start_noise(secret_view, index, pixels, layout_samples, clean, settings),
+    noise, work = solve_block(secret_view, index, pixels, start_noise(secret_view, index, pixels, layout_samples, clean, settings),
                         clean.colors[index], settings, lambda t, colors, loss: recorded.append(colors.cpu()))
     colors = torch.stack(recorded) if recorded else torch.zeros(len(recorded_points(settings)), index.numel(), 3)
-    return BlockResult(index, noise.to(dtype).cpu(), colors, solved=True)
+    return BlockResult(index, noise.to(dtype).cpu(), colors, work, solved=True)
 
 
 def start_noise(secret_view: SecretView, index: torch.Tensor, pixels: torch.Tensor, layout_samples: int,

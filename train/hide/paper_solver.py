@@ -10,7 +10,8 @@ import torch
 
 from noisenerf.runtime.bundle import VectorNoise, noise_shape
 from noisenerf.runtime.metrics import tile_quality
-from noisenerf.train.hide.paper import PaperSettings, ViewSurvey, recipe, recorded_points, solved_block, survey
+from noisenerf.train.hide.paper import (NO_SKIP, PaperSettings, ViewSurvey, recipe, recorded_points, skip_shares,
+                                          solved_block, survey)
 from noisenerf.train.hide.secret_view import SecretView, pass_samples_for
 from noisenerf.train.hide.solver import Solver, TileSolution, storage_dtype
 
@@ -27,7 +28,7 @@ class PaperSolver(Solver):
 
     def settings_from_arguments(self, args: argparse.Namespace, device: torch.device) -> tuple:
         overrides = {name: value for name, value in (("iters", args.iters), ("revival", args.revival))
-                     if value is not None}
+                     if value is not None} | (NO_SKIP if args.no_skip else {})
         return (recipe(args.recipe, pass_samples=pass_samples_for(device), **overrides),)
 
     def prepares(self, config: HideConfig) -> bool:
@@ -47,24 +48,27 @@ class PaperSolver(Solver):
         index = torch.arange(rows.start, rows.stop, device=pixels.device)
         block = solved_block(secret_view, index, pixels, layout_samples(config), config.get(PaperSettings), prepared,
                              storage_dtype(config.dtype))
-        return {"noise": block.noise, "colors": block.colors}
+        return {"noise": block.noise, "colors": block.colors, "work": block.work}
 
     def part_layout(self, config: HideConfig, rows: int, dims: int, prepared: ViewSurvey) -> tuple[dict, Callable]:
         points = recorded_points(config.get(PaperSettings))
         return ({"noise": ((rows, layout_samples(config), dims), storage_dtype(config.dtype)),
-                 "colors": ((len(points), rows, 3), torch.float32)}, lambda tensors: True)
+                 "colors": ((len(points), rows, 3), torch.float32), "work": ((3,), torch.int64)}, lambda tensors: True)
 
     def assemble(self, secret_view: SecretView, pixels: torch.Tensor, shape: tuple[int, int], config: HideConfig,
                  prepared: ViewSurvey, parts: list[dict[str, torch.Tensor]]) -> TileSolution:
-        """The blocks' noise; the report has the tile's quality at each recorded iteration and how many of
-        its rays were dead (every density ≤ 0) before solving."""
+        """The blocks' noise; the report has the tile's quality at each recorded iteration, how many of its
+        rays were dead (every density ≤ 0) before solving, and the share of the work skipping left out."""
         points = recorded_points(config.get(PaperSettings))
         noise = torch.cat([part["noise"] for part in parts])
         colors = torch.cat([part["colors"] for part in parts], dim=1)
         target = pixels.cpu().float() / 255.0
         records = [{"iteration": t, "loss": float(((colors[i] - target) ** 2).sum(-1).mean()),
                     **tile_quality(colors[i].numpy(), pixels.cpu().numpy(), shape)} for i, t in enumerate(points)]
-        report = {"records": records, "dead_rays": int((~prepared.alive).sum())}
+        settings = config.get(PaperSettings)
+        evaluated, checked, idle = (int(n) for n in sum(part["work"] for part in parts))
+        report = {"records": records, "dead_rays": int((~prepared.alive).sum()),
+                  "skipping": skip_shares(evaluated, checked, idle, secret_view.n_rays, secret_view.n_samples, settings.iters)}
         stored_shape = noise_shape(config.layout, *shape, secret_view.n_samples, secret_view.noise_dims)
         return TileSolution(noise, report, VectorNoise(noise.reshape(stored_shape).numpy()))
 

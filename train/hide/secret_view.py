@@ -21,6 +21,7 @@ from noisenerf.train.scene.render import composite, render_weights
 
 
 ENCODING_CACHE_BYTES = 1 << 30  # a view's encodings up to this size are computed once and kept
+BLAS_ROWS = 64  # a subset of a batch's rows is evaluated in multiples of this (SecretView.raw_of)
 
 
 def pass_samples_for(device: torch.device) -> int:
@@ -95,6 +96,25 @@ class SecretView:
         raw_rgb, raw_density = self.field.raw_outputs(encoded.reshape(-1, encoded.shape[-1]))
         m = index.shape[0]
         return raw_rgb.reshape(m, self.n_samples, 3), raw_density.reshape(m, self.n_samples)
+
+    def raw_density(self, index: torch.Tensor, noise: torch.Tensor) -> torch.Tensor:
+        """Pre-activation density (m, n_samples) of rays `index` (m,) with noise (m, 1 or n_samples, dims),
+        without the colour branch."""
+        encoded = self.noisy_encodings(index, noise)[..., :self.field.config.xyz_dims]
+        return self.field.raw_density(encoded.reshape(-1, encoded.shape[-1])).reshape(encoded.shape[:2])
+
+    def raw_of(self, index: torch.Tensor, noise: torch.Tensor, samples: torch.Tensor, fill: torch.Tensor
+               ) -> tuple[torch.Tensor, torch.Tensor]:
+        """As raw, evaluating only `samples` (s,), positions in the flattened (m, n_samples); the others
+        take their density from fill (m, n_samples) and colour 0. Rows are padded to a multiple of
+        BLAS_ROWS so BLAS computes each one as it would in the full batch (its tail kernel rounds differently)."""
+        encoded = self.noisy_encodings(index, noise).flatten(0, 1)
+        padded = torch.cat([samples, samples[:1].expand(-samples.numel() % BLAS_ROWS)])
+        raw_rgb, raw_density = self.field.raw_outputs(encoded[padded])
+        n = samples.numel()
+        density = fill.flatten().index_put((samples,), raw_density[:n])
+        rgb = encoded.new_zeros(encoded.shape[0], 3).index_put((samples,), raw_rgb[:n])
+        return rgb.reshape(*fill.shape, 3), density.reshape(fill.shape)
 
     def outputs_and_jacobian(self, index: torch.Tensor, noise: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Single-sample views: [raw colour ‖ raw density] (m, 4) of rays `index` (m,) with noise (m, 1, dims),

@@ -167,8 +167,11 @@ class NeRFField(nn.Module):
         raw_rgb, raw_density = self.raw_outputs(encoded)
         return torch.sigmoid(raw_rgb), torch.relu(raw_density)
 
+    def raw_density(self, encoded_xyz: torch.Tensor) -> torch.Tensor:
+        """Pre-activation density alone, without the view branch. encoded_xyz: (n, xyz_dims) -> (n,)."""
+        h = self.trunk(encoded_xyz)
+        return self.alpha_linear(h)[..., 0] if self.config.use_viewdirs else self.output_linear(h)[..., 3]
+
     def density(self, points: torch.Tensor) -> torch.Tensor:
         """σ (n,) alone, without the view branch (for occupancy-grid updates). points: (n, 3)."""
-        h = self.trunk(positional_encoding(points, self.config.xyz_freqs))
-        raw = self.alpha_linear(h)[..., 0] if self.config.use_viewdirs else self.output_linear(h)[..., 3]
-        return torch.relu(raw)
+        return torch.relu(self.raw_density(positional_encoding(points, self.config.xyz_freqs)))
