@@ -324,16 +324,21 @@ class BlockProblem:
         samples active at the last check."""
         active = self.active[part]
         samples = active.flatten().nonzero()[:, 0]
-        if loss is None or samples.numel() == 0:
-            with torch.no_grad():
-                raw_rgb, raw_density = self.secret_view.raw_of(self.index[part], piece, samples, self.checked_density[part])
-                colors = self.secret_view.shade(self.index[part], raw_rgb, raw_density)
-            return colors, None if loss is None else self.counted(active, torch.zeros_like(piece))
-        piece = piece.detach().requires_grad_(True)
-        with torch.enable_grad():
-            raw_rgb, raw_density = self.secret_view.raw_of(self.index[part], piece, samples, self.checked_density[part])
+        n_samples = self.secret_view.n_samples
+        own = piece.shape[1] == n_samples  # the sample layout: an evaluated sample's noise row is its own
+        leaf = (piece.flatten(0, 1)[samples] if own else piece).detach()
+        leaf.requires_grad_(loss is not None and samples.numel() > 0)
+        with torch.set_grad_enabled(leaf.requires_grad):
+            rows = leaf if own else leaf.expand(-1, n_samples, -1).flatten(0, 1)[samples]
+            raw_rgb, raw_density = self.secret_view.raw_of(self.index[part], rows, samples, self.checked_density[part])
             rendered = self.secret_view.shade(self.index[part], raw_rgb, raw_density)
-            grad = torch.autograd.grad(loss(rendered, raw_density, part).sum(), piece)[0]
+            if loss is None:
+                return rendered, None
+            if not leaf.requires_grad:
+                return rendered, self.counted(active, torch.zeros_like(piece))
+            grad = torch.autograd.grad(loss(rendered, raw_density, part).sum(), leaf)[0]
+        if own:
+            grad = torch.zeros_like(piece).flatten(0, 1).index_put_((samples,), grad).view_as(piece)
         return rendered.detach(), self.counted(active, grad)
 
     def gradient_rows(self, k: int) -> torch.Tensor:
@@ -385,12 +390,15 @@ def optimise(problem: BlockProblem, target: torch.Tensor, noise: torch.Tensor, c
     weight = floor_weight(settings)
     aps = settings.adaptive_selection and len(sizes) > 1
     touched = torch.zeros(noise.shape[:2], dtype=torch.bool, device=noise.device)  # rows a gradient has reached
+    # the decay term's buffer, reused: a fresh one every step (~100 MB at 64²) costs more in page faults than in adds
+    decay = torch.empty_like(noise) if settings.weight_decay else None
     for t in range(1, settings.iters + 1):
         lr = learning_rate(settings, t)
         colors, grad = problem.losses_and_grad(
             noise, lambda rendered, raw_density, part: total_losses(rendered, target[part], clean[part], t, settings)
             + weight * density_shortfall(raw_density, settings.density_floor), t)
-        decay = lr * decay_rate(settings, t) * (encoded + noise) if settings.weight_decay else None
+        if decay is not None:
+            torch.add(encoded, noise, out=decay).mul_(lr * decay_rate(settings, t))
         # a row no gradient has reached has zero moments and so a zero Adam direction (exactly): skip it
         touched |= problem.gradient_rows(noise.shape[1])
         rows = touched.nonzero(as_tuple=True) if settings.skip_dead else (slice(None),)

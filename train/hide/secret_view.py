@@ -22,6 +22,7 @@ from noisenerf.train.scene.render import composite, render_weights
 
 ENCODING_CACHE_BYTES = 1 << 30  # a view's encodings up to this size are computed once and kept
 BLAS_ROWS = 64  # a subset of a batch's rows is evaluated in multiples of this (SecretView.raw_of)
+CACHE_ROWS = 64 * BLAS_ROWS  # rows a density check evaluates at once: their activations stay in cache
 
 
 def pass_samples_for(device: torch.device) -> int:
@@ -101,19 +102,28 @@ class SecretView:
         """Pre-activation density (m, n_samples) of rays `index` (m,) with noise (m, 1 or n_samples, dims),
         without the colour branch."""
         encoded = self.noisy_encodings(index, noise)[..., :self.field.config.xyz_dims]
-        return self.field.raw_density(encoded.reshape(-1, encoded.shape[-1])).reshape(encoded.shape[:2])
+        rows = encoded.reshape(-1, encoded.shape[-1])
+        return torch.cat([self.field.raw_density(rows[start:start + CACHE_ROWS])
+                          for start in range(0, len(rows), CACHE_ROWS)]).reshape(encoded.shape[:2])
 
-    def raw_of(self, index: torch.Tensor, noise: torch.Tensor, samples: torch.Tensor, fill: torch.Tensor
+    def sample_encodings(self, index: torch.Tensor, samples: torch.Tensor) -> torch.Tensor:
+        """The clean encodings of `samples` (s,), positions in the flattened (m, n_samples) of rays `index`
+        (m,) -> (s, noise_dims)."""
+        if self.cached is not None:
+            return self.cached[index[samples // self.n_samples], samples % self.n_samples]
+        return self.encode(index).flatten(0, 1)[samples]
+
+    def raw_of(self, index: torch.Tensor, noise_rows: torch.Tensor, samples: torch.Tensor, fill: torch.Tensor
                ) -> tuple[torch.Tensor, torch.Tensor]:
-        """As raw, evaluating only `samples` (s,), positions in the flattened (m, n_samples); the others
-        take their density from fill (m, n_samples) and colour 0. Rows are padded to a multiple of
-        BLAS_ROWS so BLAS computes each one as it would in the full batch (its tail kernel rounds differently)."""
-        encoded = self.noisy_encodings(index, noise).flatten(0, 1)
-        padded = torch.cat([samples, samples[:1].expand(-samples.numel() % BLAS_ROWS)])
-        raw_rgb, raw_density = self.field.raw_outputs(encoded[padded])
+        """As raw, evaluating only `samples` (s,), positions in the flattened (m, n_samples) of rays `index`
+        (m,), with their noise rows (s, dims); the others take their density from fill (m, n_samples) and
+        colour 0. Rows are padded to a multiple of BLAS_ROWS so BLAS computes each one as it would in the
+        full batch (its tail kernel rounds differently)."""
+        encoded = self.sample_encodings(index, samples) + noise_rows
+        raw_rgb, raw_density = self.field.raw_outputs(torch.cat([encoded, encoded[:1].expand(-len(encoded) % BLAS_ROWS, -1)]))
         n = samples.numel()
         density = fill.flatten().index_put((samples,), raw_density[:n])
-        rgb = encoded.new_zeros(encoded.shape[0], 3).index_put((samples,), raw_rgb[:n])
+        rgb = encoded.new_zeros(fill.numel(), 3).index_put((samples,), raw_rgb[:n])
         return rgb.reshape(*fill.shape, 3), density.reshape(fill.shape)
 
     def outputs_and_jacobian(self, index: torch.Tensor, noise: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
