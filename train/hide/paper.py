@@ -273,7 +273,7 @@ class BlockProblem:
         self.floor = settings.density_floor if floor_weight(settings) else None
         self.checked_density: torch.Tensor | None = None  # (m, n_samples) at the last check
         self.active: torch.Tensor | None = None  # (m, n_samples) bool: gradient_samples at the last check
-        self.work = torch.zeros(3, dtype=torch.int64)
+        self.work = torch.zeros(3, dtype=torch.int64, device=index.device)  # counted where it runs: no host sync
 
     def render(self, noise: torch.Tensor) -> torch.Tensor:
         """Colours (m, 3) with noise (m, k, dims), without gradients: of the checked live samples when dead
@@ -349,8 +349,8 @@ class BlockProblem:
 
     def counted(self, active: torch.Tensor, grad: torch.Tensor) -> torch.Tensor:
         """grad, after counting a pass's work: its active samples (p, n_samples) and its idle pixels."""
-        self.work[0] += int(active.sum())
-        self.work[2] += int((~active.any(-1)).sum())
+        self.work[0] += active.sum()
+        self.work[2] += (~active.any(-1)).sum()
         return grad
 
 
@@ -467,7 +467,7 @@ def solved_block(secret_view: SecretView, index: torch.Tensor, pixels: torch.Ten
     noise, work = solve_block(secret_view, index, pixels, start_noise(secret_view, index, pixels, layout_samples, clean, settings),
                         clean.colors[index], settings, lambda t, colors, loss: recorded.append(colors.cpu()))
     colors = torch.stack(recorded) if recorded else torch.zeros(len(recorded_points(settings)), index.numel(), 3)
-    return BlockResult(index, noise.to(dtype).cpu(), colors, work, solved=True)
+    return BlockResult(index, noise.to(dtype).cpu(), colors, work.cpu(), solved=True)
 
 
 def start_noise(secret_view: SecretView, index: torch.Tensor, pixels: torch.Tensor, layout_samples: int,
