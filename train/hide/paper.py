@@ -92,7 +92,7 @@ class PaperSettings:
     pass_samples: int = 1 << 16  # samples per forward/backward pass (memory bound, not a result)
     record_at: tuple[int, ...] = (50, 200, 300)
     skip_dead: bool = True  # exact: dead samples skip the colour branch and the backward pass (see the module docstring)
-    recheck_every: int = 10  # a dead sample is evaluated again every this many iterations (1: every one, exact)
+    recheck_every: int = 10  # sample layout: a dead sample is evaluated again every this many iterations (1: exact)
     tf32: bool = True  # CUDA matmuls in TF32: ~3× faster on Ampere and later; this method is approximate anyway
 
     def __post_init__(self):
@@ -279,7 +279,7 @@ class BlockProblem:
         """Colours (m, 3) with noise (m, k, dims), without gradients: of the checked live samples when dead
         ones are skipped between checks, else of every sample."""
         with torch.no_grad():
-            if self.settings.skip_dead and self.settings.recheck_every > 1 and noise.shape[1] == self.secret_view.n_samples:
+            if self.settings.skip_dead and self.recheck_interval(noise.shape[1]) > 1:
                 return torch.cat([self.skipping_pass(noise[p], p, None)[0] for p in self.parts])
             return self.render_all(noise)
 
@@ -299,12 +299,15 @@ class BlockProblem:
         """Colours (m, 3) and ∂Σloss/∂noise (m, k, dims) at iteration t, pass by pass."""
         if not self.settings.skip_dead:
             return self.full_losses_and_grad(noise, loss)
-        # in the ray layout a dead sample's noise is its ray's, which the live samples' gradients move
-        recheck_every = self.settings.recheck_every if noise.shape[1] == self.secret_view.n_samples else 1
-        if (t - 1) % recheck_every == 0:
+        if (t - 1) % self.recheck_interval(noise.shape[1]) == 0:
             self.check(noise)
         colors, grads = zip(*(self.skipping_pass(noise[part], part, loss) for part in self.parts))
         return torch.cat(colors), torch.cat(grads)
+
+    def recheck_interval(self, k: int) -> int:
+        """Iterations between density checks for noise of k vectors per ray: every iteration in the ray
+        layout (k = 1), where a dead sample's noise is its ray's, which the live samples' gradients move."""
+        return self.settings.recheck_every if k == self.secret_view.n_samples else 1
 
     def full_losses_and_grad(self, noise: torch.Tensor, loss: Loss) -> tuple[torch.Tensor, torch.Tensor]:
         """losses_and_grad through every sample (the method as written)."""
