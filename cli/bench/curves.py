@@ -97,7 +97,7 @@ class PaperRun:
     seconds: float
     peak_gib: float | None  # device memory (CUDA only)
     dead_fraction: float
-    skipping: dict[str, float]  # paper_solver.skip_shares: what skipping left out
+    skipping: dict[str, float]  # paper.skip_shares: what skipping left out
     kept: PaperNoise | None = None  # the noise it found, when asked to keep it
 
 
@@ -129,5 +129,5 @@ def paper_curve(scene: Scene, secret: np.ndarray, view: int, n_samples: int, set
                      "loss": float(((colors[i] - pixels.cpu().float() / 255.0) ** 2).sum(-1).mean()),
                      **secret_quality(colors[i], secret), "ssim_authors": ssim_authors(image, secret / 255.0)})
     return PaperRun(rows, seconds, peak, float((~clean.alive).float().mean()),
-                    skip_shares(*work.tolist(), tile_view.n_rays, tile_view.n_samples, settings.iters),
+                    skip_shares(work, tile_view.n_rays, tile_view.n_samples, settings.iters),
                     PaperNoise(torch.cat(kept).float(), tile_view, secret) if keep_noise else None)

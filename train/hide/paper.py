@@ -435,10 +435,12 @@ class BlockResult:
     solved: bool  # False where the result came from `cached`
 
 
-def skip_shares(evaluated: int, checked: int, idle: int, n_rays: int, n_samples: int, iters: int) -> dict[str, float]:
-    """What skipping left out, as shares of the method as written (every sample of every ray through the
-    forward and backward pass at every iteration): sample-iterations not through that pass, checks (a
-    density-only forward pass) per sample-iteration, and pixel-iterations with nothing evaluated."""
+def skip_shares(work: torch.Tensor, n_rays: int, n_samples: int, iters: int) -> dict[str, float]:
+    """What skipping left out of a view's blocks, whose work (BlockProblem.work) adds up to `work` (3,), as
+    shares of the method as written (every sample of every ray through the forward and backward pass at
+    every iteration): sample-iterations not through that pass, checks (a density-only forward pass) per
+    sample-iteration, and pixel-iterations with nothing evaluated."""
+    evaluated, checked, idle = work.tolist()
     sample_iterations = n_rays * n_samples * iters
     return {"skipped_samples": 1 - evaluated / sample_iterations, "checked_samples": checked / sample_iterations,
             "idle_pixels": idle / (n_rays * iters)}

@@ -65,10 +65,9 @@ class PaperSolver(Solver):
         target = pixels.cpu().float() / 255.0
         records = [{"iteration": t, "loss": float(((colors[i] - target) ** 2).sum(-1).mean()),
                     **tile_quality(colors[i].numpy(), pixels.cpu().numpy(), shape)} for i, t in enumerate(points)]
-        settings = config.get(PaperSettings)
-        evaluated, checked, idle = (int(n) for n in sum(part["work"] for part in parts))
         report = {"records": records, "dead_rays": int((~prepared.alive).sum()),
-                  "skipping": skip_shares(evaluated, checked, idle, secret_view.n_rays, secret_view.n_samples, settings.iters)}
+                  "skipping": skip_shares(sum(part["work"] for part in parts), secret_view.n_rays, secret_view.n_samples,
+                                          config.get(PaperSettings).iters)}
         stored_shape = noise_shape(config.layout, *shape, secret_view.n_samples, secret_view.noise_dims)
         return TileSolution(noise, report, VectorNoise(noise.reshape(stored_shape).numpy()))
 
