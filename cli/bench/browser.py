@@ -22,13 +22,10 @@ import threading
 from http.server import SimpleHTTPRequestHandler, ThreadingHTTPServer
 from pathlib import Path
 
-import numpy as np
-
 from noisenerf.runtime.bundle import secret_digest
-from noisenerf.runtime.images import resize_image, to_uint8
 from noisenerf.train.hide.plan import HideConfig
 
-from noisenerf.cli.bench.context import BenchContext, Measured, size_of
+from noisenerf.cli.bench.context import BenchContext, Measured, resized, size_of
 from noisenerf.cli.bench.report import verdict
 
 BROWSER_RATIO_GOAL = 3  # browser reveal time ÷ Python reveal time, on the same bundle
@@ -151,7 +148,7 @@ def measure_browser(context: BenchContext) -> Measured:
     """The bench secret at native size and at browser_size² in tiles, hidden once, revealed by Python and
     by both pages."""
     config = context.config
-    big = to_uint8(resize_image(context.secret.astype(np.float32) / 255.0, config.browser_size, config.browser_size))
+    big = resized(context.secret, config.browser_size, config.browser_size)
     secrets = {"native": (context.secret, HideConfig(view=config.view)),
                f"{config.browser_size}²": (big, HideConfig(view=config.view, tile_size=config.twok_tile))}
     python, bundles = {}, {}

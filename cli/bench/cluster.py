@@ -15,14 +15,11 @@ import importlib.util
 import tempfile
 import time
 
-import numpy as np
-
 from noisenerf.runtime.bundle import load_bundle
-from noisenerf.runtime.images import resize_image, to_uint8
 from noisenerf.runtime.reveal import reveal
 from noisenerf.train.hide.plan import HideConfig
 
-from noisenerf.cli.bench.context import BenchContext, Measured, peak_rss_gib, timed
+from noisenerf.cli.bench.context import BenchContext, Measured, peak_rss_gib, resized, timed
 from noisenerf.cli.bench.report import verdict
 
 RAY_OVERHEAD_GOAL = 1.5  # Ray's hide time ÷ the local executor's, same workers, same secret
@@ -41,10 +38,6 @@ def ray_cluster(cpus: int):
         yield time.perf_counter() - started
     finally:
         ray.shutdown()
-
-
-def resized(secret: np.ndarray, width: int, height: int) -> np.ndarray:
-    return to_uint8(resize_image(secret.astype(np.float32) / 255.0, width, height))
 
 
 def measure_cluster(context: BenchContext) -> Measured:

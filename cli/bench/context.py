@@ -78,7 +78,11 @@ class Section:
 
 def small_secret(secret: np.ndarray, width: int) -> np.ndarray:
     """The secret resized to `width`, its height in proportion but at least 11 (SSIM's window)."""
-    height = max(11, round(secret.shape[0] * width / secret.shape[1]))
+    return resized(secret, width, max(11, round(secret.shape[0] * width / secret.shape[1])))
+
+
+def resized(secret: np.ndarray, width: int, height: int) -> np.ndarray:
+    """An 8-bit image (h, w, 3) resized to (height, width, 3), 8-bit."""
     return to_uint8(resize_image(secret.astype(np.float32) / 255.0, width, height))
 
 

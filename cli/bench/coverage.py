@@ -15,11 +15,11 @@ from dataclasses import dataclass
 import numpy as np
 
 from noisenerf.runtime.bundle import load_bundle
-from noisenerf.runtime.images import load_secret, resize_image, to_uint8
+from noisenerf.runtime.images import load_secret, to_uint8
 from noisenerf.runtime.reveal import reveal
 from noisenerf.train.hide.plan import HideConfig
 
-from noisenerf.cli.bench.context import BenchContext, Measured
+from noisenerf.cli.bench.context import BenchContext, Measured, resized
 from noisenerf.cli.bench.report import verdict
 
 PRIMARIES = np.array([[255, 0, 0], [0, 255, 0], [0, 0, 255], [255, 255, 0], [0, 255, 255], [255, 0, 255],
@@ -53,8 +53,7 @@ def hard_secrets(size: int, background: tuple[float, float, float], photo: np.nd
     back = to_uint8(np.asarray(background, np.float32))
     checker = ((np.add.outer(np.arange(size), np.arange(size)) % 2) * 255).astype(np.uint8)
     extremes = np.concatenate([np.arange(0, 6), np.arange(250, 256)]).astype(np.uint8)
-    source = smooth_photo(size, seed) if photo is None else to_uint8(
-        resize_image(photo.astype(np.float32) / 255.0, size, size))
+    source = smooth_photo(size, seed) if photo is None else resized(photo, size, size)
     return {
         "black": np.zeros(shape, np.uint8),
         "white": np.full(shape, 255, np.uint8),

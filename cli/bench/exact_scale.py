@@ -12,10 +12,10 @@ from pathlib import Path
 import numpy as np
 
 from noisenerf.runtime.cores import available_cores
-from noisenerf.runtime.images import load_secret, resize_image, to_uint8
+from noisenerf.runtime.images import load_secret
 from noisenerf.train.hide.plan import HideConfig
 
-from noisenerf.cli.bench.context import BenchContext, Measured, size_of, small_secret
+from noisenerf.cli.bench.context import BenchContext, Measured, resized, size_of, small_secret
 from noisenerf.cli.bench.exact_cost import HIDE_OVER_REVEAL_GOAL
 from noisenerf.cli.bench.report import curves_plot, verdict
 
@@ -180,7 +180,7 @@ class TiledSecret2K(Measured):
 def measure_twok(context: BenchContext) -> TiledSecret2K:
     """A 2048×2048 secret (twok_size) as 512-px tiles: the first `twok_rows` tile rows hidden and revealed."""
     config = context.config
-    big = to_uint8(resize_image(context.secret.astype(np.float32) / 255.0, config.twok_size, config.twok_size))
+    big = resized(context.secret, config.twok_size, config.twok_size)
     rows_total = config.twok_size // config.twok_tile
     part = big[:config.twok_rows * config.twok_tile]
     report, revealed, reveal_seconds = context.hide_and_reveal(part, "twok", HideConfig(view=config.view,

@@ -72,7 +72,6 @@ def hide(scene: Scene, secret: np.ndarray, output: Path, config: HideConfig, dev
     if executor not in EXECUTORS:
         raise UserError(f"unknown executor {executor!r} ({' or '.join(EXECUTORS)})")
     hide_plan = plan(scene, secret, config)
-    scene.to(device)
     noise_dims = scene.render_field.config.noise_dims
     solver = METHODS[config.method]
     if allow_inexact and payload is not None:
@@ -88,7 +87,8 @@ def hide(scene: Scene, secret: np.ndarray, output: Path, config: HideConfig, dev
         tiles, reports = [None] * len(works), [None] * len(works)
 
         def job(work: TileWork, part: int, rows: range) -> Job:
-            return Job(work.k, part, work.tile, rows, work.pixels[rows.start:rows.stop], config, str(device))
+            # a copy: a slice would pickle (pool, Ray) the whole tile's pixels with every part
+            return Job(work.k, part, work.tile, rows, work.pixels[rows.start:rows.stop].clone(), config, str(device))
 
         def finish(work: TileWork) -> None:
             """The tile assembled from its parts and checked by rendering it whole."""
