@@ -71,15 +71,15 @@ def progress_bar(total: int):
     return tqdm(total=total, unit="ray", unit_scale=True, file=sys.stderr, disable=None, leave=False)
 
 
-def reveal_secret(model: Model, bundle: Bundle) -> tuple[Revealed, dict]:
-    """Render and stitch a bundle's tiles -> the revealed image, report."""
+def reveal_secret(model: Model, bundle: Bundle, keep_float: bool = False) -> tuple[Revealed, dict]:
+    """Render and stitch a bundle's tiles -> the revealed image (the float render too if keep_float), report."""
     from noisenerf.runtime.model import check_bundle
     from noisenerf.runtime.reveal import reveal
 
     check_bundle(model, bundle)
     rays = sum(tile.rect[2] * tile.rect[3] for tile in bundle.tiles)
     with progress_bar(rays) as bar:
-        revealed = reveal(bundle, model.render_config, model.fields(), progress=bar)
+        revealed = reveal(bundle, model.render_config, model.fields(), progress=bar, keep_float=keep_float)
     return revealed, {"exact": revealed.exact, "width": bundle.width, "height": bundle.height,
                             "tiles": len(bundle.tiles), "rays": rays,
                             "samples": sum(tile.rect[2] * tile.rect[3] * tile.sampling.n_samples
@@ -169,9 +169,10 @@ def run(args: argparse.Namespace) -> dict:
     model = load_model(args.model, device=args.device, threads=args.threads)
     loaded = time.perf_counter()
     if bundle is not None:
-        revealed, report = reveal_secret(model, bundle)
         # 8-bit images get the very pixels `exact` judged (quantised once); 16-bit and float, the render
-        image = revealed.pixels if not payload and written_format(output)[1] == "uint8" else revealed.image
+        keep_float = not payload and written_format(output)[1] != "uint8"
+        revealed, report = reveal_secret(model, bundle, keep_float)
+        image = revealed.image if keep_float else revealed.pixels
     else:
         image, report = render_dataset_view(model, args.view, skip=not args.no_skip)
     rendered = time.perf_counter()

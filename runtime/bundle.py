@@ -123,9 +123,17 @@ class VectorNoise:
     values: np.ndarray
 
     @property
-    def stored(self) -> np.ndarray:
-        """The array the file holds, whose shape and dtype the bundle header states."""
-        return self.values
+    def shape(self) -> tuple[int, ...]:
+        """The stored array's shape, which the bundle header states."""
+        return self.values.shape
+
+    @property
+    def dtype(self) -> np.dtype:
+        return self.values.dtype
+
+    def loaded(self) -> VectorNoise:
+        """What a render reads rows from: the stored floats themselves."""
+        return self
 
     def rows(self, start: int, stop: int) -> np.ndarray:
         """Float32 noise of pixels start..stop (row-major): (m, 1 or n_samples, dims)."""
@@ -138,23 +146,43 @@ class VectorNoise:
 
 
 @dataclass(frozen=True)
-class CompactNoise:
-    """The compact layout's noise: per pixel k integer coefficients (h, w, k) of the tile's basis."""
+class CompactCoefficients:
+    """A compact tile's coefficients unpacked, (h, w, k) integers, for a render to read rows from."""
 
     coefficients: np.ndarray
     basis: CompactBasis
-
-    @property
-    def stored(self) -> np.ndarray:
-        return self.coefficients
 
     def rows(self, start: int, stop: int) -> np.ndarray:
         """Float32 noise of pixels start..stop (row-major), expanded: (m, 1, dims)."""
         flat = self.coefficients.reshape(-1, self.coefficients.shape[-1])[start:stop]
         return expand_coefficients(flat, self.basis, start)[:, None, :]
 
+
+@dataclass(frozen=True)
+class CompactNoise:
+    """The compact layout's noise: per pixel k integer coefficients (h, w, k) of the tile's basis, held as
+    the file stores them (pack_coefficients' xz stream). A hide packs a tile once it is solved and a reveal
+    unpacks one tile at a time (`loaded`), so neither holds a big secret's coefficients unpacked."""
+
+    packed: np.ndarray  # (n,) uint8
+    shape: tuple[int, int, int]  # (h, w, k)
+    dtype: np.dtype  # int16 or int8
+    basis: CompactBasis
+
+    @staticmethod
+    def of(coefficients: np.ndarray, basis: CompactBasis) -> CompactNoise:
+        """Coefficients (h, w, k) int16 or int8, packed."""
+        return CompactNoise(pack_coefficients(coefficients), coefficients.shape, coefficients.dtype, basis)
+
+    def coefficients(self) -> np.ndarray:
+        """The unpacked coefficients (h, w, k)."""
+        return unpack_coefficients(self.packed, self.shape, self.dtype.name, "bundle: compact tile")
+
+    def loaded(self) -> CompactCoefficients:
+        return CompactCoefficients(self.coefficients(), self.basis)
+
     def tensors(self, name: str) -> dict[str, np.ndarray]:
-        return {name: pack_coefficients(self.coefficients), f"{name}_basis": np.ascontiguousarray(self.basis.basis),
+        return {name: self.packed, f"{name}_basis": np.ascontiguousarray(self.basis.basis),
                 f"{name}_offset": np.ascontiguousarray(self.basis.offset),
                 f"{name}_escapes": np.ascontiguousarray(self.basis.escapes),
                 f"{name}_escape_noise": np.ascontiguousarray(self.basis.escape_noise)}
@@ -269,13 +297,13 @@ def validate_tile(i: int, tile: Tile, bundle: Bundle) -> None:
     if not isinstance(tile.noise, kind):
         raise UserError(f"bundle: tile {i} noise is {type(tile.noise).__name__}; the {bundle.layout} layout "
                         f"stores {kind.__name__}")
-    shape, stored = expected_noise_shape(tile, bundle), tile.noise.stored
-    if stored.shape != shape or stored.dtype != DTYPES[bundle.dtype]:
-        raise UserError(f"bundle: tile {i} noise is {stored.dtype} {stored.shape}, "
+    shape, noise = expected_noise_shape(tile, bundle), tile.noise
+    if tuple(noise.shape) != shape or noise.dtype != DTYPES[bundle.dtype]:
+        raise UserError(f"bundle: tile {i} noise is {noise.dtype} {tuple(noise.shape)}, "
                         f"expected {bundle.dtype} {shape}")
     if bundle.layout == "compact":
         validate_basis(i, tile, bundle)
-    if not np.isfinite(stored).all():
+    elif not np.isfinite(noise.values).all():  # a compact tile's integers are finite by type
         raise UserError(f"bundle: tile {i} noise holds NaN or Inf")
 
 
@@ -338,15 +366,17 @@ def tile_tensor(tensors: dict[str, np.ndarray], name: str, what: str, dtype=None
 
 def compact_noise(name: str, data: dict, tensors: dict[str, np.ndarray], shape: tuple[int, int, int], dtype: str,
                   what: str) -> CompactNoise:
-    """A compact tile's coefficients (h, w, k), decompressed only once the header and rect are known
-    good (so at most h·w·k values), and its basis."""
+    """A compact tile's coefficients (h, w, k) and its basis. The stream is decompressed once here to check
+    it holds exactly that (only once the header and rect are known good, so at most h·w·k values), then
+    kept packed: a reveal unpacks one tile at a time."""
     basis = CompactBasis(basis=tile_tensor(tensors, f"{name}_basis", what), offset=tile_tensor(tensors, f"{name}_offset", what),
                   scale=checked_float(data.get("scale"), f"{what} scale", low=float(np.finfo(np.float32).tiny),
                                       high=float(np.finfo(np.float32).max)),
                   escapes=tile_tensor(tensors, f"{name}_escapes", what),
                   escape_noise=tile_tensor(tensors, f"{name}_escape_noise", what))
     packed = tile_tensor(tensors, name, what, dtype=np.uint8, ndim=1)
-    return CompactNoise(unpack_coefficients(packed, shape, dtype, what), basis)
+    unpack_coefficients(packed, shape, dtype, what)
+    return CompactNoise(packed, shape, np.dtype(DTYPES[dtype]), basis)
 
 
 def parse_tile(i: int, data, tensors: dict[str, np.ndarray], header: dict) -> Tile:

@@ -13,7 +13,8 @@ import math
 from noisenerf.runtime.errors import UserError
 
 MAX_IMAGE_SIDE = 16384  # px: width or height of a secret, tile or camera
-MAX_IMAGE_PIXELS = 4096 * 4096  # px: width × height of a secret or rendered camera (a 4K secret; 200 MB as float RGB)
+MAX_IMAGE_PIXELS = 8192 * 8192  # px: width × height of a secret or rendered camera (8K; a reveal holds it as 8-bit RGB, 192 MiB)
+MAX_PAYLOAD_PIXELS = 4096 * 4096  # px: a payload's secret (48 MiB; its bytes are held several times over: record, cipher, pixels)
 MAX_SAMPLES_PER_RAY = 1024  # samples per ray of any render (nerf-pytorch uses 64 + 128)
 MAX_RAY_LAYOUT_SAMPLES = 256  # ray layout: one stored vector serves this many samples at most
 MAX_COMPACT_COEFFICIENTS = 8  # compact layout: coefficients per pixel (int16: 16 bytes a pixel decompressed)

@@ -33,7 +33,7 @@ from pathlib import Path
 import numpy as np
 
 from noisenerf.runtime.errors import UserError
-from noisenerf.runtime.limits import MAX_IMAGE_PIXELS, checked_image_size
+from noisenerf.runtime.limits import MAX_PAYLOAD_PIXELS, checked_image_size
 from noisenerf.runtime.sealing import TAG_BYTES, Keys, Seal, associated_data, decrypt, encrypt
 
 MAGIC = b"NNPL"
@@ -43,7 +43,7 @@ KINDS = ("file", "image")
 MAX_NAME_BYTES = 255
 PAYLOAD_VERSION = 1
 MIN_BUCKET = 16  # px: the smallest sealed secret's side
-MAX_PAYLOAD_BYTES = MAX_IMAGE_PIXELS * 3 - RECORD.size - MAX_NAME_BYTES - TAG_BYTES
+MAX_PAYLOAD_BYTES = MAX_PAYLOAD_PIXELS * 3 - RECORD.size - MAX_NAME_BYTES - TAG_BYTES
 INEXACT = ("the revealed pixels do not reproduce the payload's SHA-256 (the bundle or model was altered, "
            "or this machine renders differently); nothing written")
 
@@ -141,9 +141,9 @@ def secret_shape(n_bytes: int, tile_size: int, sealed: bool) -> tuple[int, int]:
     """(width, height) of the secret that carries n_bytes, refused beyond what a bundle may hold."""
     n_pixels = -(-n_bytes // 3)
     width, height = sealed_shape(n_pixels, tile_size) if sealed else near_square(n_pixels)
-    if width * height > MAX_IMAGE_PIXELS:
+    if width * height > MAX_PAYLOAD_PIXELS:
         raise UserError(f"a payload of {n_bytes} bytes needs a {width}x{height} secret, more than the "
-                        f"{MAX_IMAGE_PIXELS} pixels noisenerf hides")
+                        f"{MAX_PAYLOAD_PIXELS} pixels a payload may take")
     checked_image_size(width, height, "the payload's secret")
     return width, height
 

@@ -29,9 +29,10 @@ def render_tile(tile: Tile, config: RenderConfig, field: NoisyFieldFn, progress=
     weights are 0), on the rays the hide solved on (runtime.rays.camera_ray_batch)."""
     rays = camera_ray_batch(tile.camera, config)
     tile_config = dataclasses.replace(config, sampling=tile.sampling)
+    stored = tile.noise.loaded()
 
     def render_chunk(start: int, stop: int):
-        noise = noisy(field, tile.noise.rows(start, stop))
+        noise = noisy(field, stored.rows(start, stop))
         return render_rays(tile_config, rays.rows(start, stop), noise, None, early_stop=0.0)
 
     colors, _ = render_in_chunks(len(rays), rays_per_chunk(tile.sampling.n_samples), render_chunk, progress)
@@ -40,7 +41,7 @@ def render_tile(tile: Tile, config: RenderConfig, field: NoisyFieldFn, progress=
 
 @dataclass(frozen=True)
 class Revealed:
-    image: np.ndarray  # (height, width, 3) float32
+    image: np.ndarray | None  # (height, width, 3) float32 when asked for (keep_float), else None
     pixels: np.ndarray  # (height, width, 3) uint8
     exact: bool  # the 8-bit pixels hash to the bundle's secret digest
 
@@ -54,13 +55,19 @@ def tile_field(tile: Tile, fields: Mapping[str, NoisyFieldFn]) -> NoisyFieldFn:
     return fields[name]
 
 
-def reveal(bundle: Bundle, config: RenderConfig, fields: Mapping[str, NoisyFieldFn], progress=None) -> Revealed:
+def reveal(bundle: Bundle, config: RenderConfig, fields: Mapping[str, NoisyFieldFn], progress=None,
+           keep_float: bool = False) -> Revealed:
     """Render and stitch all tiles of a bundle. fields: network name ("coarse", and "fine" where the
-    scene has one) -> noisy field; every tile's network is checked before anything is rendered."""
+    scene has one) -> noisy field; every tile's network is checked before anything is rendered.
+    Each tile is quantised as it is rendered, so a reveal holds the 8-bit secret (3 bytes a pixel) and
+    one tile's work; keep_float also keeps the float render (12 bytes a pixel, for 16-bit and float outputs)."""
     chosen = [tile_field(tile, fields) for tile in bundle.tiles]
-    image = np.zeros((bundle.height, bundle.width, 3), dtype=np.float32)
+    pixels = np.zeros((bundle.height, bundle.width, 3), dtype=np.uint8)
+    image = np.zeros((bundle.height, bundle.width, 3), dtype=np.float32) if keep_float else None
     for tile, field in zip(bundle.tiles, chosen):
         x0, y0, w, h = tile.rect
-        image[y0:y0 + h, x0:x0 + w] = render_tile(tile, config, field, progress=progress)
-    pixels = to_uint8(image)
+        colors = render_tile(tile, config, field, progress=progress)
+        pixels[y0:y0 + h, x0:x0 + w] = to_uint8(colors)
+        if keep_float:
+            image[y0:y0 + h, x0:x0 + w] = colors
     return Revealed(image, pixels, secret_digest(pixels) == bundle.secret_sha256)

@@ -48,7 +48,7 @@ def test_exact_hide_recovers_every_value_and_leaves_weights_unchanged(scene, tmp
     assert report["exact"] and report["exact_fraction"] == 1.0
     assert [t["rect"] for t in report["tiles"]] == [list(r) for r in tile_rects(30, 20, 16)]
     bundle = load_bundle(tmp_path / "s.bundle")
-    assert bundle.layout == layout and bundle.dtype == dtype and bundle.tiles[0].noise.stored.shape == (16, 16, stored)
+    assert bundle.layout == layout and bundle.dtype == dtype and bundle.tiles[0].noise.shape == (16, 16, stored)
     revealed = reveal(bundle, scene.config.render, numpy_fields(scene.fields()))
     np.testing.assert_array_equal(revealed.pixels, secret)
     assert revealed.exact
@@ -83,6 +83,21 @@ def test_chunks_spread_over_worker_processes_give_the_same_bytes(scene, tmp_path
         report = hide(scene, secret, tmp_path / f"{workers}.bundle", config, CPU, show_progress=False, workers=workers)
         assert report["exact"]
     assert (tmp_path / "1.bundle").read_bytes() == (tmp_path / "2.bundle").read_bytes()
+
+
+def test_the_driver_holds_one_tile_more_than_its_executor_runs_at_once(scene, tmp_path, monkeypatch):
+    from noisenerf.train.hide import run
+    from noisenerf.train.hide.methods import METHODS
+
+    solver, events, tile_work = METHODS["exact"], [], run.tile_work
+    assemble = solver.assemble
+    monkeypatch.setattr(run, "tile_work", lambda *args: events.append(1) or tile_work(*args))
+    monkeypatch.setattr(solver, "assemble", lambda *args: events.append(-1) or assemble(*args))
+    report = hide(scene, random_secret(48, 40, seed=4), tmp_path / "s.bundle", HideConfig(tile_size=16, chunk_pixels=64),
+                  CPU, show_progress=False, workers=1)
+    assert report["exact"] and len(report["tiles"]) == 9
+    in_flight = np.cumsum(events)
+    assert len(events) == 18 and in_flight.max() == 2 and in_flight[-1] == 0  # one slot: two tiles in flight
 
 
 def test_a_hide_interrupted_while_workers_solve_resumes_to_the_same_bytes(scene, tmp_path):

@@ -128,7 +128,7 @@ def test_tiles_reveal_through_their_network(fine_model, tmp_path, network):
         assert np.abs(ours - render_tile(tile, scene.config.render, other_field)).max() > 1e-2
     result = run_reveal(model, tmp_path / "s.bundle", "-o", tmp_path / "out.exr", "--threads", 1)
     assert result.returncode == 0 and result.stdout.startswith("exact: true"), result.stderr
-    expected = reveal(reread, scene.config.render, numpy_fields(scene.fields())).image
+    expected = reveal(reread, scene.config.render, numpy_fields(scene.fields()), keep_float=True).image
     assert np.abs(read_image(tmp_path / "out.exr") - expected).max() <= 1e-5
 
 

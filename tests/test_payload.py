@@ -18,7 +18,7 @@ import torch
 
 from helpers import assert_refused, run_reveal
 from noisenerf.cli.main import main as noisenerf_main
-from noisenerf.runtime.bundle import load_bundle
+from noisenerf.runtime.bundle import CompactNoise, load_bundle
 from noisenerf.runtime.errors import UserError
 from noisenerf.runtime.images import read_native, write_image
 from noisenerf.runtime.payload import (
@@ -215,8 +215,8 @@ def test_unsealed_payload_whose_pixels_changed_is_refused(demo, tmp_path):
     hide_payload(scene, Record("file", b"exactly these bytes"), tmp_path / "p.bundle", CONFIG, CPU,
                  show_progress=False)
     bundle = load_bundle(tmp_path / "p.bundle")
-    tiles = tuple(dataclasses.replace(tile, noise=dataclasses.replace(
-        tile.noise, coefficients=np.zeros_like(tile.noise.coefficients))) for tile in bundle.tiles)
+    tiles = tuple(dataclasses.replace(tile, noise=CompactNoise.of(np.zeros_like(tile.noise.coefficients()),
+                                                                  tile.noise.basis)) for tile in bundle.tiles)
     dataclasses.replace(bundle, tiles=tiles).save(tmp_path / "z.bundle")
     assert_refused(run_reveal(model, tmp_path / "z.bundle", "-o", tmp_path / "out"), tmp_path / "out", INEXACT,
                    exact=True)

@@ -67,7 +67,7 @@ def test_real_photo_hides_exactly_and_reveals_in_onnxruntime(lego, shared_data, 
                   CPU, force=True, show_progress=False)
     assert report["exact"], report["tiles"]
     bundle = load_bundle(folder / f"{layout}.bundle")
-    revealed = reveal(bundle, model.render_config, model.fields())
+    revealed = reveal(bundle, model.render_config, model.fields(), keep_float=True)
     assert revealed.exact
     np.testing.assert_array_equal(revealed.pixels, secret)
     torch_image = render_tile(bundle.tiles[0], scene.config.render, numpy_field(scene.render_field))

@@ -47,7 +47,7 @@ def test_exr_output_holds_the_float_image(reveal_inputs, tmp_path):
     result = run_reveal(model, bundle, "-o", tmp_path / "out.exr")
     assert result.returncode == 0, result.stderr
     loaded = load_model(model)
-    expected = reveal(load_bundle(bundle), loaded.render_config, loaded.fields())
+    expected = reveal(load_bundle(bundle), loaded.render_config, loaded.fields(), keep_float=True)
     np.testing.assert_array_equal(read_image(tmp_path / "out.exr"), expected.image)
 
 

@@ -95,11 +95,11 @@ def golden(folder: Path) -> dict:
             "origins": write_array(folder, f"tile{i}_origins", rays.origins),
             "directions": write_array(folder, f"tile{i}_directions", rays.directions),
             "viewdirs": write_array(folder, f"tile{i}_viewdirs", rays.viewdirs),
-            "noise": write_array(folder, f"tile{i}_noise", tile.noise.rows(0, n)),
+            "noise": write_array(folder, f"tile{i}_noise", tile.noise.loaded().rows(0, n)),
             "colors": write_array(folder, f"tile{i}_colors",
                                   render_tile(tile, model.render_config, tile_field(tile, fields))),
         })
-    revealed = reveal(bundle, model.render_config, fields)
+    revealed = reveal(bundle, model.render_config, fields, keep_float=True)
     return {"width": bundle.width, "height": bundle.height, "layout": bundle.layout, "exact": revealed.exact,
             "sha256": bundle.secret_sha256, "fingerprint": model.fingerprint, "tiles": tiles,
             "image": write_array(folder, "image", revealed.image),
@@ -114,13 +114,13 @@ def with_escape(path: Path) -> None:
     bundle = load_bundle(path)
     tile = bundle.tiles[0]
     n = tile.rect[2] * tile.rect[3]
-    noise = tile.noise.rows(0, n)[:, 0]
-    coefficients = tile.noise.coefficients.copy()
+    noise = tile.noise.loaded().rows(0, n)[:, 0]
+    coefficients = tile.noise.coefficients()
     coefficients.reshape(n, -1)[[5, 9]] = 0
     basis = dataclasses.replace(tile.noise.basis, escapes=np.array([5, 9], np.int32),
                                 escape_noise=noise[[5, 9]].astype(np.float16))
     assert isinstance(basis, CompactBasis)
-    tiles = (dataclasses.replace(tile, noise=CompactNoise(coefficients, basis)),) + bundle.tiles[1:]
+    tiles = (dataclasses.replace(tile, noise=CompactNoise.of(coefficients, basis)),) + bundle.tiles[1:]
     path.unlink()
     dataclasses.replace(bundle, tiles=tiles).save(path)
 

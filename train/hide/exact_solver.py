@@ -37,7 +37,7 @@ def stored_noise(space: NoiseSpace, params: torch.Tensor, escaped: torch.Tensor,
                          escapes=escapes.to(torch.int32).cpu().numpy(),
                          escape_noise=escape_noise[escapes].to(torch.float16).cpu().numpy())
     coefficients = torch.where(escaped[:, None], 0, space.integers(params))
-    return CompactNoise(coefficients.reshape(shape).cpu().numpy(), basis)
+    return CompactNoise.of(coefficients.reshape(shape).cpu().numpy(), basis)
 
 
 def solve_chunk(secret_view: SecretView, index: torch.Tensor, pixels: torch.Tensor, space: NoiseSpace,

@@ -22,7 +22,10 @@ EXECUTORS = ("local", "ray")
 
 class Executor:
     """Runs submitted jobs; `results` yields (job, result) in the order they finish until none is left
-    (jobs submitted while iterating included). A job that fails stops the iteration with its error."""
+    (jobs submitted while iterating included). A job that fails stops the iteration with its error.
+    `slots`: how many jobs it runs at once (the driver keeps that many tiles, and one more, in flight)."""
+
+    slots: int = 1
 
     def submit(self, job: Job, prepared: object = None) -> None:
         raise NotImplementedError
@@ -62,7 +65,7 @@ class LocalExecutor(Executor):
     job never pays their start (~1 s), and stop with the hide, at once (terminated)."""
 
     def __init__(self, weights: FieldWeights, workers: int):
-        self.weights, self.workers = weights, max(1, workers)
+        self.weights, self.slots = weights, max(1, workers)
         self.waiting: deque[tuple[Job, object]] = deque()
         self.finished: queue.Queue = queue.Queue()  # (job, pickled result, error) from the pool's thread
         self.running = 0
@@ -73,7 +76,7 @@ class LocalExecutor(Executor):
 
     def results(self) -> Iterator[tuple[Job, object]]:
         while self.waiting or self.running:
-            if self.pool is None and (self.workers == 1 or len(self.waiting) == 1):
+            if self.pool is None and (self.slots == 1 or len(self.waiting) == 1):
                 job, prepared = self.waiting.popleft()
                 yield job, run_job(self.weights, job, prepared)
                 continue
@@ -87,7 +90,7 @@ class LocalExecutor(Executor):
     def dispatch(self) -> None:
         """Every waiting job to the pool, started on first use."""
         if self.pool is None:
-            self.pool = multiprocessing.get_context("spawn").Pool(self.workers, initializer=start_worker,
+            self.pool = multiprocessing.get_context("spawn").Pool(self.slots, initializer=start_worker,
                                                                   initargs=(self.weights,))
         while self.waiting:
             job, prepared = self.waiting.popleft()

@@ -44,6 +44,7 @@ class RayExecutor(Executor):
             except ConnectionError as error:
                 raise UserError(f"cannot connect to the Ray cluster at {address or 'RAY_ADDRESS'}: {error}") from None
         resources = {"num_gpus": 1} if device.type == "cuda" else {"num_cpus": 1}
+        self.slots = max(1, int(self.ray.cluster_resources().get("GPU" if device.type == "cuda" else "CPU", 1)))
         self.task = self.ray.remote(run_job).options(max_retries=MAX_RETRIES, **resources)
         self.weights = self.ray.put(weights)
         self.prepared: dict[int, tuple[object, object]] = {}  # tile -> (its shared result, its object ref)

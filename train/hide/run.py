@@ -1,10 +1,12 @@
 """`noisenerf hide`: train the noise that makes a frozen scene render a secret (Noise-NeRF).
 
 The secret is planned into tiles (plan.py), one viewpoint each; the chosen method (methods.py) cuts each
-tile into parts, solved as pure jobs (jobs.py) wherever the executor runs them (executors.py), every tile
-at once. This driver alone saves each finished part beside the output (OUT.partial/, progress.py), so an
+tile into parts, solved as pure jobs (jobs.py) wherever the executor runs them (executors.py), several tiles
+at once (one more than the executor runs jobs at once). This driver alone saves each finished part beside the output (OUT.partial/, progress.py), so an
 interrupted hide run again with the same arguments resumes where it stopped and writes a byte-identical
-bundle, and assembles the tiles and the bundle.
+bundle, and assembles the tiles and the bundle. It holds the secret's 8-bit pixels, the finished tiles'
+noise as the bundle stores it, and the tiles in flight, so its memory grows with the tile size, not the
+secret's, beyond what the bundle itself will hold.
 """
 
 from __future__ import annotations
@@ -83,15 +85,16 @@ def hide(scene: Scene, secret: np.ndarray, output: Path, config: HideConfig, dev
         started = time.perf_counter()
         bar = tqdm(total=secret.shape[0] * secret.shape[1], unit="px", desc=f"hide ({config.method})",
                    disable=not show_progress, dynamic_ncols=True)
-        works = [tile_work(k, tile, secret, solver.part_pixels(config)) for k, tile in enumerate(hide_plan.tiles)]
-        tiles, reports = [None] * len(works), [None] * len(works)
+        tiles, reports = [None] * len(hide_plan.tiles), [None] * len(hide_plan.tiles)
+        works: dict[int, TileWork] = {}  # the tiles in flight: their pixels, parts and results held till done
+        waiting = iter(enumerate(hide_plan.tiles))
 
         def job(work: TileWork, part: int, rows: range) -> Job:
             # a copy: a slice would pickle (pool, Ray) the whole tile's pixels with every part
             return Job(work.k, part, work.tile, rows, work.pixels[rows.start:rows.stop].clone(), config, str(device))
 
         def finish(work: TileWork) -> None:
-            """The tile assembled from its parts and checked by rendering it whole."""
+            """The tile assembled from its parts, checked by rendering it whole, and let go of."""
             x0, y0, w, h = work.tile.rect
             secret_view = tile_view(weights, work.tile, device)  # the jobs' own where they ran in this process
             pixels = work.pixels.to(device)
@@ -108,9 +111,10 @@ def hide(scene: Scene, secret: np.ndarray, output: Path, config: HideConfig, dev
             tiles[work.k] = dataclasses.replace(work.tile, noise=solved.stored)
             reports[work.k] = {"rect": list(work.tile.rect), "view": work.tile.view, **quality, **solved.report,
                                "seconds": round(time.perf_counter() - work.started, 2)}
+            del works[work.k]
 
-        def start_parts(work: TileWork) -> None:
-            """The tile's saved parts taken, the others submitted; a tile with none left is finished."""
+        def start_parts(work: TileWork) -> bool:
+            """The tile's saved parts taken, the others submitted. -> whether none is left to solve."""
             for c, rows in enumerate(work.parts):
                 layout, sound = solver.part_layout(config, len(rows), noise_dims, work.prepared)
                 saved = progress.load(work.k, c, layout, sound)
@@ -119,32 +123,42 @@ def hide(scene: Scene, secret: np.ndarray, output: Path, config: HideConfig, dev
                 else:
                     work.solved[c] = saved
                     bar.update(len(rows))
-            if len(work.solved) == len(work.parts):
-                finish(work)
+            return len(work.solved) == len(work.parts)
 
-        for work in works:  # every tile's jobs at once: tiles are independent
-            if solver.prepares(config):
-                jobs.submit(job(work, PREPARE, range(len(work.pixels))))
-            else:
-                start_parts(work)
+        def start_tiles() -> None:
+            """Tiles started in order while fewer than the executor's slots, plus one, are in flight: enough
+            to keep every slot busy, and the driver's memory grows with the tile size, not the secret's."""
+            while len(works) <= jobs.slots:
+                k, tile = next(waiting, (None, None))
+                if tile is None:
+                    return
+                works[k] = work = tile_work(k, tile, secret, solver.part_pixels(config))
+                if solver.prepares(config):
+                    jobs.submit(job(work, PREPARE, range(len(work.pixels))))
+                elif start_parts(work):
+                    finish(work)
+
+        start_tiles()
         for done, result in jobs.results():
             work = works[done.k]
             if done.part == PREPARE:
                 work.prepared = result
-                start_parts(work)
-                continue
-            progress.save(done.k, done.part, result)
-            work.solved[done.part] = result
-            bar.update(len(done.rows))
-            if len(work.solved) == len(work.parts):
-                finish(work)
+                if start_parts(work):
+                    finish(work)
+            else:
+                progress.save(done.k, done.part, result)
+                work.solved[done.part] = result
+                bar.update(len(done.rows))
+                if len(work.solved) == len(work.parts):
+                    finish(work)
+            start_tiles()
         bar.close()
         bundle = Bundle(model_fingerprint=scene.fingerprint(), width=secret.shape[1], height=secret.shape[0],
                         secret_sha256=secret_digest(secret), layout=config.layout,
                         noise_dims=noise_dims, dtype=config.dtype, tiles=tuple(tiles),
                         extra={"method": config.method, "noisenerf": noisenerf.__version__,
                                "config": config.to_dict()}, payload=payload,
-                        coefficients=tiles[0].noise.stored.shape[-1] if config.layout == "compact" else None)
+                        coefficients=tiles[0].noise.shape[-1] if config.layout == "compact" else None)
         bundle.save(output)
         progress.clear()
     n_pixels = secret.shape[0] * secret.shape[1]

@@ -54,7 +54,7 @@ export async function reveal({ model, bundle, passphrase = null, onProgress = nu
   const { width, height } = secret;
   if (secret.payload === null) {
     return { kind: "image", bytes: encodePng(revealed.pixels, width, height), name: "revealed.png", width, height,
-      exact: revealed.exact, sha256: revealed.sha256, pixels: revealed.pixels, image: revealed.image };
+      exact: revealed.exact, sha256: revealed.sha256, pixels: revealed.pixels };
   }
   if (!revealed.exact) throw new UserError(INEXACT);
   const record = openPayload(revealed.pixels, width, height, secret.payload, checked.metadata.fingerprint, keys);

@@ -3,7 +3,8 @@
 import { UserError, PyFloat, reprCut, formatG, repr } from "./errors.js";
 
 export const MAX_IMAGE_SIDE = 16384;
-export const MAX_IMAGE_PIXELS = 4096 * 4096;
+export const MAX_IMAGE_PIXELS = 8192 * 8192;
+export const MAX_PAYLOAD_PIXELS = 4096 * 4096;
 export const MAX_SAMPLES_PER_RAY = 1024;
 export const MAX_RAY_LAYOUT_SAMPLES = 256;
 export const MAX_COMPACT_COEFFICIENTS = 8;

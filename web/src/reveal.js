@@ -123,18 +123,18 @@ export function tileNetwork(tile, networks) {
   return name;
 }
 
-/** reveal: every tile rendered and stitched, quantised, its SHA-256 checked -> {image, pixels, exact, sha256}. */
+/** reveal: every tile rendered, quantised as it comes and stitched, the SHA-256 checked -> {pixels, exact, sha256}.
+ * It holds the 8-bit secret and one tile's floats, as runtime/reveal.py does. */
 export async function revealBundle(bundle, config, field, progress) {
   const chosen = bundle.tiles.map((tile) => tileNetwork(tile, field.networks));
   const { width, height } = bundle;
-  const image = new Float32Array(width * height * 3);
+  const pixels = new Uint8Array(width * height * 3);
   for (let t = 0; t < bundle.tiles.length; t++) {
     const tile = bundle.tiles[t];
     const [x0, y0, w, h] = tile.rect;
-    const colors = await renderTile(tile, bundle, config, field, chosen[t], progress);
-    for (let y = 0; y < h; y++) image.set(colors.subarray(y * w * 3, (y + 1) * w * 3), ((y0 + y) * width + x0) * 3);
+    const tilePixels = toUint8(await renderTile(tile, bundle, config, field, chosen[t], progress));
+    for (let y = 0; y < h; y++) pixels.set(tilePixels.subarray(y * w * 3, (y + 1) * w * 3), ((y0 + y) * width + x0) * 3);
   }
-  const pixels = toUint8(image);
   const digest = bytesToHex(sha256(pixels));
-  return { image, pixels, exact: digest === bundle.secretSha256, sha256: digest };
+  return { pixels, exact: digest === bundle.secretSha256, sha256: digest };
 }

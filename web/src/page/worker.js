@@ -18,7 +18,7 @@ async function handle({ id, type, ...data }) {
     } else if (type === "reveal") {
       const result = await reveal({ model: data.model, bundle: data.bundle, passphrase: data.passphrase,
         onProgress: (progress) => self.postMessage({ id, type: "progress", progress }) });
-      const transfer = [result.bytes.buffer, result.pixels?.buffer, result.image?.buffer].filter(Boolean);
+      const transfer = [result.bytes.buffer, result.pixels?.buffer].filter(Boolean);
       self.postMessage({ id, type: "done", result }, [...new Set(transfer)]);
     }
   } catch (error) {
