@@ -190,6 +190,7 @@ def cmd_bench(args) -> None:
                          paper_width=args.paper_width, paper_iters=args.paper_iters, speed_width=args.speed_width, payload_bytes=args.payload_bytes,
                          browser_size=args.browser_size, cluster_size=args.cluster_size,
                          cluster_tile=args.cluster_tile, cluster_photo=size_argument(args.cluster_photo, "--cluster-photo"),
+                         big_secret=size_argument(args.big_secret, "--big-secret"),
                          device=str(resolve_device(args.device)),
                          experiments=tuple(args.only.split(",")) if args.only else None)
     command = "noisenerf " + " ".join(sys.argv[1:]) if sys.argv[0].endswith("noisenerf") else "noisenerf bench ..."
@@ -303,6 +304,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--cluster-size", type=int, default=512, help="side of the cluster experiment's multi-tile secret")
     p.add_argument("--cluster-tile", type=int, default=128, help="its tile size")
     p.add_argument("--cluster-photo", default="4032x3024", help="WxH of the photo the cluster experiment hides through Ray")
+    p.add_argument("--big-secret", default="7680x4320", help="WxH of the secret the big_secret experiment hides and reveals")
     p.add_argument("--only", help="comma-separated experiments, run with those they need (default: all)")
     add_device(p)
     p.add_argument("--stress", action="store_true", help="also run the full numerical stress suite")

@@ -31,7 +31,7 @@ def inputs(tmp_path_factory):
     config = BenchConfig(scene=str(folder / "scene"), secret=str(folder / "secret.png"),
                          photos=(str(folder / "secret.png"),), small_width=12, paper_samples=3, paper_iters=60, ablation_samples=2,
                          twok_size=32, twok_tile=16, twok_rows=1, threads=(1,), payload_bytes=200, view_width=12,
-                         contention_width=12, browser_size=32,
+                         contention_width=12, browser_size=32, big_secret=(40, 24),
                          experiments=tuple(name for name in EXPERIMENTS if name != "cluster"))  # Ray: test_cluster.py
     return folder, config
 
@@ -186,3 +186,11 @@ def test_bench_stress_reports_a_failed_case_and_runs_the_others(monkeypatch):
     assert [row["passed"] for row in section.rows] == [False, True]
     assert "**1 of 2 passed**" in section.lines[0]
     assert section.lines[-1] == "- failed: `not_negative(-1)`: AssertionError: negative"
+
+
+def test_big_secret_is_hidden_and_revealed_exactly_by_the_tools_with_their_memory_measured(report):
+    _, sections = report
+    [row] = sections["big_secret"].rows
+    assert (row["width"], row["height"], row["pixels"]) == (40, 24, 960)
+    assert row["exact"] and row["hide_exact"] and row["tiles"] == 1
+    assert 0 < row["driver_peak_mib"] <= row["hide_peak_mib"] and row["reveal_peak_mib"] > 0

@@ -31,6 +31,7 @@ class BenchConfig:
     cluster_size: int = 512  # the cluster experiment's multi-tile secret (square), in cluster_tile tiles
     cluster_tile: int = 128
     cluster_photo: tuple[int, int] = (4032, 3024)  # (width, height): a phone camera's 12 MP, hidden through Ray
+    big_secret: tuple[int, int] = (7680, 4320)  # (width, height): an 8K secret, hidden and revealed by the CLI tools
     browser_size: int = 2048  # the browser experiment's tiled secret (square, twok_tile tiles), hidden whole
     threads: tuple[int, ...] = (1, 2)
     payload_bytes: int = 1 << 20  # the file the payload experiment hides, plain and sealed (random bytes)

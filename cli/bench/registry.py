@@ -10,7 +10,7 @@ from typing import Any, Callable, Mapping
 
 from noisenerf.runtime.errors import UserError
 
-from noisenerf.cli.bench import browser, cluster, coverage, exact_cost, exact_scale, paper, payload
+from noisenerf.cli.bench import big_secret, browser, cluster, coverage, exact_cost, exact_scale, paper, payload
 from noisenerf.cli.bench.context import BenchContext, Measured, Section
 
 
@@ -60,6 +60,8 @@ REGISTRY = (
     Experiment("payload", "File payloads, plain and sealed", payload.measure_payload, payload.describe_payload),
     Experiment("browser", "Reveal in a browser", browser.measure_browser, browser.describe_browser),
     Experiment("cluster", "Hiding on Ray", cluster.measure_cluster, cluster.describe_cluster),
+    Experiment("big_secret", "An 8K secret, and the memory it takes", big_secret.measure_big_secret,
+               big_secret.describe_big_secret),
 )
 EXPERIMENTS = tuple(experiment.name for experiment in REGISTRY)
 
