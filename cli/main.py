@@ -12,8 +12,12 @@ import sys
 from pathlib import Path
 
 from noisenerf.cli.common import FAILURES, OneLineParser, failure, payload_line, quiet_warnings, read_passphrase
+from noisenerf.runtime.bundle import LAYOUT_DTYPES, LAYOUTS
 from noisenerf.runtime.errors import UserError
 from noisenerf.runtime.files import check_output_directory, json_text
+from noisenerf.train.hide.methods import METHODS
+from noisenerf.train.hide.plan import HideConfig
+from noisenerf.train.hide.settings import RECIPES, REVIVALS, PaperSettings
 from noisenerf.train.hide.tiling import DEFAULT_TILE_SIZE
 
 PROG = "noisenerf"
@@ -87,10 +91,8 @@ def cmd_import(args) -> None:
 
 def cmd_hide(args) -> None:
     from noisenerf.runtime.images import load_secret
-    from noisenerf.train.hide.exact import chunk_pixels_for
-    from noisenerf.train.hide.methods import METHODS
-    from noisenerf.train.hide.plan import HideConfig
     from noisenerf.train.hide.run import PAYLOAD_IS_EXACT, hide
+    from noisenerf.train.hide.settings import chunk_pixels_for
     from noisenerf.train.scene.scene import load_scene
 
     if (args.secret is None) == (args.file is None):
@@ -109,10 +111,10 @@ def cmd_hide(args) -> None:
     output = Path(args.output)
     device = resolve_device(args.device)
     # every method's settings as the flags say (the bundle records those of the method that runs)
-    settings = tuple(s for method in METHODS.values() for s in method.settings_from_arguments(args, device))
+    settings = tuple(s for method in METHODS.values() for s in method.from_arguments(args, device.type))
     config = HideConfig(method=args.method, layout=args.layout, dtype=args.dtype,
                         n_samples=args.samples, tile_size=args.tile_size, view=args.view, seed=args.seed,
-                        chunk_pixels=chunk_pixels_for(device), settings=settings)
+                        chunk_pixels=chunk_pixels_for(device.type), settings=settings)
     scene = load_scene(args.scene_dir)
     if args.file is None:
         secret, warnings = load_secret(args.secret)
@@ -248,21 +250,25 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("-o", "--output", required=True, help="the bundle file to write")
     p.add_argument("--view", type=int, default=0, help="scene camera of the first tile")
     p.add_argument("--tile-size", type=int, default=DEFAULT_TILE_SIZE, help="secrets larger than this are cut into tiles")
-    # torch-free, so that --help is instant: each method turns its flags into settings (train/hide/methods.py)
-    p.add_argument("--method", choices=("exact", "paper"), default="exact")
-    p.add_argument("--layout", choices=("compact", "ray", "sample"),
-                   help="compact coefficients per pixel (exact default), noise per ray, or per sample (paper default)")
-    p.add_argument("--dtype", choices=("int16", "int8", "float16", "float32"),
-                   help="storage: compact int16 (default) or int8; ray float16 (default) or float32; sample float32")
-    p.add_argument("--samples", type=int, help="samples per ray of the secret view (exact: 1, paper: 64)")
-    p.add_argument("--recipe", choices=("authors", "paper"), default="authors",
-                   help="paper method: the authors' public code (default) or the paper's text")
-    p.add_argument("--iters", type=int, help="paper method: optimisation iterations (default 300)")
-    p.add_argument("--revival", choices=("all", "dead", "off"),
-                   help="paper method: which rays start from a colour donor (default all)")
+    # choices and defaults from the torch-free methods and settings (train/hide/methods.py, settings.py), so that
+    # --help is instant; each method turns these flags into its settings (Method.from_arguments)
+    paper = PaperSettings()
+    p.add_argument("--method", choices=tuple(METHODS), default=HideConfig.method)
+    p.add_argument("--layout", choices=LAYOUTS, help="; ".join(
+        f"{name} method: {' or '.join(method.layouts)} (default {method.layouts[0]})" for name, method in METHODS.items()))
+    p.add_argument("--dtype", choices=tuple(dict.fromkeys(d for dtypes in LAYOUT_DTYPES.values() for d in dtypes)),
+                   help="; ".join(f"{layout}: {' or '.join(dtypes)} (default {dtypes[0]})"
+                                  for layout, dtypes in LAYOUT_DTYPES.items()))
+    p.add_argument("--samples", type=int, help="samples per ray of the secret view (" + ", ".join(
+        f"{name}: {method.default_samples}" for name, method in METHODS.items()) + ")")
+    p.add_argument("--recipe", choices=tuple(RECIPES), default=paper.recipe,
+                   help=f"paper method: the authors' public code or the paper's text (default {paper.recipe})")
+    p.add_argument("--iters", type=int, help=f"paper method: optimisation iterations (default {paper.iters})")
+    p.add_argument("--revival", choices=REVIVALS,
+                   help=f"paper method: which rays start from a colour donor (default {paper.revival})")
     p.add_argument("--no-skip", action="store_true",
                    help="paper method: every sample of every ray through every iteration, the method as written "
-                   "(by default dead samples are skipped, and checked again every 10 iterations)")
+                   f"(by default dead samples are skipped, and checked again every {paper.recheck_every} iterations)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--workers", type=int, help="exact method on a CPU: processes its chunks are spread over "
                    "(default: every core this process may use; the bundle is the same for any number)")

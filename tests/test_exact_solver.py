@@ -8,12 +8,13 @@ import torch
 from helpers import make_tiny_scene
 from noisenerf.cli.demo import DEMO_VIEW
 from noisenerf.runtime.errors import UserError
-from noisenerf.train.hide.compact import LIFT_MARGIN, CompactSettings, lift_density, solver_view, tile_space
-from noisenerf.train.hide.exact import (ChunkProblem, ExactSettings, NoiseSpace, chord_start, damped_step,
+from noisenerf.train.hide.compact import LIFT_MARGIN, lift_density, solver_view, tile_space
+from noisenerf.train.hide.exact import (ChunkProblem, NoiseSpace, chord_start, damped_step,
                                         lattice_candidates, refine,
                                         residuals, round_to_lattice)
 from noisenerf.train.hide.plan import HideConfig, plan
 from noisenerf.train.hide.secret_view import BranchView, SecretView
+from noisenerf.train.hide.settings import CompactSettings, ExactSettings
 from noisenerf.train.hide.executors import LocalExecutor
 from noisenerf.train.hide.jobs import FieldWeights, Job, run_job
 from noisenerf.train.scene.procedural import DEMO_SCENE, procedural_secret

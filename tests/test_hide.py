@@ -12,7 +12,7 @@ from noisenerf.runtime.bundle import load_bundle
 from noisenerf.runtime.errors import UserError
 from noisenerf.runtime.images import to_uint8
 from noisenerf.runtime.reveal import reveal
-from noisenerf.train.hide.paper import PaperSettings
+from noisenerf.train.hide.settings import PaperSettings
 from noisenerf.train.hide.plan import HideConfig
 from noisenerf.train.hide.run import hide
 from noisenerf.train.hide.tiling import tile_rects
@@ -87,9 +87,9 @@ def test_chunks_spread_over_worker_processes_give_the_same_bytes(scene, tmp_path
 
 def test_the_driver_holds_one_tile_more_than_its_executor_runs_at_once(scene, tmp_path, monkeypatch):
     from noisenerf.train.hide import run
-    from noisenerf.train.hide.methods import METHODS
+    from noisenerf.train.hide.solvers import SOLVERS
 
-    solver, events, tile_work = METHODS["exact"], [], run.tile_work
+    solver, events, tile_work = SOLVERS["exact"], [], run.tile_work
     assemble = solver.assemble
     monkeypatch.setattr(run, "tile_work", lambda *args: events.append(1) or tile_work(*args))
     monkeypatch.setattr(solver, "assemble", lambda *args: events.append(-1) or assemble(*args))

@@ -7,10 +7,11 @@ from helpers import interrupted_after_saves
 from noisenerf.runtime.errors import UserError
 from noisenerf.runtime.images import to_uint8
 from noisenerf.runtime.metrics import ssim
-from noisenerf.train.hide.paper import (NO_SKIP, gradient_samples, learning_rate, recipe, revival_noise,
-                                          solve_block, solve_blocks, start_noise, survey)
+from noisenerf.train.hide.paper import (gradient_samples, learning_rate, revival_noise, solve_block, solve_blocks,
+                                          start_noise, survey)
 from noisenerf.train.hide.plan import HideConfig, plan
 from noisenerf.train.hide.secret_view import SecretView
+from noisenerf.train.hide.settings import NO_SKIP, recipe
 from noisenerf.train.scene.procedural import procedural_secret
 
 CPU = torch.device("cpu")

@@ -50,7 +50,7 @@ def build_artifacts(folder: Path) -> dict[str, Path]:
     from noisenerf.train.hide.plan import HideConfig
     from noisenerf.train.hide.run import hide
     from noisenerf.train.scene.occupancy import OccupancyConfig
-    from noisenerf.train.hide.paper import PaperSettings, recipe
+    from noisenerf.train.hide.settings import PaperSettings, recipe
     from noisenerf.train.hide.payload import hide_payload
     from noisenerf.train.scene.procedural import write_procedural_dataset
 

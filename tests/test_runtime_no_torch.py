@@ -39,3 +39,42 @@ def test_runtime_imports_and_reveals_without_torch_or_onnx(reveal_inputs, tmp_pa
     assert {"noisenerf.runtime.model", "noisenerf.runtime.session", "noisenerf.runtime.reveal"} <= set(status["modules"])
     assert json.loads(result.stdout)["exact"] is True
     assert (tmp_path / "out.png").is_file()
+
+
+# Runs in a fresh interpreter with torch blocked: a hide's settings are built as the CLI builds them, for
+# every method, and pickled as they travel to workers with each job.
+SETTINGS_SCRIPT = r"""
+import json, pickle, sys
+
+class Block:
+    def find_spec(self, name, path=None, target=None):
+        if name.split(".")[0] == "torch":
+            raise ImportError(f"{name} is blocked in this test")
+        return None
+
+sys.meta_path.insert(0, Block())
+from noisenerf.cli.main import build_parser
+from noisenerf.train.hide.methods import METHODS
+from noisenerf.train.hide.plan import HideConfig
+
+configs = {}
+for method in METHODS.values():
+    args = build_parser().parse_args(["hide", "scene", "secret.png", "-o", "s.bundle", "--method", method.name,
+                                      "--iters", "7", "--revival", "dead"])
+    settings = tuple(s for each in METHODS.values() for s in each.from_arguments(args, "cpu"))
+    config = pickle.loads(pickle.dumps(HideConfig(method=args.method, settings=settings)))
+    configs[method.name] = config.to_dict()
+print(json.dumps({"configs": configs, "torch": "torch" in sys.modules}))
+"""
+
+
+def test_hide_settings_are_built_and_pickled_without_torch():
+    result = subprocess.run([sys.executable, "-c", SETTINGS_SCRIPT], capture_output=True, text=True, timeout=60)
+    assert result.returncode == 0, result.stderr
+    status = json.loads(result.stdout)
+    assert status["torch"] is False
+    exact, paper = status["configs"]["exact"], status["configs"]["paper"]
+    assert (exact["layout"], exact["n_samples"], exact["compact"]["coefficients"]) == ("compact", 1, 6)
+    assert "paper" not in exact and "exact" not in paper
+    assert (paper["layout"], paper["n_samples"], paper["network"]) == ("sample", 64, "coarse")
+    assert (paper["paper"]["iters"], paper["paper"]["revival"], paper["paper"]["pass_samples"]) == (7, "dead", 1 << 16)

@@ -201,7 +201,7 @@ def write_fixtures(root: Path) -> dict:
     import torch
 
     from noisenerf.export.onnx_export import export_scene
-    from noisenerf.train.hide.paper import PaperSettings
+    from noisenerf.train.hide.settings import PaperSettings
     from noisenerf.train.hide.plan import HideConfig
     from noisenerf.train.hide.run import hide
 

@@ -12,8 +12,9 @@ import torch
 
 from noisenerf.runtime.images import to_uint8
 from noisenerf.runtime.metrics import ssim_authors, tile_quality
-from noisenerf.train.hide.exact import ChunkProblem, ExactSettings, NoiseSpace, Refinement, SolveCounts, solve_exact
-from noisenerf.train.hide.paper import PaperSettings, recorded_points, skip_shares, solve_blocks, survey
+from noisenerf.train.hide.exact import ChunkProblem, NoiseSpace, Refinement, SolveCounts, solve_exact
+from noisenerf.train.hide.paper import recorded_points, skip_shares, solve_blocks, survey
+from noisenerf.train.hide.settings import ExactSettings, PaperSettings
 from noisenerf.train.hide.plan import HideConfig, plan
 from noisenerf.train.hide.secret_view import SecretView
 from noisenerf.train.hide.tiling import MIN_TILE_SIZE

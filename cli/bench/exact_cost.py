@@ -17,7 +17,7 @@ from noisenerf.runtime.networks import render_network
 from noisenerf.runtime.render import render_view
 from noisenerf.runtime.reveal import reveal
 from noisenerf.runtime.session import OnnxField, read_model_file
-from noisenerf.train.hide.paper import recipe
+from noisenerf.train.hide.settings import recipe
 from noisenerf.train.hide.plan import HideConfig
 from noisenerf.train.scene.datasets import load_dataset
 from noisenerf.train.scene.field import NeRFField

@@ -11,8 +11,7 @@ from pathlib import Path
 import numpy as np
 
 from noisenerf.runtime.images import load_secret, resize_image, to_uint8
-from noisenerf.train.hide.paper import NO_SKIP, PaperSettings, recipe
-from noisenerf.train.hide.secret_view import pass_samples_for
+from noisenerf.train.hide.settings import NO_SKIP, PaperSettings, pass_samples_for, recipe
 from noisenerf.train.scene.field import NeRFField
 
 from noisenerf.cli.bench.context import BenchContext, Measured, peak_rss_gib, size_of, small_secret
@@ -74,7 +73,7 @@ def measure_paper_quality(context: BenchContext) -> PaperQuality:
     are downscaled (the report says so); on CUDA a last run at twice the width measures memory only."""
     config, device = context.config, context.device
     width = config.paper_width or (400 if device.type == "cuda" else config.small_width)
-    settings = recipe(config.paper_recipe, iters=config.paper_iters, pass_samples=pass_samples_for(device),
+    settings = recipe(config.paper_recipe, iters=config.paper_iters, pass_samples=pass_samples_for(device.type),
                       record_at=tuple(t for t in CURVE_POINTS if t < config.paper_iters) + (config.paper_iters,))
     rows, runs = [], []
     for path in config.photos[:config.paper_photos] or (config.secret,):
@@ -150,7 +149,7 @@ def measure_paper_speed(context: BenchContext) -> PaperCurves:
     """The default recipe on the same secrets with skipping (the default) and without (`--no-skip`), one
     after the other: time, SSIM, what skipping left out, and the arithmetic rate reached."""
     config, device = context.config, context.device
-    settings = recipe(config.paper_recipe, iters=config.paper_iters, pass_samples=pass_samples_for(device),
+    settings = recipe(config.paper_recipe, iters=config.paper_iters, pass_samples=pass_samples_for(device.type),
                       record_at=(config.paper_iters,))
     full_flops, check_flops = pass_flops(context.scene.coarse)
     rows = []
@@ -202,7 +201,7 @@ def measure_error_vs_time(context: BenchContext) -> ErrorVsTime:
     record_at = tuple(t for t in sorted({1, 2, 5, 10, 20, *range(25, 301, 25), config.paper_iters})
                       if t <= config.paper_iters)
     settings = recipe(config.paper_recipe, iters=config.paper_iters, record_at=record_at,
-                      pass_samples=pass_samples_for(device))
+                      pass_samples=pass_samples_for(device.type))
     run = paper_curve(context.scene, small, config.view, config.paper_samples, settings, device, keep_noise=True)
     return ErrorVsTime(exact_rows + run.rows, size_of(small), settings=settings, paper_noise=run.kept)
 
@@ -272,7 +271,7 @@ def measure_ablation(context: BenchContext) -> Measured:
     for name, (recipe_name, perturbation, selection, revival) in ABLATION.items():
         settings = recipe(recipe_name, iters=config.paper_iters, pixel_perturbation=perturbation,
                           adaptive_selection=selection, revival=revival, record_at=ablation_points(config.paper_iters),
-                          pass_samples=pass_samples_for(device))
+                          pass_samples=pass_samples_for(device.type))
         rows += paper_curve(context.scene, small, config.view, config.ablation_samples, settings, device,
                             label=name).rows
     return Measured(rows, size_of(small))

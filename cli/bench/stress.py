@@ -32,7 +32,7 @@ from noisenerf.runtime.rays import RayBatch
 from noisenerf.runtime.render import render_rays
 from noisenerf.runtime.reveal import reveal
 from noisenerf.runtime.sampling import LAST_DELTA, SamplingConfig
-from noisenerf.train.hide.paper import PaperSettings
+from noisenerf.train.hide.settings import PaperSettings
 from noisenerf.train.hide.plan import HideConfig
 from noisenerf.train.hide.run import hide
 from noisenerf.train.scene import render as rendering

@@ -26,38 +26,13 @@ their lattice. The measurements are the bench's (docs/bench/, README "Formats").
 from __future__ import annotations
 
 import dataclasses
-from dataclasses import dataclass
-from typing import ClassVar
 
 import numpy as np
 import torch
 
-from noisenerf.runtime.errors import UserError
-from noisenerf.runtime.limits import MAX_COMPACT_COEFFICIENTS
 from noisenerf.train.hide.secret_view import BranchView, SecretView
-from noisenerf.train.hide.exact import INTEGER_LIMITS, ChunkProblem, ExactSettings, NoiseSpace, is_lifted, solve_exact
-
-@dataclass(frozen=True)
-class CompactSettings:
-    key: ClassVar[str] = "compact"  # where bundles record these settings
-    coefficients: int = 6  # k per pixel
-    # largest storable |coefficient|: int16 steps of 1/16 (int8: 2048/127). Coarser steps cost fewer bytes
-    # until the lattice misses colours: 1/16 costs less than 1/32 at about as many escapes, 1/8 lets many escape
-    coefficient_range: float = 2048.0
-    # a seeded sample of a tile's pixels whose solved noise chooses its offset and basis: a smaller sample's
-    # basis lets many more pixels escape, which costs more bytes and time than solving the sample
-    basis_pixels: int = 1024
-    max_iters: int = 50  # per phase in the basis; a pixel still unfinished escapes to full float16 noise
-    tolerance_bins: float = 0.4  # float phase in the basis: round_to_lattice re-aims at the bin centre after it
-    missed_weight: int = 16  # weight of the sample pixels a first basis misses, in the second (tile_space)
-
-    def __post_init__(self):
-        if self.missed_weight < 1:
-            raise UserError(f"missed_weight must be at least 1, got {self.missed_weight}")
-        if not 1 <= self.coefficients <= MAX_COMPACT_COEFFICIENTS:
-            raise UserError(f"coefficients per pixel must be between 1 and {MAX_COMPACT_COEFFICIENTS}, "
-                            f"got {self.coefficients}")
-
+from noisenerf.train.hide.exact import INTEGER_LIMITS, ChunkProblem, NoiseSpace, is_lifted, solve_exact
+from noisenerf.train.hide.settings import CompactSettings, ExactSettings
 
 def in_basis(exact: ExactSettings, settings: CompactSettings) -> ExactSettings:
     """The exact solver's settings for a solve in a compact basis: at most max_iters per phase (the few

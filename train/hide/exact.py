@@ -40,54 +40,18 @@ from __future__ import annotations
 import dataclasses
 import itertools
 from dataclasses import dataclass
-from typing import ClassVar
 
 import torch
 
-from noisenerf.runtime.errors import UserError
 from noisenerf.train.hide.secret_view import BranchView, SecretView
+from noisenerf.train.hide.settings import ExactSettings
 
 SolverView = SecretView | BranchView  # what the solver renders: the whole field, or its view branch alone
-
-CPU_CHUNK_PIXELS = 16384  # chunk_pixels_for a CPU, and HideConfig's default
-
-
-def chunk_pixels_for(device: torch.device) -> int:
-    """Pixels solved together: a GPU needs large batches to be busy (its Jacobians of 4 × 90 per pixel
-    stay well under a GiB at 2^18); on a CPU smaller chunks resume at a finer grain and cost the same."""
-    return 1 << 18 if device.type == "cuda" else CPU_CHUNK_PIXELS
-
 
 END_PULL_BINS = 0.2  # targets for 0 and 255 sit this far inside, where a sigmoid can arrive
 # Levenberg–Marquardt's λ schedule (÷3 after a step that improved, ×10 after one that did not, within a range):
 # fixed constants of the algorithm beside ExactSettings, which holds what bundles record and runs may vary
 DAMPING_DOWN, DAMPING_UP, DAMPING_RANGE = 3.0, 10.0, (1e-7, 1e6)
-
-
-@dataclass(frozen=True)
-class ExactSettings:
-    key: ClassVar[str] = "exact"  # where bundles record these settings
-    max_iters: int = 100  # per phase; late iterations only touch the few pixels left
-    tolerance_bins: float = 0.1  # float32 phase: distance from the bin centre that counts as converged
-    margin_bins: float = 0.1  # storage phase: what stays between a finished value and its bin edge
-    density_floor: float = 1.0  # raw density the secret sample is lifted to (opacity exactly 1)
-    damping: float = 1e-4  # initial λ, relative to tr(JJᵀ)/4
-    step_scales: tuple[float, ...] = (1.0, 0.5, 0.25)
-    restart_after: int = 8
-    donors: int = 4  # the k-th restart starts from one of the 4k finished pixels nearest in target colour
-    kick: float = 1.0  # spread of a random restart around zero noise (restart); the name bundles record
-    jitter: float = 0.1  # added to a pixel's restart point per restart it has had
-    seed_stride: int = 16  # every seed_stride-th pixel is solved first and warm-starts the others
-    chord_steps: int = 3  # warm-started pixels first step with their seed's Jacobian (chord_start)
-    lattice_radius: int = 1  # integer lattices: free coefficients tried within ± this many steps (round_to_lattice)
-    lattice_tries: int = 2  # integer lattices: best-predicted lattice points rendered per pixel
-    # not a setting: bundles record that finished pixels leave the batch (ChunkProblem.batch), as they
-    # did when it could be switched off
-    retire: bool = dataclasses.field(default=True, init=False)
-
-    def __post_init__(self):
-        if self.lattice_tries < 1 or self.lattice_radius < 0 or self.chord_steps < 0:
-            raise UserError("the exact solver needs lattice_tries ≥ 1, lattice_radius ≥ 0 and chord_steps ≥ 0")
 
 
 def bin_targets(pixels: torch.Tensor) -> torch.Tensor:

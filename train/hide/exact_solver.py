@@ -10,11 +10,12 @@ from typing import TYPE_CHECKING, Callable
 import torch
 
 from noisenerf.runtime.bundle import CompactBasis, CompactNoise, TileNoise, VectorNoise, noise_shape
-from noisenerf.runtime.errors import UserError
-from noisenerf.train.hide.compact import CompactSettings, in_basis, solver_view, tile_space
-from noisenerf.train.hide.exact import (ChunkProblem, ExactSettings, NoiseSpace, SolveCounts, is_lifted, rescue,
+from noisenerf.train.hide.compact import in_basis, solver_view, tile_space
+from noisenerf.train.hide.exact import (ChunkProblem, NoiseSpace, SolveCounts, is_lifted, rescue,
                                         solve_exact)
+from noisenerf.train.hide.methods import METHODS
 from noisenerf.train.hide.secret_view import BranchView, SecretView
+from noisenerf.train.hide.settings import CompactSettings, ExactSettings
 from noisenerf.train.hide.solver import Solver, TileSolution, chunk_seed, storage_dtype
 
 if TYPE_CHECKING:
@@ -80,16 +81,7 @@ def sound_chunk(saved: dict[str, torch.Tensor], space: NoiseSpace) -> bool:
 
 
 class ExactSolver(Solver):
-    name = "exact"
-    settings_types = (ExactSettings, CompactSettings)
-    layouts = ("compact", "ray", "sample")
-    default_samples = 1  # see exact.py: one sample per ray makes every pixel a piecewise-linear problem
-    exact = True
-    spreads = True
-
-    def check(self, config: HideConfig) -> None:
-        if config.n_samples != 1:
-            raise UserError("--method exact renders its secret view with one sample per ray (--samples 1)")
+    method = METHODS["exact"]
 
     @contextlib.contextmanager
     def threads(self, device: torch.device):

@@ -17,9 +17,9 @@ import torch
 
 from noisenerf.runtime.bundle import Tile
 from noisenerf.runtime.render import RenderConfig
-from noisenerf.train.hide.methods import METHODS
 from noisenerf.train.hide.plan import HideConfig
 from noisenerf.train.hide.secret_view import SecretView
+from noisenerf.train.hide.solvers import SOLVERS
 from noisenerf.train.scene.field import FieldConfig, NeRFField
 from noisenerf.train.scene.scene import Scene
 
@@ -95,7 +95,7 @@ def tile_view(weights: FieldWeights, tile: Tile, device: torch.device) -> Secret
 def run_job(weights: FieldWeights, job: Job, prepared: object = None) -> object:
     """A job's result: the tile's shared result for part PREPARE, else the part's tensors as saved for a
     resume (`prepared`: the tile's shared result, or None where the method needs none)."""
-    solver, device = METHODS[job.config.method], torch.device(job.device)
+    solver, device = SOLVERS[job.config.method], torch.device(job.device)
     with torch.no_grad(), solver.threads(device):
         view, pixels = tile_view(weights, job.tile, device), job.pixels.to(device)
         if job.part == PREPARE:

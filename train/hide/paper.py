@@ -1,6 +1,6 @@
 """The paper's method (`--method paper`): first-order optimisation of per-sample noise, block by block.
 
-Two recipes are settings of one solver (RECIPES):
+Two recipes are settings of one solver (settings.RECIPES):
 
 - `paper`, the paper's text: Adam, lr 1e-2 decaying by 0.3 over the run, L = λ1·L_rgb + λ2·L_perturb for
   t ≤ μ, else L_rgb (eq. 5, 7, 8; Pixel Perturbation), and Adaptive Pixel Selection (our reading below).
@@ -54,69 +54,13 @@ reduction per pixel queried is applied. Without APS every pixel is updated every
 from __future__ import annotations
 
 import contextlib
-import dataclasses
 from dataclasses import dataclass
-from typing import Callable, ClassVar, Iterator
+from typing import Callable, Iterator
 
 import torch
 
-from noisenerf.runtime.errors import UserError
 from noisenerf.train.hide.secret_view import SecretView, pass_slices
-
-
-@dataclass(frozen=True)
-class PaperSettings:
-    """One paper-mode run; RECIPES holds the two named presets, the ablation switches the strategies."""
-
-    key: ClassVar[str] = "paper"  # where bundles record these settings
-
-    recipe: str = "authors"  # the preset these settings started from (recorded in the bundle)
-    iters: int = 300
-    lr: float = 0.1
-    lr_schedule: str = "step"  # step: lr for t ≤ lr_step_at, then lr_after; exponential: lr·lr_decay^(t/iters)
-    lr_decay: float = 0.3
-    lr_step_at: int = 50
-    lr_after: float = 0.01
-    weight_decay: float = 0.8  # decoupled (AdamW), on the encoded input γ + δ, times weight_decay_decay^(t/iters)
-    weight_decay_decay: float = 0.3
-    pixel_perturbation: bool = False  # eq. 7–8 for t ≤ mu
-    mu: int = 50
-    lambda_rgb: float = 0.5
-    lambda_perturb: float = 0.5
-    adaptive_selection: bool = False
-    batch_fractions: tuple[float, ...] = (0.25, 0.5, 1.0)
-    revival: str = "all"  # off | dead | all: which rays start from a colour donor's encodings
-    floor_weight: float = 0.1  # weight of revival's density floor term, see density_shortfall
-    density_floor: float = 1.0
-    block_pixels: int = 6144  # pixels optimised together (the authors' block)
-    pass_samples: int = 1 << 16  # samples per forward/backward pass (memory bound, not a result)
-    record_at: tuple[int, ...] = (50, 200, 300)
-    skip_dead: bool = True  # exact: dead samples skip the colour branch and the backward pass (see the module docstring)
-    recheck_every: int = 10  # sample layout: a dead sample is evaluated again every this many iterations (1: exact)
-    tf32: bool = True  # CUDA matmuls in TF32: ~3× faster on Ampere and later; this method is approximate anyway
-
-    def __post_init__(self):
-        if self.lr_schedule not in ("step", "exponential"):
-            raise UserError(f"unknown lr schedule {self.lr_schedule!r}")
-        if self.revival not in ("off", "dead", "all"):
-            raise UserError(f"unknown revival {self.revival!r} (off, dead or all)")
-        if self.iters < 1 or self.block_pixels < 1 or self.pass_samples < 1 or self.recheck_every < 1:
-            raise UserError("--iters, block_pixels, pass_samples and recheck_every must be positive")
-
-
-RECIPES = {
-    "paper": PaperSettings(recipe="paper", lr=1e-2, lr_schedule="exponential", weight_decay=0.0,
-                           pixel_perturbation=True, adaptive_selection=True),
-    "authors": PaperSettings(recipe="authors"),
-}
-
-
-NO_SKIP = {"skip_dead": False, "recheck_every": 1}  # `--no-skip`: every sample of every ray, every iteration
-
-
-def recipe(name: str, **overrides) -> PaperSettings:
-    """The named recipe with some settings replaced (iters, revival, the ablation switches, ...)."""
-    return dataclasses.replace(RECIPES[name], **overrides)
+from noisenerf.train.hide.settings import PaperSettings
 
 
 def floor_weight(settings: PaperSettings) -> float:

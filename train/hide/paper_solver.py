@@ -3,16 +3,16 @@ resumes per block) after a survey of its clean view; noise per sample (the paper
 
 from __future__ import annotations
 
-import argparse
 from typing import TYPE_CHECKING, Callable
 
 import torch
 
 from noisenerf.runtime.bundle import VectorNoise, noise_shape
 from noisenerf.runtime.metrics import tile_quality
-from noisenerf.train.hide.paper import (NO_SKIP, PaperSettings, ViewSurvey, recipe, recorded_points, skip_shares,
-                                          solved_block, survey)
-from noisenerf.train.hide.secret_view import SecretView, pass_samples_for
+from noisenerf.train.hide.methods import METHODS
+from noisenerf.train.hide.paper import ViewSurvey, recorded_points, skip_shares, solved_block, survey
+from noisenerf.train.hide.secret_view import SecretView
+from noisenerf.train.hide.settings import PaperSettings
 from noisenerf.train.hide.solver import Solver, TileSolution, storage_dtype
 
 if TYPE_CHECKING:
@@ -20,16 +20,7 @@ if TYPE_CHECKING:
 
 
 class PaperSolver(Solver):
-    name = "paper"
-    settings_types = (PaperSettings,)
-    layouts = ("sample", "ray")
-    default_samples = 64  # nerf-pytorch's N_samples, the coarse sampling the paper's code renders with
-    default_network = "coarse"  # as the paper's authors render
-
-    def settings_from_arguments(self, args: argparse.Namespace, device: torch.device) -> tuple:
-        overrides = {name: value for name, value in (("iters", args.iters), ("revival", args.revival))
-                     if value is not None} | (NO_SKIP if args.no_skip else {})
-        return (recipe(args.recipe, pass_samples=pass_samples_for(device), **overrides),)
+    method = METHODS["paper"]
 
     def prepares(self, config: HideConfig) -> bool:
         return True

@@ -1,4 +1,6 @@
-"""What a hide will do: its settings (HideConfig), its tiles, and the key its resumable parts belong to."""
+"""What a hide will do: its settings (HideConfig), its tiles, and the key its resumable parts belong to.
+Torch-free, as the settings and methods it reads (settings.py, methods.py): a HideConfig travels to workers
+with every job, and the CLI builds one before torch is imported."""
 
 from __future__ import annotations
 
@@ -6,6 +8,7 @@ import dataclasses
 import hashlib
 import json
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -14,10 +17,12 @@ from noisenerf.runtime.bundle import LAYOUT_DTYPES, LAYOUTS, Tile, secret_digest
 from noisenerf.runtime.errors import UserError
 from noisenerf.runtime.networks import NETWORKS, render_network
 from noisenerf.runtime.sampling import SamplingConfig
-from noisenerf.train.hide.exact import CPU_CHUNK_PIXELS
 from noisenerf.train.hide.methods import METHODS
+from noisenerf.train.hide.settings import CPU_CHUNK_PIXELS
 from noisenerf.train.hide.tiling import DEFAULT_TILE_SIZE, tile_camera, tile_rects
-from noisenerf.train.scene.scene import Scene
+
+if TYPE_CHECKING:
+    from noisenerf.train.scene.scene import Scene
 
 
 @dataclass(frozen=True)
@@ -45,18 +50,18 @@ class HideConfig:
     def __post_init__(self):
         if self.method not in METHODS:
             raise UserError(f"unknown method {self.method!r} ({' or '.join(METHODS)})")
-        solver = METHODS[self.method]
-        defaults = {kind.key: kind() for method in METHODS.values() for kind in method.settings_types}
+        method = METHODS[self.method]
+        defaults = {kind.key: kind() for each in METHODS.values() for kind in each.settings_types}
         given = {type(settings).key: settings for settings in self.settings}
         if set(given) - set(defaults) or len(given) != len(self.settings):
             raise UserError("settings must be one of each kind the methods define")
         object.__setattr__(self, "settings", tuple({**defaults, **given}.values()))
         if self.layout is None:
-            object.__setattr__(self, "layout", solver.layouts[0])
+            object.__setattr__(self, "layout", method.layouts[0])
         if self.layout not in LAYOUTS:
             raise UserError(f"unknown noise layout {self.layout!r} (one of {', '.join(LAYOUTS)})")
-        if self.layout not in solver.layouts:
-            raise UserError(f"the {self.method} method stores its noise as {' or '.join(solver.layouts)}, "
+        if self.layout not in method.layouts:
+            raise UserError(f"the {self.method} method stores its noise as {' or '.join(method.layouts)}, "
                             f"not {self.layout}")
         if self.dtype is None:
             object.__setattr__(self, "dtype", LAYOUT_DTYPES[self.layout][0])
@@ -64,14 +69,14 @@ class HideConfig:
             raise UserError(f"the {self.layout} layout stores {' or '.join(LAYOUT_DTYPES[self.layout])}, "
                             f"not {self.dtype!r}")
         if self.n_samples is None:
-            object.__setattr__(self, "n_samples", solver.default_samples)
+            object.__setattr__(self, "n_samples", method.default_samples)
         if self.network is None:
-            object.__setattr__(self, "network", solver.default_network)
+            object.__setattr__(self, "network", method.default_network)
         if self.network not in (None, *NETWORKS):
             raise UserError(f"unknown network {self.network!r} (coarse or fine)")
         if self.n_samples < 1:
             raise UserError("the secret view needs at least one sample per ray")
-        solver.check(self)
+        method.check(self)
 
     def get(self, kind: type):
         """The settings of one kind (ExactSettings, PaperSettings, CompactSettings, ...)."""

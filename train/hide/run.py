@@ -29,10 +29,10 @@ from noisenerf.runtime.limits import MAX_RAY_LAYOUT_SAMPLES, checked_image_size
 from noisenerf.runtime.metrics import tile_quality
 from noisenerf.train.hide.executors import EXECUTORS, open_executor
 from noisenerf.train.hide.jobs import PREPARE, FieldWeights, Job, tile_view
-from noisenerf.train.hide.methods import METHODS
 from noisenerf.train.hide.plan import HideConfig, plan, run_key
 from noisenerf.train.hide.progress import Progress
-from noisenerf.train.hide.secret_view import pass_samples_for
+from noisenerf.train.hide.settings import pass_samples_for
+from noisenerf.train.hide.solvers import SOLVERS
 from noisenerf.train.scene.scene import Scene
 
 
@@ -59,7 +59,7 @@ def hide(scene: Scene, secret: np.ndarray, output: Path, config: HideConfig, dev
          ray_address: str | None = None) -> dict:
     """Hide `secret` (H, W, 3) uint8 in the scene; write the bundle to `output`; return the report.
     payload: the bundle's payload object when the secret carries one (train.payload), else None.
-    A method that promises exactness (Solver.exact) and leaves a tile's pixels off raises InexactResult at
+    A method that promises exactness (Method.exact) and leaves a tile's pixels off raises InexactResult at
     that tile, writing no bundle and keeping the solved parts for a resume, unless allow_inexact (never for
     a payload, which is revealed whole or not at all).
     executor: where the jobs run (executors.py): "local", over `workers` processes on a CPU (None: every
@@ -75,10 +75,10 @@ def hide(scene: Scene, secret: np.ndarray, output: Path, config: HideConfig, dev
         raise UserError(f"unknown executor {executor!r} ({' or '.join(EXECUTORS)})")
     hide_plan = plan(scene, secret, config)
     noise_dims = scene.render_field.config.noise_dims
-    solver = METHODS[config.method]
+    solver = SOLVERS[config.method]
     if allow_inexact and payload is not None:
         raise UserError(PAYLOAD_IS_EXACT)
-    workers = (available_cores() if workers is None else workers) if device.type == "cpu" and solver.spreads else 1
+    workers = (available_cores() if workers is None else workers) if device.type == "cpu" and solver.method.spreads else 1
     weights = FieldWeights.of(scene, hide_plan.tiles[0].network)
     with Progress(output, run_key(scene, secret, config)) as progress, \
             open_executor(executor, weights, workers, device, ray_address) as jobs:
@@ -100,9 +100,9 @@ def hide(scene: Scene, secret: np.ndarray, output: Path, config: HideConfig, dev
             pixels = work.pixels.to(device)
             solved = solver.assemble(secret_view, pixels, (h, w), config, work.prepared,
                                      [work.solved.pop(c) for c in range(len(work.parts))])
-            colors = secret_view.render_all(solved.noise, pass_samples_for(device))
+            colors = secret_view.render_all(solved.noise, pass_samples_for(device.type))
             quality = tile_quality(colors.cpu().numpy(), pixels.cpu().numpy(), (h, w))
-            if solver.exact and quality["inexact_pixels"] and not allow_inexact:
+            if solver.method.exact and quality["inexact_pixels"] and not allow_inexact:
                 raise InexactResult(
                     f"tile {work.k} (view {work.tile.view}, {w}x{h} px at x={x0}, y={y0}) has "
                     f"{quality['inexact_pixels']} pixels off, by up to {quality['max_error']} levels; no bundle "

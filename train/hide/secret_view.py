@@ -25,12 +25,6 @@ BLAS_ROWS = 64  # a subset of a batch's rows is evaluated in multiples of this (
 CACHE_ROWS = 64 * BLAS_ROWS  # rows a density check evaluates at once: their activations stay in cache
 
 
-def pass_samples_for(device: torch.device) -> int:
-    """Samples per pass: what fits comfortably on a GPU (a few GiB of activations at width 256), or
-    what keeps a CPU run's memory near 1 GiB."""
-    return 1 << 18 if device.type == "cuda" else 1 << 16
-
-
 def pass_slices(n_rays: int, n_samples: int, pass_samples: int) -> list[slice]:
     """Contiguous ray ranges of at most pass_samples samples each (at least one ray per pass)."""
     step = max(1, pass_samples // n_samples)

@@ -1,17 +1,16 @@
-"""The interface every hiding method implements.
+"""The interface every hiding method's solver implements.
 
-A method (`--method NAME`) is one Solver: it owns its settings dataclasses (each recorded in the bundle
-under its `key`), its defaults (layouts, samples per ray, network), its checks, its CLI flags and how it
-solves one tile, resumably (its flags are declared in cli/main.py, torch-free). `methods.py` registers
-them. A method cuts a tile into parts (`part_pixels` rays each), solved independently by `solve_part`,
+A method (`--method NAME`) is described torch-free by its Method (methods.py: settings, defaults,
+checks, flags); its Solver is how it solves one tile, resumably, and names its Method. `solvers.py`
+registers them. A method cuts a tile into parts (`part_pixels` rays each), solved independently by `solve_part`,
 after the tile's shared job `prepare` where it `prepares`; both are pure (jobs.py runs them wherever an
 executor puts them), and `assemble` makes the tile from the parts' results. `run.hide` plans, saves parts
-for a resume, and assembles. A new method is one module with a Solver plus one registry line.
+for a resume, and assembles. A new method is one Method (methods.py), one module with its Solver, and one
+registry line (solvers.py).
 """
 
 from __future__ import annotations
 
-import argparse
 import contextlib
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Callable, ClassVar
@@ -19,6 +18,7 @@ from typing import TYPE_CHECKING, Callable, ClassVar
 import torch
 
 from noisenerf.runtime.bundle import TileNoise
+from noisenerf.train.hide.methods import Method
 from noisenerf.train.hide.secret_view import SecretView
 
 if TYPE_CHECKING:
@@ -50,21 +50,7 @@ def chunk_seed(config: HideConfig, tile: int, chunk: int) -> int:
 class Solver:
     """A hiding method. Subclasses set the class attributes and implement the parts' methods."""
 
-    name: ClassVar[str]  # the --method value, recorded in bundles
-    settings_types: ClassVar[tuple[type, ...]]  # frozen dataclasses with a `key`, their defaults in every config
-    layouts: ClassVar[tuple[str, ...]]  # noise layouts it can write, the default first
-    default_samples: ClassVar[int]  # samples per ray of its secret view
-    default_network: ClassVar[str | None] = None  # None: the scene's render network
-    exact: ClassVar[bool] = False  # whether it promises every 8-bit value: run.hide then refuses to write less
-    spreads: ClassVar[bool] = False  # whether the local executor spreads its parts over processes on a CPU
-
-    def check(self, config: HideConfig) -> None:
-        """Refuse settings this method cannot honour (UserError)."""
-
-    def settings_from_arguments(self, args: argparse.Namespace, device: torch.device) -> tuple:
-        """Its settings as `noisenerf hide`'s flags ask, for `device`. The flags themselves are declared in
-        cli/main.py, whose parser must not import torch (instant --help, one clear line without it)."""
-        return ()
+    method: ClassVar[Method]  # what it is to the CLI, HideConfig and the driver (methods.METHODS)
 
     def threads(self, device: torch.device):
         """A context in which the solve runs (thread settings); nothing by default."""
