@@ -1,15 +1,14 @@
 """An 8K secret (7680×4320 by default) hidden and revealed by the two command-line tools, each in a
 process of its own, with the memory each used: does it grow with the tile, not with the secret?
 
-Peak memory is the kernel's: a finished process's maximum resident set as wait4 reports it (for the hide,
-the largest of the driver and its worker processes), and for the hide's driver alone its high-water mark
-(VmHWM) read from /proc while it runs. The hide uses the local executor on every core.
+Peak memory is each process's high-water mark (VmHWM), read from /proc for the command and every process
+it starts (the hide's local workers) while they run. Not wait4's ru_maxrss: a child's counts the memory
+its parent had when it forked, here the bench's own. The hide uses the local executor on every core.
 """
 
 from __future__ import annotations
 
 import json
-import os
 import subprocess
 import sys
 import threading
@@ -20,7 +19,21 @@ from noisenerf.runtime.images import write_image
 
 from noisenerf.cli.bench.context import BenchContext, Measured, resized
 
-SAMPLE_SECONDS = 0.2  # how often the driver's high-water mark is read
+SAMPLE_SECONDS = 0.2  # how often the processes' high-water marks are read
+
+
+def process_tree(pid: int) -> list[int]:
+    """pid and every process it started that is still running."""
+    found, stack = [], [pid]
+    while stack:
+        current = stack.pop()
+        found.append(current)
+        for task in Path(f"/proc/{current}/task").glob("*"):
+            try:
+                stack.extend(int(child) for child in (task / "children").read_text().split())
+            except OSError:  # the task or process has gone
+                continue
+    return found
 
 
 def high_water_mib(pid: int) -> float | None:
@@ -34,30 +47,32 @@ def high_water_mib(pid: int) -> float | None:
 
 
 def run_measured(command: list[str], logs: Path) -> tuple[dict, float, float, float]:
-    """Run a noisenerf command with --json -> its report, seconds, the largest process's peak RSS (MiB) and
-    its own peak as last sampled (MiB). Its output goes to files in `logs` (the process is reaped by wait4
-    alone, which reports its peak). A command that fails stops the bench with its stderr."""
+    """Run a noisenerf command with --json -> its report, seconds, its own peak RSS (MiB) and the largest
+    peak of the processes it started (MiB; 0 without any), as last sampled. Its output goes to files in
+    `logs`. A command that fails stops the bench with its stderr."""
     started = time.perf_counter()
     with open(logs / "stdout", "w+") as stdout, open(logs / "stderr", "w+") as stderr:
         process = subprocess.Popen(command, stdout=stdout, stderr=stderr, text=True)
-        sampled, done = [0.0], threading.Event()
+        peaks: dict[int, float] = {}
+        done = threading.Event()
 
         def sample():
             while not done.wait(SAMPLE_SECONDS):
-                sampled[0] = max(sampled[0], high_water_mib(process.pid) or 0.0)
+                for pid in process_tree(process.pid):
+                    peaks[pid] = max(peaks.get(pid, 0.0), high_water_mib(pid) or 0.0)
 
         sampler = threading.Thread(target=sample, daemon=True)
         sampler.start()
-        _, status, usage = os.wait4(process.pid, 0)
+        process.wait()
         done.set()
         sampler.join()
-        process.returncode = os.waitstatus_to_exitcode(status)
         seconds = time.perf_counter() - started
         if process.returncode != 0:
             stderr.seek(0)
             raise RuntimeError(f"{' '.join(command[2:5])} failed ({process.returncode}): {stderr.read().strip()[-500:]}")
         stdout.seek(0)
-        return json.loads(stdout.read()), seconds, usage.ru_maxrss / 1024, sampled[0]
+        own = peaks.pop(process.pid, 0.0)
+        return json.loads(stdout.read()), seconds, own, max(peaks.values(), default=0.0)
 
 
 def measure_big_secret(context: BenchContext) -> Measured:
@@ -67,7 +82,7 @@ def measure_big_secret(context: BenchContext) -> Measured:
     photo = resized(context.secret, *config.big_secret)
     write_image(context.work / "big.png", photo)
     bundle, revealed = context.work / "big.bundle", context.work / "big_revealed.png"
-    hide, hide_seconds, hide_peak, driver_peak = run_measured(
+    hide, hide_seconds, driver_peak, worker_peak = run_measured(
         [sys.executable, "-m", "noisenerf.cli.main", "hide", config.scene, str(context.work / "big.png"), "-o",
          str(bundle), "--view", str(config.view), "--force", "--json", "--quiet"], context.work)
     reveal, reveal_seconds, reveal_peak, _ = run_measured(
@@ -75,7 +90,7 @@ def measure_big_secret(context: BenchContext) -> Measured:
          "--force", "--json"], context.work)
     width, height = config.big_secret
     return Measured([{"width": width, "height": height, "pixels": width * height, "tiles": len(hide["tiles"]),
-                      "hide_seconds": hide_seconds, "hide_peak_mib": hide_peak, "driver_peak_mib": driver_peak,
+                      "hide_seconds": hide_seconds, "driver_peak_mib": driver_peak, "worker_peak_mib": worker_peak,
                       "bundle_bytes": hide["bundle_bytes"], "bytes_per_pixel": hide["bytes_per_pixel"],
                       "reveal_seconds": reveal_seconds, "reveal_peak_mib": reveal_peak, "exact": reveal["exact"],
                       "hide_exact": hide["exact"]}])
@@ -87,8 +102,8 @@ def describe_big_secret(context: BenchContext, measured: Measured) -> list[str]:
             f"hidden by `noisenerf hide` (local executor, every core) and revealed by `noisenerf-reveal` "
             f"(onnxruntime), each a process of its own.", "",
             f"- Hide: {row['hide_seconds'] / 60:.1f} min, {row['tiles']} tiles, {row['bytes_per_pixel']:.2f} bytes "
-            f"per pixel; peak memory: driver **{row['driver_peak_mib']:.0f} MiB**, largest process "
-            f"{row['hide_peak_mib']:.0f} MiB.",
+            f"per pixel; peak memory: driver **{row['driver_peak_mib']:.0f} MiB**, each worker at most "
+            f"{row['worker_peak_mib']:.0f} MiB.",
             f"- Reveal: {row['reveal_seconds']:.1f} s, exact **{str(row['exact']).lower()}**, peak memory "
             f"**{row['reveal_peak_mib']:.0f} MiB**, of which the 8-bit secret is "
             f"{3 * row['pixels'] / 2 ** 20:.0f} MiB and the bundle's file "
