@@ -11,13 +11,12 @@ from __future__ import annotations
 import json
 import subprocess
 import sys
-import threading
 import time
 from pathlib import Path
 
 from noisenerf.runtime.images import write_image
 
-from noisenerf.cli.bench.context import BenchContext, Measured, resized
+from noisenerf.cli.bench.context import BenchContext, Measured, peak_sampled, resized
 
 SAMPLE_SECONDS = 0.2  # how often the processes' high-water marks are read
 
@@ -48,31 +47,21 @@ def high_water_mib(pid: int) -> float | None:
 
 def run_measured(command: list[str], logs: Path) -> tuple[dict, float, float, float]:
     """Run a noisenerf command with --json -> its report, seconds, its own peak RSS (MiB) and the largest
-    peak of the processes it started (MiB; 0 without any), as last sampled. Its output goes to files in
-    `logs`. A command that fails stops the bench with its stderr."""
+    peak of the processes it started (MiB; 0 without any), as last sampled (a process's VmHWM only grows).
+    Its output goes to files in `logs`. A command that fails stops the bench with its stderr."""
     started = time.perf_counter()
     with open(logs / "stdout", "w+") as stdout, open(logs / "stderr", "w+") as stderr:
         process = subprocess.Popen(command, stdout=stdout, stderr=stderr, text=True)
-        peaks: dict[int, float] = {}
-        done = threading.Event()
-
-        def sample():
-            while not done.wait(SAMPLE_SECONDS):
-                for pid in process_tree(process.pid):
-                    peaks[pid] = max(peaks.get(pid, 0.0), high_water_mib(pid) or 0.0)
-
-        sampler = threading.Thread(target=sample, daemon=True)
-        sampler.start()
-        process.wait()
-        done.set()
-        sampler.join()
+        with peak_sampled(lambda: high_water_mib(process.pid) or 0.0, SAMPLE_SECONDS) as own, \
+                peak_sampled(lambda: max((high_water_mib(pid) or 0.0 for pid in process_tree(process.pid)[1:]),
+                                         default=0.0), SAMPLE_SECONDS) as started_processes:
+            process.wait()
         seconds = time.perf_counter() - started
         if process.returncode != 0:
             stderr.seek(0)
             raise RuntimeError(f"{' '.join(command[2:5])} failed ({process.returncode}): {stderr.read().strip()[-500:]}")
         stdout.seek(0)
-        own = peaks.pop(process.pid, 0.0)
-        return json.loads(stdout.read()), seconds, own, max(peaks.values(), default=0.0)
+        return json.loads(stdout.read()), seconds, own[0], started_processes[0]
 
 
 def measure_big_secret(context: BenchContext) -> Measured:

@@ -25,7 +25,7 @@ from pathlib import Path
 from noisenerf.runtime.bundle import secret_digest
 from noisenerf.train.hide.plan import HideConfig
 
-from noisenerf.cli.bench.context import BenchContext, Measured, resized, size_of
+from noisenerf.cli.bench.context import BenchContext, Measured, peak_sampled, resized, size_of
 from noisenerf.cli.bench.report import verdict
 
 BROWSER_RATIO_GOAL = 3  # browser reveal time ÷ Python reveal time, on the same bundle
@@ -95,23 +95,6 @@ def chromium_rss() -> int:
     return total
 
 
-@contextlib.contextmanager
-def peak_sampled(sample, every: float = 0.05):
-    """Samples `sample()` in a thread while the block runs; the yielded list ends holding the peak."""
-    peak, done = [0], threading.Event()
-
-    def watch():
-        while not done.is_set():
-            peak[0] = max(peak[0], sample())
-            done.wait(every)
-
-    thread = threading.Thread(target=watch, daemon=True)
-    thread.start()
-    try:
-        yield peak
-    finally:
-        done.set()
-        thread.join()
 
 
 def browser_reveals(site: Path, bundles: dict[str, Path], model: Path) -> list[dict]:

@@ -1,9 +1,9 @@
 """`noisenerf hide`: train the noise that makes a frozen scene render a secret (Noise-NeRF).
 
 The secret is planned into tiles (plan.py), one viewpoint each; the chosen method (methods.py) cuts each
-tile into parts, solved as pure jobs (jobs.py) wherever the executor runs them (executors.py), several tiles
-at once (one more than the executor runs jobs at once). This driver alone saves each finished part beside the output (OUT.partial/, progress.py), so an
-interrupted hide run again with the same arguments resumes where it stopped and writes a byte-identical
+tile into parts, solved as pure jobs (jobs.py) wherever the executor runs them (executors.py), several
+tiles at once (one more than the executor runs jobs at once). This driver alone saves each finished part
+beside the output (OUT.partial/, progress.py), so an interrupted hide run again with the same arguments resumes where it stopped and writes a byte-identical
 bundle, and assembles the tiles and the bundle. It holds the secret's 8-bit pixels, the finished tiles'
 noise as the bundle stores it, and the tiles in flight, so its memory grows with the tile size, not the
 secret's, beyond what the bundle itself will hold.
