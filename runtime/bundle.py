@@ -57,6 +57,9 @@ LAYOUTS = READABLE_FORMATS[BUNDLE_FORMAT_VERSION]
 DTYPES = {"float16": np.float16, "float32": np.float32, "int8": np.int8, "int16": np.int16}
 LAYOUT_DTYPES = {"ray": ("float16", "float32"), "sample": ("float32", "float16"), "compact": ("int16", "int8")}  # default first
 SAFETENSORS_DTYPES = ("F16", "F32", "U8", "I32")  # float noise, bases and offsets, compressed coefficients, escapes
+# a compact bundle's coefficients, up to this many bytes unpacked, stay unpacked from the load's check to the render
+# (one xz decode for ordinary secrets); beyond, tiles are unpacked again one at a time, so memory stays bounded
+KEPT_UNPACKED_BYTES = 1 << 26
 XZ_PRESET = 6  # xz level of the coefficient planes (9 saved under 1 % more on photos, at twice the time)
 
 
@@ -161,13 +164,15 @@ class CompactCoefficients:
 @dataclass(frozen=True)
 class CompactNoise:
     """The compact layout's noise: per pixel k integer coefficients (h, w, k) of the tile's basis, held as
-    the file stores them (pack_coefficients' xz stream). A hide packs a tile once it is solved and a reveal
-    unpacks one tile at a time (`loaded`), so neither holds a big secret's coefficients unpacked."""
+    the file stores them (pack_coefficients' xz stream). A hide packs a tile once it is solved; a reveal
+    renders the coefficients load_bundle kept (KEPT_UNPACKED_BYTES) and unpacks the others one tile at a time
+    (`loaded`), so neither holds a big secret's coefficients unpacked."""
 
     packed: np.ndarray  # (n,) uint8
     shape: tuple[int, int, int]  # (h, w, k)
     dtype: np.dtype  # int16 or int8
     basis: CompactBasis
+    unpacked: np.ndarray | None = None  # the coefficients, where load_bundle kept them (KEPT_UNPACKED_BYTES)
 
     @staticmethod
     def of(coefficients: np.ndarray, basis: CompactBasis) -> CompactNoise:
@@ -179,7 +184,8 @@ class CompactNoise:
         return unpack_coefficients(self.packed, self.shape, self.dtype.name, "bundle: compact tile")
 
     def loaded(self) -> CompactCoefficients:
-        return CompactCoefficients(self.coefficients(), self.basis)
+        unpacked = self.coefficients() if self.unpacked is None else self.unpacked
+        return CompactCoefficients(unpacked, self.basis)
 
     def tensors(self, name: str) -> dict[str, np.ndarray]:
         return {name: self.packed, f"{name}_basis": np.ascontiguousarray(self.basis.basis),
@@ -298,8 +304,8 @@ def validate_tile(i: int, tile: Tile, bundle: Bundle) -> None:
         raise UserError(f"bundle: tile {i} noise is {type(tile.noise).__name__}; the {bundle.layout} layout "
                         f"stores {kind.__name__}")
     shape, noise = expected_noise_shape(tile, bundle), tile.noise
-    if tuple(noise.shape) != shape or noise.dtype != DTYPES[bundle.dtype]:
-        raise UserError(f"bundle: tile {i} noise is {noise.dtype} {tuple(noise.shape)}, "
+    if noise.shape != shape or noise.dtype != DTYPES[bundle.dtype]:
+        raise UserError(f"bundle: tile {i} noise is {noise.dtype} {noise.shape}, "
                         f"expected {bundle.dtype} {shape}")
     if bundle.layout == "compact":
         validate_basis(i, tile, bundle)
@@ -365,30 +371,30 @@ def tile_tensor(tensors: dict[str, np.ndarray], name: str, what: str, dtype=None
 
 
 def compact_noise(name: str, data: dict, tensors: dict[str, np.ndarray], shape: tuple[int, int, int], dtype: str,
-                  what: str) -> CompactNoise:
-    """A compact tile's coefficients (h, w, k) and its basis. The stream is decompressed once here to check
-    it holds exactly that (only once the header and rect are known good, so at most h·w·k values), then
-    kept packed: a reveal unpacks one tile at a time."""
+                  what: str, keep_unpacked: bool) -> CompactNoise:
+    """A compact tile's coefficients (h, w, k) and its basis. The stream is decompressed here to check it
+    holds exactly that (only once the header and rect are known good, so at most h·w·k values); the
+    coefficients are kept if keep_unpacked, else dropped (a reveal unpacks the tile again when it renders)."""
     basis = CompactBasis(basis=tile_tensor(tensors, f"{name}_basis", what), offset=tile_tensor(tensors, f"{name}_offset", what),
                   scale=checked_float(data.get("scale"), f"{what} scale", low=float(np.finfo(np.float32).tiny),
                                       high=float(np.finfo(np.float32).max)),
                   escapes=tile_tensor(tensors, f"{name}_escapes", what),
                   escape_noise=tile_tensor(tensors, f"{name}_escape_noise", what))
     packed = tile_tensor(tensors, name, what, dtype=np.uint8, ndim=1)
-    unpack_coefficients(packed, shape, dtype, what)
-    return CompactNoise(packed, shape, np.dtype(DTYPES[dtype]), basis)
+    unpacked = unpack_coefficients(packed, shape, dtype, what)
+    return CompactNoise(packed, shape, np.dtype(DTYPES[dtype]), basis, unpacked if keep_unpacked else None)
 
 
-def parse_tile(i: int, data, tensors: dict[str, np.ndarray], header: dict) -> Tile:
+def parse_tile(i: int, data, tensors: dict[str, np.ndarray], header: dict, keep_unpacked: bool) -> Tile:
     """One tile's metadata, every number type- and range-checked, joined to its tensors. header: the
-    bundle's checked layout, dtype and coefficients."""
+    bundle's checked layout, dtype and coefficients; keep_unpacked: compact_noise's."""
     x0, y0, width, height = checked_rect(i, data)
     name = data.get("tensor")
     if not isinstance(name, str):
         raise UserError(f"bundle: tile {i} tensor {name!r:.40} is missing")
     if header["layout"] == "compact":
         noise = compact_noise(name, data, tensors, (height, width, header["coefficients"]), header["dtype"],
-                              f"bundle: tile {i}")
+                              f"bundle: tile {i}", keep_unpacked)
     else:
         noise = VectorNoise(tile_tensor(tensors, name, f"bundle: tile {i}"))
     view = data.get("view")
@@ -441,16 +447,26 @@ def parse_bundle(meta, tensors: dict[str, np.ndarray], path: Path) -> Bundle:
     width, height = checked_image_size(secret.get("width"), secret.get("height"), "bundle: secret")
     header = noise_header(noise, READABLE_FORMATS[version])
     tiles = checked_list(meta.get("tiles"), "bundle: tiles", most=MAX_TILES)
-    tile_pixels = (w * h for _, _, w, h in (checked_rect(i, tile) for i, tile in enumerate(tiles)))
-    if header["layout"] == "compact" and sum(tile_pixels) != width * height:  # before inflating any stream
+    areas = np.array([w * h for _, _, w, h in (checked_rect(i, tile) for i, tile in enumerate(tiles))], np.int64)
+    if header["layout"] == "compact" and areas.sum() != width * height:  # before inflating any stream
         raise UserError(f"bundle: the tiles' areas do not add up to the {width}x{height} secret")
     extra = meta.get("extra", {})
     return Bundle(model_fingerprint=checked_text(meta.get("model_fingerprint"), "bundle: model_fingerprint"),
                   width=width, height=height, secret_sha256=checked_text(secret.get("sha256"), "bundle: sha256"),
                   layout=header["layout"], noise_dims=header["dims"], dtype=header["dtype"],
-                  tiles=tuple(parse_tile(i, tile, tensors, header) for i, tile in enumerate(tiles)),
+                  tiles=tuple(parse_tile(i, tile, tensors, header, keep) for i, (tile, keep)
+                              in enumerate(zip(tiles, kept_unpacked(areas, header)))),
                   extra=extra if isinstance(extra, dict) else {}, coefficients=header["coefficients"],
                   payload=None if meta.get("payload") is None else checked_payload(meta["payload"]))
+
+
+def kept_unpacked(areas: np.ndarray, header: dict) -> np.ndarray:
+    """Which compact tiles of these areas (pixels) load_bundle keeps unpacked: the first, in order, whose
+    coefficients fit in KEPT_UNPACKED_BYTES together. (tiles,) bool; all False for the other layouts."""
+    if header["layout"] != "compact":
+        return np.zeros(len(areas), dtype=bool)
+    per_pixel = header["coefficients"] * np.dtype(DTYPES[header["dtype"]]).itemsize
+    return np.cumsum(areas) * per_pixel <= KEPT_UNPACKED_BYTES
 
 
 def checked_rect(i: int, data) -> tuple[int, int, int, int]:

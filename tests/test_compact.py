@@ -44,6 +44,25 @@ def test_compact_bundle_reveals_exactly_through_onnxruntime(demo):
     assert bundle.layout == "compact" and bundle.dtype == "int16" and bundle.tiles[0].noise.coefficients().dtype == np.int16
 
 
+def test_tiles_beyond_the_kept_budget_are_unpacked_again_when_rendered_with_the_same_pixels(demo, monkeypatch):
+    from noisenerf.runtime import bundle as bundle_module
+    from noisenerf.runtime.model import load_model
+    from noisenerf.runtime.reveal import reveal
+
+    folder, secret, _, model = demo
+    kept = load_bundle(folder / "compact.bundle")
+    tile_bytes = kept.tiles[0].noise.unpacked.nbytes  # two 24² tiles of 6 int16 coefficients a pixel
+    monkeypatch.setattr(bundle_module, "KEPT_UNPACKED_BYTES", tile_bytes)
+    partly = load_bundle(folder / "compact.bundle")
+    assert [t.noise.unpacked is not None for t in kept.tiles] == [True, True]
+    assert [t.noise.unpacked is not None for t in partly.tiles] == [True, False]
+    loaded = load_model(model)
+    for bundle in (kept, partly):
+        revealed = reveal(bundle, loaded.render_config, loaded.fields())
+        assert revealed.exact
+        np.testing.assert_array_equal(revealed.pixels, secret)
+
+
 def test_a_tampered_coefficient_is_not_exact_and_a_corrupt_stream_is_refused(demo):
     folder, _, _, model = demo
     bundle = load_bundle(folder / "compact.bundle")
