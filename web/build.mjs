@@ -1,8 +1,8 @@
 // `npm run build`: the page's two builds with esbuild.
 //   dist/site/                 index.html, page.js, worker.js and onnxruntime-web's .wasm (from node_modules):
-//                              any static server; threads where it is served cross-origin isolated
+//                              any static server
 //   dist/noisenerf-reveal.html one self-contained file that works opened from disk (file://): the page's script,
-//                              the worker (run from a Blob URL) and the WASM binary (base64) inline, one thread
+//                              the worker (run from a Blob URL) and the WASM binary (base64) inline
 // Nothing is fetched at run time in either.
 
 import * as esbuild from "esbuild";

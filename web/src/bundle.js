@@ -192,47 +192,70 @@ async function unpackCoefficients(packed, shape, dtype, what) {
   return out;
 }
 
-/** expand_coefficients: noise of compact pixels start..start+m, float32 (one multiply by the scale, then the
+/** expand_coefficients: noise of m compact pixels (coefficients m·k), float32 (one multiply by the scale, then the
  * matmul offset + params @ basisᵀ), escaped pixels' stored noise in place. -> Float32Array (m·dims).
  * numpy's float32 matmul is OpenBLAS's sgemm, which on FMA hardware (Haswell and later) accumulates
  * k = 0..K-1 with one fused multiply-add each: the order reproduced here (web/test checks it bit for bit). */
-export function expandCoefficients(coefficients, k, basis, start, stop) {
-  const dims = basis.offset.length, m = stop - start;
+export function expandCoefficients(coefficients, k, basis) {
+  const dims = basis.offset.length, m = coefficients.length / k;
   const out = new Float32Array(m * dims);
   const scale = f32(basis.scale), matrix = basis.basis, offset = basis.offset;
-  const params = new Float32Array(k);
   // A zero basis entry adds +0 to a sum that is never −0, so leaving it out changes no bit; a compact tile's
-  // basis is zero on every γ(x) row (its noise moves the view direction only), most of the work.
-  // terms[first[d] .. first[d + 1]) are row d's nonzero entries, in the order numpy sums them.
-  const first = new Int32Array(dims + 1), terms = new Int32Array(dims * k);
-  for (let d = 0, n = 0; d < dims; d++, first[d] = n) {
-    for (let c = 0; c < k; c++) if (matrix[d * k + c] !== 0) terms[n++] = c;
+  // basis is zero on every γ(x) row (its noise moves the view direction only): those rows are the offset for
+  // every pixel (`fixed`). The others are `live`: terms[first[i] .. first[i + 1]) are live row i's nonzero
+  // columns and values, in the order numpy sums them.
+  const fixed = new Float32Array(dims), liveRows = [], first = [0], columns = [], values = [];
+  for (let d = 0; d < dims; d++) {
+    fixed[d] = f32(offset[d] + 0);
+    const before = columns.length;
+    for (let c = 0; c < k; c++) if (matrix[d * k + c] !== 0) { columns.push(c); values.push(matrix[d * k + c]); }
+    if (columns.length > before) { liveRows.push(d); first.push(columns.length); }
   }
+  const live = Int32Array.from(liveRows), from = Int32Array.from(first), column = Int32Array.from(columns);
+  const value = Float64Array.from(values), params = new Float64Array(k);
   for (let p = 0; p < m; p++) {
-    const row = (start + p) * k;
+    const row = p * k, at = p * dims;
     for (let c = 0; c < k; c++) params[c] = f32(coefficients[row + c] * scale);
-    for (let d = 0; d < dims; d++) {
-      let dot = 0;
-      for (let t = first[d]; t < first[d + 1]; t++) dot = fmaf32(params[terms[t]], matrix[d * k + terms[t]], dot);
-      out[p * dims + d] = f32(offset[d] + dot);
+    out.set(fixed, at);
+    for (let i = 0; i < live.length; i++) {
+      let t = from[i];
+      let dot = f32(params[column[t]] * value[t]); // fmaf(a, b, +0): the product rounded once
+      for (t++; t < from[i + 1]; t++) dot = fmaf32(params[column[t]], value[t], dot);
+      out[at + live[i]] = f32(offset[live[i]] + dot);
     }
   }
   const escapes = basis.escapes;
-  for (let e = 0; e < escapes.length; e++) {
-    const p = escapes[e];
-    if (p >= start && p < stop) out.set(basis.escapeNoise.subarray(e * dims, (e + 1) * dims), (p - start) * dims);
-  }
+  for (let e = 0; e < escapes.length; e++) out.set(basis.escapeNoise.subarray(e * dims, (e + 1) * dims), escapes[e] * dims);
   return out;
+}
+
+/** A tile's noise for its pixels start..stop, on its own: only those pixels' stored values (copies, so that a
+ * worker is sent them alone), escaped pixels renumbered from the chunk's first. -> a record chunkRows expands. */
+export function chunkNoise(tile, bundle, start, stop) {
+  const dims = bundle.noiseDims;
+  if (bundle.layout !== "compact") {
+    const per = bundle.layout === "sample" ? tile.sampling.nSamples : 1;
+    return { layout: bundle.layout, values: tile.noise.values.slice(start * per * dims, stop * per * dims), perSample: per, dims };
+  }
+  const k = bundle.coefficients, { basis, offset, scale, escapes, escapeNoise } = tile.noise.basis;
+  const inside = [];
+  for (let e = 0; e < escapes.length; e++) if (escapes[e] >= start && escapes[e] < stop) inside.push(e);
+  const chunkEscapes = Int32Array.from(inside, (e) => escapes[e] - start);
+  const chunkEscapeNoise = new Float32Array(inside.length * dims);
+  inside.forEach((e, i) => chunkEscapeNoise.set(escapeNoise.subarray(e * dims, (e + 1) * dims), i * dims));
+  return { layout: "compact", coefficients: tile.noise.coefficients.slice(start * k, stop * k), k, dims,
+    basis: { basis, offset, scale, escapes: chunkEscapes, escapeNoise: chunkEscapeNoise } };
+}
+
+/** A chunk's float32 noise (chunkNoise's record): {values, perSample (1 or n_samples), dims}. */
+export function chunkRows(noise) {
+  if (noise.layout !== "compact") return { values: noise.values, perSample: noise.perSample, dims: noise.dims };
+  return { values: expandCoefficients(noise.coefficients, noise.k, noise.basis), perSample: 1, dims: noise.dims };
 }
 
 /** The float32 noise of a tile's pixels start..stop: {values, perSample (1 or n_samples), dims}. */
 export function tileRows(tile, bundle, start, stop) {
-  const dims = bundle.noiseDims;
-  if (bundle.layout === "compact") {
-    return { values: expandCoefficients(tile.noise.coefficients, bundle.coefficients, tile.noise.basis, start, stop), perSample: 1, dims };
-  }
-  const per = bundle.layout === "sample" ? tile.sampling.nSamples : 1;
-  return { values: tile.noise.values.subarray(start * per * dims, stop * per * dims), perSample: per, dims };
+  return chunkRows(chunkNoise(tile, bundle, start, stop));
 }
 
 async function parseTile(i, data, tensors, header) {

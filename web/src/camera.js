@@ -45,25 +45,23 @@ export function ndcFromDict(data) {
   return space;
 }
 
-/** camera_rays + pixel_rays: world rays of a camera's pixels, row-major. -> {origins, directions} Float32Array (n*3). */
-export function cameraRays(camera, pixelCenter) {
-  const { width, height } = camera;
-  const n = width * height;
+/** camera_rays + pixel_rays: world rays of a camera's pixels start..stop (row-major; each pixel's ray is its own,
+ * so a range equals that range of the whole camera's). -> {origins, directions} Float32Array ((stop − start)·3). */
+export function cameraRays(camera, pixelCenter, start = 0, stop = camera.width * camera.height) {
+  const { width } = camera;
+  const n = stop - start;
   const origins = new Float32Array(n * 3), directions = new Float32Array(n * 3);
-  const R = camera.c2w.slice(0, 3).map((row) => row.slice(0, 3).map(f32));
-  const t = camera.c2w.slice(0, 3).map((row) => f32(row[3]));
+  const R = Float32Array.from(camera.c2w.slice(0, 3).flatMap((row) => row.slice(0, 3)));
+  const t = Float32Array.from(camera.c2w.slice(0, 3), (row) => row[3]);
   const pc = f32(pixelCenter), cx = f32(camera.cx), cy = f32(camera.cy), fx = f32(camera.fx), fy = f32(camera.fy);
-  for (let j = 0; j < height; j++) {
-    const py = f32(j + pc);
-    const dy = -f32(f32(py - cy) / fy);
-    for (let i = 0; i < width; i++) {
-      const px = f32(i + pc);
-      const dx = f32(f32(px - cx) / fx);
-      const at = (j * width + i) * 3;
-      for (let r = 0; r < 3; r++) {
-        directions[at + r] = fmaf32(-1, R[r][2], fmaf32(dy, R[r][1], f32(dx * R[r][0])));
-        origins[at + r] = t[r];
-      }
+  for (let p = start; p < stop; p++) {
+    const j = Math.floor(p / width), i = p - j * width;
+    const dy = -f32(f32(f32(j + pc) - cy) / fy);
+    const dx = f32(f32(f32(i + pc) - cx) / fx);
+    const at = (p - start) * 3;
+    for (let r = 0; r < 3; r++) {
+      directions[at + r] = fmaf32(-1, R[3 * r + 2], fmaf32(dy, R[3 * r + 1], f32(dx * R[3 * r])));
+      origins[at + r] = t[r];
     }
   }
   return { origins, directions };
@@ -106,10 +104,11 @@ export function ndcRays(space, origins, directions) {
   return { origins: o, directions: d };
 }
 
-/** rays.camera_ray_batch: every pixel's ray in the field's space -> {origins, directions, viewdirs}. */
-export function cameraRayBatch(camera, config) {
-  const world = cameraRays(camera, config.pixelCenter);
+/** rays.camera_ray_batch(...).rows(start, stop): the rays of pixels start..stop (default: every pixel) in the
+ * field's space -> {origins, directions, viewdirs, length}. */
+export function cameraRayBatch(camera, config, start = 0, stop = camera.width * camera.height) {
+  const world = cameraRays(camera, config.pixelCenter, start, stop);
   const viewdirs = normalizeDirections(world.directions);
   const rays = config.ndc ? ndcRays(config.ndc, world.origins, world.directions) : world;
-  return { origins: rays.origins, directions: rays.directions, viewdirs, length: camera.width * camera.height };
+  return { origins: rays.origins, directions: rays.directions, viewdirs, length: stop - start };
 }

@@ -8,7 +8,7 @@ import { bytesToHex } from "@noble/hashes/utils.js";
 import { UserError } from "./errors.js";
 import { loadBundle } from "./bundle.js";
 import { checkModel, checkBundle } from "./model.js";
-import { OnnxField, revealBundle } from "./reveal.js";
+import { LocalRenderer, revealBundle } from "./reveal.js";
 import { encodePng } from "./png.js";
 import { INEXACT, openPayload, sealOf } from "./payload.js";
 import { NO_PASSPHRASE, passphraseBytes, unsealKeys } from "./sealing.js";
@@ -25,11 +25,13 @@ export async function inspectBundle(bundle) {
 /**
  * model, bundle: Uint8Array; passphrase: string or Uint8Array (sealed bundles only).
  * onProgress({stage: "kdf" | "render", done, total}), optional.
+ * openRenderer(model, networks) -> a renderer of chunks (src/reveal.js's LocalRenderer, this thread, by default;
+ *   src/pool.js's FieldPool renders them in Web Workers), released when the reveal ends.
  * -> {kind: "image", bytes (PNG), name, width, height, exact, sha256, pixels}
  *  | {kind: "file", bytes, name (the payload's own, or null), width, height (the secret's), exact: true, sha256 (of
  *     the bytes), sealed}; a sealed image payload comes back as kind "image" with its PNG.
  */
-export async function reveal({ model, bundle, passphrase = null, onProgress = null, sessionOptions = {} }) {
+export async function reveal({ model, bundle, passphrase = null, onProgress = null, openRenderer = LocalRenderer.open }) {
   if (!(model instanceof Uint8Array) || !(bundle instanceof Uint8Array)) throw new TypeError("model and bundle must be Uint8Arrays");
   const secret = await loadBundle(bundle, "secret.bundle");
   const seal = secret.payload === null ? null : sealOf(secret.payload);
@@ -44,12 +46,12 @@ export async function reveal({ model, bundle, passphrase = null, onProgress = nu
   const total = secret.tiles.reduce((n, tile) => n + tile.rect[2] * tile.rect[3], 0);
   let done = 0;
   const progress = onProgress && ((rays) => onProgress({ stage: "render", done: (done += rays), total }));
-  const field = await OnnxField.create(model, checked.networks, sessionOptions);
+  const renderer = await openRenderer(model, checked.networks);
   let revealed;
   try {
-    revealed = await revealBundle(secret, checked.metadata.renderConfig, field, progress);
+    revealed = await revealBundle(secret, checked.metadata.renderConfig, renderer, checked.networks, progress);
   } finally {
-    await field.session.release?.();
+    await renderer.release();
   }
   const { width, height } = secret;
   if (secret.payload === null) {

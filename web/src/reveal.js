@@ -11,7 +11,7 @@ import { OUTPUT_NAMES, COARSE_OUTPUT_NAMES, INPUT_NAMES } from "./graph.js";
 import { cameraRayBatch } from "./camera.js";
 import { samplePositions, sampleAlong } from "./sampling.js";
 import { compositeRays, opticalDepth, pairwiseSum, toUint8 } from "./compositing.js";
-import { tileRows } from "./bundle.js";
+import { chunkNoise, chunkRows } from "./bundle.js";
 
 const f32 = Math.fround;
 export const CHUNK_SAMPLES = 1 << 17;
@@ -61,31 +61,31 @@ export class OnnxField {
 }
 
 /** The noisy field evaluated front to back over m rays of S samples (march_rays with no grid). */
-async function marchRays(field, network, points, viewdirs, deltas, rows, start, m, S, dims) {
+async function marchRays(field, network, points, viewdirs, deltas, rows, m, S) {
+  const { values: noiseRows, perSample, dims } = rows;
   const sigmas = new Float32Array(m * S), rgbs = new Float32Array(m * S * 3);
   const depthSoFar = new Float32Array(m);
   const chunkDepths = new Float32Array(MARCH_SAMPLES);
+  const chosen = new Int32Array(m * Math.min(MARCH_SAMPLES, S));
   for (let s0 = 0; s0 < S; s0 += MARCH_SAMPLES) {
     const s1 = Math.min(s0 + MARCH_SAMPLES, S);
-    const chosen = [];
+    let n = 0;
     for (let r = 0; r < m; r++) {
-      if (f32(Math.exp(-depthSoFar[r])) > 0) for (let s = s0; s < s1; s++) chosen.push(r * S + s);
+      if (f32(Math.exp(-depthSoFar[r])) > 0) for (let s = s0; s < s1; s++) chosen[n++] = r * S + s;
     }
-    if (chosen.length) {
-      const n = chosen.length;
+    if (n) {
       const p = new Float32Array(n * 3), v = new Float32Array(n * 3), noise = new Float32Array(n * dims);
       for (let q = 0; q < n; q++) {
-        const index = chosen[q], r = Math.floor(index / S), s = index % S;
-        p.set(points.subarray(index * 3, index * 3 + 3), q * 3);
-        v.set(viewdirs.subarray((start + r) * 3, (start + r) * 3 + 3), q * 3);
-        const row = (r * rows.perSample + (rows.perSample === 1 ? 0 : s)) * dims;
-        noise.set(rows.values.subarray(row, row + dims), q * dims);
+        const index = chosen[q], r = Math.floor(index / S), s = index - r * S;
+        for (let c = 0; c < 3; c++) { p[q * 3 + c] = points[index * 3 + c]; v[q * 3 + c] = viewdirs[r * 3 + c]; }
+        const row = (r * perSample + (perSample === 1 ? 0 : s)) * dims;
+        for (let d = 0; d < dims; d++) noise[q * dims + d] = noiseRows[row + d];
       }
       const out = await field.evaluate(network, p, v, noise, n, dims);
       for (let q = 0; q < n; q++) {
         const index = chosen[q];
         sigmas[index] = out.sigma[q];
-        rgbs.set(out.rgb.subarray(q * 3, q * 3 + 3), index * 3);
+        for (let c = 0; c < 3; c++) rgbs[index * 3 + c] = out.rgb[q * 3 + c];
       }
     }
     for (let r = 0; r < m; r++) {
@@ -96,21 +96,62 @@ async function marchRays(field, network, points, viewdirs, deltas, rows, start, 
   return { sigmas, rgbs };
 }
 
-/** render_tile: a tile's secret view, (height·width·3) float32, a chunk of rays (and of noise) at a time. */
-export async function renderTile(tile, bundle, config, field, network, progress) {
-  const rays = cameraRayBatch(tile.camera, config);
-  const tVals = samplePositions(tile.sampling);
-  const S = tVals.length, n = rays.length, dims = bundle.noiseDims;
-  const colors = new Float32Array(n * 3);
-  const chunk = raysPerChunk(S);
-  for (let start = 0; start < n; start += chunk) {
-    const stop = Math.min(start + chunk, n), m = stop - start;
-    const rows = tileRows(tile, bundle, start, stop);
-    const { points, deltas } = sampleAlong(rays, start, stop, tVals);
-    const { sigmas, rgbs } = await marchRays(field, network, points, rays.viewdirs, deltas, rows, start, m, S, dims);
-    colors.set(compositeRays(sigmas, rgbs, deltas, m, S, config.background), start * 3);
-    progress?.(m);
+/** What a worker needs to render pixels start..stop of a tile (structured-cloneable, the chunk's noise alone). */
+export function chunkJob(tile, bundle, config, network, start, stop) {
+  return { camera: tile.camera, config, sampling: tile.sampling, network, start, stop,
+    noise: chunkNoise(tile, bundle, start, stop) };
+}
+
+/** render_chunk: a chunk's rays, samples, noisy field and compositing -> colours ((stop − start)·3 float32). */
+export async function renderChunk(job, field) {
+  const { start, stop, config } = job, m = stop - start;
+  const rays = cameraRayBatch(job.camera, config, start, stop);
+  const tVals = samplePositions(job.sampling);
+  const { points, deltas } = sampleAlong(rays, 0, m, tVals);
+  const { sigmas, rgbs } = await marchRays(field, job.network, points, rays.viewdirs, deltas, chunkRows(job.noise), m, tVals.length);
+  return compositeRays(sigmas, rgbs, deltas, m, tVals.length, config.background);
+}
+
+/** Chunks rendered in this thread on one onnxruntime-web session, one at a time (a renderer: slots, render,
+ * release; src/pool.js's FieldPool is the other, over Web Workers). */
+export class LocalRenderer {
+  static async open(modelBytes, networks, sessionOptions = {}) {
+    return new LocalRenderer(await OnnxField.create(modelBytes, networks, sessionOptions));
   }
+  constructor(field) {
+    this.field = field;
+    this.slots = 1;
+    this.queue = Promise.resolve();
+  }
+  render(job) {
+    const rendered = this.queue.then(() => renderChunk(job, this.field));
+    this.queue = rendered.catch(() => {});
+    return rendered;
+  }
+  async release() {
+    await this.field.session.release?.();
+  }
+}
+
+/** render_tile: a tile's secret view, (height·width·3) float32, a chunk of rays (and of noise) at a time, the
+ * renderer's slots + 1 chunks in flight (so that none of its workers waits for the next), each holding its own
+ * noise only: memory is bounded by the chunk. */
+export async function renderTile(tile, bundle, config, renderer, network, progress = null,
+  chunk = raysPerChunk(tile.sampling.nSamples)) {
+  const n = tile.rect[2] * tile.rect[3];
+  const colors = new Float32Array(n * 3);
+  const inFlight = new Set();
+  for (let start = 0; start < n; start += chunk) {
+    const stop = Math.min(start + chunk, n);
+    const done = renderer.render(chunkJob(tile, bundle, config, network, start, stop)).then((chunkColors) => {
+      colors.set(chunkColors, start * 3);
+      progress?.(stop - start);
+    });
+    inFlight.add(done);
+    done.then(() => inFlight.delete(done), () => {});
+    if (inFlight.size > renderer.slots) await Promise.race(inFlight);
+  }
+  await Promise.all(inFlight);
   return colors;
 }
 
@@ -125,14 +166,14 @@ export function tileNetwork(tile, networks) {
 
 /** reveal: every tile rendered, quantised as it comes and stitched, the SHA-256 checked -> {pixels, exact, sha256}.
  * It holds the 8-bit secret and one tile's floats, as runtime/reveal.py does. */
-export async function revealBundle(bundle, config, field, progress) {
-  const chosen = bundle.tiles.map((tile) => tileNetwork(tile, field.networks));
+export async function revealBundle(bundle, config, renderer, networks, progress) {
+  const chosen = bundle.tiles.map((tile) => tileNetwork(tile, networks));
   const { width, height } = bundle;
   const pixels = new Uint8Array(width * height * 3);
   for (let t = 0; t < bundle.tiles.length; t++) {
     const tile = bundle.tiles[t];
     const [x0, y0, w, h] = tile.rect;
-    const tilePixels = toUint8(await renderTile(tile, bundle, config, field, chosen[t], progress));
+    const tilePixels = toUint8(await renderTile(tile, bundle, config, renderer, chosen[t], progress));
     for (let y = 0; y < h; y++) pixels.set(tilePixels.subarray(y * w * 3, (y + 1) * w * 3), ((y0 + y) * width + x0) * 3);
   }
   const digest = bytesToHex(sha256(pixels));

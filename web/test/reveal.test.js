@@ -12,7 +12,7 @@ import { reveal } from "../src/index.js";
 import { loadBundle, tileRows } from "../src/bundle.js";
 import { checkModel } from "../src/model.js";
 import { cameraRayBatch } from "../src/camera.js";
-import { OnnxField, renderTile, tileNetwork } from "../src/reveal.js";
+import { LocalRenderer, renderTile, tileNetwork } from "../src/reveal.js";
 
 const root = process.env.NOISENERF_WEB_FIXTURES;
 const skip = root ? false : "NOISENERF_WEB_FIXTURES is not set (tests/test_web.py writes the fixtures and sets it)";
@@ -45,7 +45,7 @@ for (const [name, fixture] of Object.entries(manifest.fixtures)) {
     const bundle = await loadBundle(new Uint8Array(bundleBytes));
     const checked = checkModel(new Uint8Array(model));
     assert.equal(checked.metadata.fingerprint, fixture.fingerprint);
-    const field = await OnnxField.create(new Uint8Array(model), checked.networks);
+    const renderer = await LocalRenderer.open(new Uint8Array(model), checked.networks);
     const stats = { rays: [], noise: [], colors: [] };
     for (const [i, tile] of bundle.tiles.entries()) {
       const want = fixture.tiles[i];
@@ -53,9 +53,10 @@ for (const [name, fixture] of Object.entries(manifest.fixtures)) {
       for (const key of ["origins", "directions", "viewdirs"]) stats.rays.push(compare(rays[key], golden(folder, want[key])));
       const n = tile.rect[2] * tile.rect[3];
       stats.noise.push(compare(tileRows(tile, bundle, 0, n).values, golden(folder, want.noise)));
-      const colors = await renderTile(tile, bundle, checked.metadata.renderConfig, field, tileNetwork(tile, checked.networks));
+      const colors = await renderTile(tile, bundle, checked.metadata.renderConfig, renderer, tileNetwork(tile, checked.networks));
       stats.colors.push(compare(colors, golden(folder, want.colors)));
     }
+    await renderer.release();
     const reduce = (list) => list.reduce((a, b) => ({ maxDiff: Math.max(a.maxDiff, b.maxDiff), unequal: a.unequal + b.unequal,
       total: a.total + b.total }), { maxDiff: 0, unequal: 0, total: 0 });
     summary[name] = Object.fromEntries(Object.entries(stats).map(([k, v]) => [k, reduce(v)]));

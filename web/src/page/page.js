@@ -5,19 +5,28 @@
 // through the worker: `await noisenerf.reveal({model, bundle, passphrase})` returns the library's object.
 //
 // The two builds (build.mjs) differ in where the worker and onnxruntime's WASM come from: the static site loads
-// worker.js and the .wasm beside index.html; the single file carries both inline (the worker as a Blob URL, the
-// WASM handed over as bytes) and runs single-threaded, since a page opened from disk is not cross-origin isolated.
+// worker.js (a module worker) and the .wasm beside index.html; the single file carries both inline (the worker as
+// a classic worker from a Blob URL, the WASM handed over as bytes). Both render in a pool of workers, one per core
+// (src/pool.js), which needs no cross-origin isolation: a page opened from disk is never isolated.
 
 import { workerCode, wasmBase64 } from "noisenerf-embedded";
+import { FIELD_WORKER, REVEAL_WORKER } from "./roles.js";
 
+const MOST_WORKERS = 16; // beyond the cores there are, more workers only hold more memory
 let worker = null, ready = null, nextId = 0;
+let fieldWorkers = [];
 const pending = new Map();
+
+/** The worker's script, started under a name (its role): a Blob URL's in the single file, worker.js's in the site. */
+function spawn(name) {
+  return workerCode
+    ? new Worker(URL.createObjectURL(new Blob([workerCode], { type: "text/javascript" })), { name })
+    : new Worker(new URL("./worker.js", import.meta.url), { type: "module", name });
+}
 
 function startWorker() {
   if (ready) return ready;
-  worker = workerCode
-    ? new Worker(URL.createObjectURL(new Blob([workerCode], { type: "text/javascript" })))
-    : new Worker(new URL("./worker.js", import.meta.url), { type: "module" });
+  worker = spawn(REVEAL_WORKER);
   worker.onmessage = ({ data }) => {
     const call = pending.get(data.id);
     if (!call) return;
@@ -37,11 +46,25 @@ function startWorker() {
     for (const call of pending.values()) call.reject(error);
     pending.clear();
   };
-  // WASM threads need cross-origin isolation; onnxruntime-web's own default is half the cores, so say all
-  const threads = self.crossOriginIsolated ? navigator.hardwareConcurrency || 1 : 1;
-  const init = wasmBase64 ? { wasmBinary: decodeBase64(wasmBase64), numThreads: 1 } : { numThreads: threads };
+  const init = wasmBase64 ? { wasmBinary: decodeBase64(wasmBase64) } : {};
   ready = call("init", init, null, init.wasmBinary ? [init.wasmBinary.buffer] : []);
   return ready;
+}
+
+/** The reveal worker's pool of field workers, `size` of them, each joined to it by a MessageChannel. The page
+ * starts them: a worker of a page opened from disk may not start workers of its own (its origin is opaque). */
+async function usePool(size) {
+  if (fieldWorkers.length === size) return;
+  for (const field of fieldWorkers) field.terminate();
+  fieldWorkers = Array.from({ length: size }, () => spawn(FIELD_WORKER));
+  const ports = fieldWorkers.map((field, index) => {
+    const channel = new MessageChannel();
+    field.postMessage({ port: channel.port1 }, [channel.port1]);
+    // a field worker that dies (out of memory) fails the chunks it holds rather than leaving the reveal waiting
+    field.onerror = (event) => worker.postMessage({ type: "fieldFailed", index, message: event.message ?? "unknown error" });
+    return channel.port2;
+  });
+  await call("pool", { ports }, null, ports);
 }
 
 function decodeBase64(text) {
@@ -59,11 +82,17 @@ function call(type, data, onProgress = null, transfer = []) {
   });
 }
 
-/** The library's reveal, run in the worker: same arguments (Uint8Arrays), same result, same refusals. */
-export async function reveal({ model, bundle, passphrase = null, onProgress = null }) {
+/** The library's reveal, run in the worker: same arguments (Uint8Arrays), same result (and `workers`, how many
+ * rendered), same refusals. workers: the pool's size, by default one per core. */
+export async function reveal({ model, bundle, passphrase = null, onProgress = null,
+  workers = Math.min(navigator.hardwareConcurrency || 1, MOST_WORKERS) }) {
   if (!(model instanceof Uint8Array) || !(bundle instanceof Uint8Array)) throw new TypeError("model and bundle must be Uint8Arrays");
+  if (!(Number.isInteger(workers) && workers >= 1 && workers <= MOST_WORKERS)) {
+    throw new TypeError(`workers must be an integer from 1 to ${MOST_WORKERS}`);
+  }
   await startWorker();
-  return call("reveal", { model, bundle, passphrase }, onProgress);
+  await usePool(workers);
+  return { ...(await call("reveal", { model, bundle, passphrase }, onProgress)), workers };
 }
 
 /** Whether a bundle is a payload and sealed (inspectBundle), run in the worker. */

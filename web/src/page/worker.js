@@ -1,23 +1,46 @@
-// The page's Web Worker: runs the reveal library (src/index.js) on onnxruntime-web so that the page stays
-// responsive. Messages in: {id, type: "init", wasmBinary?, numThreads?} | {id, type: "inspect", bundle} |
-// {id, type: "reveal", model, bundle, passphrase}. Out: {id, type: "progress", progress} | {id, type: "done",
-// result} | {id, type: "error", message, userError}. A refusal is a UserError: its message is the CLI's line.
+// The page's Web Worker, in one of two roles by its name (src/page/page.js starts both). The reveal worker runs the
+// reveal library (src/index.js) so that the page stays responsive, rendering through a pool of field workers
+// (src/pool.js): this same script, one onnxruntime-web session each, joined to the reveal worker by MessagePorts.
+// The reveal worker's messages in: {id, type: "init", wasmBinary?} | {id, type: "pool", ports} | {type:
+// "fieldFailed", index, message} | {id, type: "inspect", bundle} | {id, type: "reveal", model, bundle,
+// passphrase}. Out: {id, type: "progress", progress} | {id, type: "done", result} | {id, type: "error", message,
+// userError}. A refusal is a UserError: its message is the CLI's line. A field worker's one message in: {port}.
 
-import * as ort from "onnxruntime-web";
 import { reveal, inspectBundle, UserError } from "../index.js";
+import { FieldPool, fieldWorker } from "../pool.js";
+import { FIELD_WORKER } from "./roles.js";
+
+let wasmBinary = null, pool = null;
+let failed = []; // per field worker: what the page's word that it died calls (FieldPool.failed)
+
+const portEndpoint = (port, index) => ({
+  post: (message, transfer) => port.postMessage(message, transfer),
+  listen: (onMessage, onError) => {
+    port.onmessage = (event) => onMessage(event.data);
+    failed[index] = onError;
+  },
+  terminate: () => port.close(),
+});
 
 async function handle({ id, type, ...data }) {
   try {
     if (type === "init") {
-      // the single-file build hands the WASM binary over (nothing is fetched from file://), one thread there
-      if (data.wasmBinary) ort.env.wasm.wasmBinary = data.wasmBinary;
-      if (data.numThreads) ort.env.wasm.numThreads = data.numThreads;
-      self.postMessage({ id, type: "done", result: { crossOriginIsolated: self.crossOriginIsolated === true } });
+      wasmBinary = data.wasmBinary ?? null; // the single file hands the WASM binary over: nothing is fetched from file://
+      self.postMessage({ id, type: "done", result: null });
+    } else if (type === "pool") {
+      pool?.terminate();
+      pool = null;
+      failed = [];
+      pool = await FieldPool.start(data.ports.map(portEndpoint), wasmBinary);
+      self.postMessage({ id, type: "done", result: null });
+    } else if (type === "fieldFailed") {
+      failed[data.index]?.(data.message);
     } else if (type === "inspect") {
       self.postMessage({ id, type: "done", result: await inspectBundle(data.bundle) });
     } else if (type === "reveal") {
       const result = await reveal({ model: data.model, bundle: data.bundle, passphrase: data.passphrase,
-        onProgress: (progress) => self.postMessage({ id, type: "progress", progress }) });
+        onProgress: (progress) => self.postMessage({ id, type: "progress", progress }),
+        openRenderer: (model, networks) => pool.open(model, networks) });
       const transfer = [result.bytes.buffer, result.pixels?.buffer].filter(Boolean);
       self.postMessage({ id, type: "done", result }, [...new Set(transfer)]);
     }
@@ -28,6 +51,14 @@ async function handle({ id, type, ...data }) {
   }
 }
 
-// onnxruntime-web starts its own threads (where the page is cross-origin isolated) from this very script,
-// named em-pthread: those are not ours to answer
-if (!self.name?.startsWith("em-pthread")) self.onmessage = (event) => handle(event.data);
+if (self.name === FIELD_WORKER) {
+  const answer = fieldWorker();
+  self.onmessage = ({ data: { port } }) => {
+    port.onmessage = async (event) => {
+      const [reply, transfer] = await answer(event.data);
+      port.postMessage(reply, transfer);
+    };
+  };
+} else {
+  self.onmessage = (event) => handle(event.data);
+}

@@ -1,0 +1,122 @@
+// Chunks rendered in parallel: a pool of workers (Web Workers in the page, worker_threads in Node's tests), each
+// with its own onnxruntime-web session of one thread, each chunk rendered whole in one worker (rays, noise, the
+// field, compositing: src/reveal.js's renderChunk). WASM threads would need a cross-origin isolated page, which a
+// page opened from disk never is, and scale worse than separate sessions on separate chunks (docs/bench/browser).
+//
+// The driver's side is FieldPool, a renderer (slots, render, release) like LocalRenderer; the worker's is
+// fieldWorker. They speak over endpoints {post(message, transfer), listen(onMessage, onError), terminate()}.
+
+import * as ort from "onnxruntime-web";
+import { UserError } from "./errors.js";
+import { LocalRenderer } from "./reveal.js";
+
+/** The worker's side: a handler of the driver's messages, {id, type: "init", wasmBinary?} | {id, type: "open",
+ * model, networks} | {id, type: "chunk", job} | {id, type: "close"} -> Promise<[reply, transfer]>, the reply
+ * {id, result} or {id, error, userError}. Messages are answered one at a time, in order. */
+export function fieldWorker() {
+  let renderer = null, queue = Promise.resolve();
+  const answer = async ({ id, type, ...data }) => {
+    try {
+      if (type === "init") {
+        ort.env.wasm.numThreads = 1; // the pool is the parallelism
+        if (data.wasmBinary) ort.env.wasm.wasmBinary = data.wasmBinary; // the single file: nothing to fetch
+        return [{ id, result: null }, []];
+      }
+      if (type === "open") {
+        await renderer?.release();
+        renderer = await LocalRenderer.open(data.model, data.networks);
+        return [{ id, result: null }, []];
+      }
+      if (type === "chunk") {
+        if (renderer === null) throw new Error("no model is open in this worker");
+        const colors = await renderer.render(data.job);
+        return [{ id, result: colors }, [colors.buffer]];
+      }
+      if (type === "close") {
+        await renderer?.release();
+        renderer = null;
+        return [{ id, result: null }, []];
+      }
+      throw new Error(`unknown message ${String(type)}`);
+    } catch (error) {
+      return [{ id, error: String(error?.message ?? error), userError: error instanceof UserError }, []];
+    }
+  };
+  return (data) => {
+    const answered = queue.then(() => answer(data));
+    queue = answered;
+    return answered;
+  };
+}
+
+/** The driver's side over started workers' endpoints: `await FieldPool.start(endpoints, wasmBinary)`, then per
+ * reveal `await pool.open(model, networks)` (the renderer), `pool.release()`; `terminate()` ends the workers. */
+export class FieldPool {
+  static async start(endpoints, wasmBinary = null) {
+    const pool = new FieldPool(endpoints);
+    try {
+      await Promise.all(pool.workers.map((worker) => pool.call(worker, { type: "init", wasmBinary })));
+    } catch (error) {
+      pool.terminate();
+      throw error;
+    }
+    return pool;
+  }
+
+  constructor(endpoints) {
+    this.workers = endpoints.map((endpoint) => ({ endpoint, waiting: new Map() }));
+    this.slots = endpoints.length;
+    this.nextId = 0;
+    for (const worker of this.workers) {
+      worker.endpoint.listen((data) => this.answered(worker, data), (error) => this.failed(worker, error));
+    }
+  }
+
+  answered(worker, { id, result, error, userError }) {
+    const call = worker.waiting.get(id);
+    if (!call) return;
+    worker.waiting.delete(id);
+    if (error === undefined) call.resolve(result);
+    else call.reject(userError ? new UserError(error) : new Error(error));
+  }
+
+  /** A worker that died (out of memory, a crash) fails everything it was given. */
+  failed(worker, error) {
+    const failure = new Error(`a reveal worker failed: ${String(error?.message ?? error)}`);
+    for (const call of worker.waiting.values()) call.reject(failure);
+    worker.waiting.clear();
+  }
+
+  call(worker, message, transfer = []) {
+    return new Promise((resolve, reject) => {
+      const id = this.nextId++;
+      worker.waiting.set(id, { resolve, reject });
+      worker.endpoint.post({ id, ...message }, transfer);
+    });
+  }
+
+  /** A session of the model in every worker; the pool is then the reveal's renderer. */
+  async open(model, networks) {
+    await Promise.all(this.workers.map((worker) => this.call(worker, { type: "open", model, networks })));
+    return this;
+  }
+
+  /** A chunk (src/reveal.js's chunkJob) to the worker with the fewest waiting; its own stored values are
+   * handed over, not copied. */
+  render(job) {
+    const worker = this.workers.reduce((best, next) => (next.waiting.size < best.waiting.size ? next : best));
+    const noise = job.noise, own = [noise.coefficients ?? noise.values, noise.basis?.escapes, noise.basis?.escapeNoise];
+    return this.call(worker, { type: "chunk", job }, own.filter(Boolean).map((array) => array.buffer));
+  }
+
+  async release() {
+    await Promise.all(this.workers.map((worker) => this.call(worker, { type: "close" })));
+  }
+
+  terminate() {
+    for (const worker of this.workers) {
+      worker.endpoint.terminate();
+      this.failed(worker, "terminated");
+    }
+  }
+}
