@@ -219,7 +219,7 @@ export function expandCoefficients(coefficients, k, basis) {
     out.set(fixed, at);
     for (let i = 0; i < live.length; i++) {
       let t = from[i];
-      let dot = f32(params[column[t]] * value[t]); // fmaf(a, b, +0): the product rounded once
+      let dot = f32(params[column[t]] * value[t]) + 0; // fmaf(a, b, +0): the product rounded once, −0 made +0
       for (t++; t < from[i + 1]; t++) dot = fmaf32(params[column[t]], value[t], dot);
       out[at + live[i]] = f32(offset[live[i]] + dot);
     }

@@ -23,7 +23,9 @@ export function fieldWorker() {
         return [{ id, result: null }, []];
       }
       if (type === "open") {
-        await renderer?.release();
+        const old = renderer;
+        renderer = null;
+        await old?.release();
         renderer = await LocalRenderer.open(data.model, data.networks);
         return [{ id, result: null }, []];
       }
@@ -33,8 +35,9 @@ export function fieldWorker() {
         return [{ id, result: colors }, [colors.buffer]];
       }
       if (type === "close") {
-        await renderer?.release();
+        const old = renderer;
         renderer = null;
+        await old?.release();
         return [{ id, result: null }, []];
       }
       throw new Error(`unknown message ${String(type)}`);
@@ -80,37 +83,51 @@ export class FieldPool {
     else call.reject(userError ? new UserError(error) : new Error(error));
   }
 
-  /** A worker that died (out of memory, a crash) fails everything it was given. */
+  /** A worker that died (out of memory, a crash) fails everything it was given, and all it is given after. */
   failed(worker, error) {
-    const failure = new Error(`a reveal worker failed: ${String(error?.message ?? error)}`);
-    for (const call of worker.waiting.values()) call.reject(failure);
+    worker.dead = new Error(`a reveal worker failed: ${String(error?.message ?? error)}`);
+    for (const call of worker.waiting.values()) call.reject(worker.dead);
     worker.waiting.clear();
+  }
+
+  /** Whether every worker is alive (a pool with a dead one is started afresh: page.js). */
+  get healthy() {
+    return this.workers.every((worker) => !worker.dead);
   }
 
   call(worker, message, transfer = []) {
     return new Promise((resolve, reject) => {
+      if (worker.dead) return reject(worker.dead);
       const id = this.nextId++;
       worker.waiting.set(id, { resolve, reject });
       worker.endpoint.post({ id, ...message }, transfer);
     });
   }
 
-  /** A session of the model in every worker; the pool is then the reveal's renderer. */
+  /** A session of the model in every worker; the pool is then the reveal's renderer. If any worker fails to
+   * open one, those opened are closed and the first failure thrown. */
   async open(model, networks) {
-    await Promise.all(this.workers.map((worker) => this.call(worker, { type: "open", model, networks })));
+    const opened = await Promise.allSettled(this.workers.map((worker) => this.call(worker, { type: "open", model, networks })));
+    const failure = opened.find((result) => result.status === "rejected");
+    if (failure) {
+      await this.release();
+      throw failure.reason;
+    }
     return this;
   }
 
   /** A chunk (src/reveal.js's chunkJob) to the worker with the fewest waiting; its own stored values are
    * handed over, not copied. */
   render(job) {
-    const worker = this.workers.reduce((best, next) => (next.waiting.size < best.waiting.size ? next : best));
+    const alive = this.workers.filter((worker) => !worker.dead);
+    const worker = (alive.length ? alive : this.workers).reduce((best, next) => (next.waiting.size < best.waiting.size ? next : best));
     const noise = job.noise, own = [noise.coefficients ?? noise.values, noise.basis?.escapes, noise.basis?.escapeNoise];
     return this.call(worker, { type: "chunk", job }, own.filter(Boolean).map((array) => array.buffer));
   }
 
+  /** Every live worker's session closed (a dead worker has none to close). */
   async release() {
-    await Promise.all(this.workers.map((worker) => this.call(worker, { type: "close" })));
+    await Promise.allSettled(this.workers.filter((worker) => !worker.dead).map((worker) => this.call(worker, { type: "close" })));
   }
 
   terminate() {

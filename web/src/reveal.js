@@ -129,6 +129,7 @@ export class LocalRenderer {
     return rendered;
   }
   async release() {
+    await this.queue; // chunks already queued finish (or fail) before their session goes
     await this.field.session.release?.();
   }
 }

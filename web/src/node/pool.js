@@ -8,6 +8,7 @@ const endpoint = (worker) => ({
   listen: (onMessage, onError) => {
     worker.on("message", onMessage);
     worker.on("error", onError);
+    worker.on("exit", (code) => onError(`it exited (code ${code})`));
   },
   terminate: () => worker.terminate(),
 });

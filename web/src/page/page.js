@@ -14,7 +14,8 @@ import { FIELD_WORKER, REVEAL_WORKER } from "./roles.js";
 
 const MOST_WORKERS = 16; // beyond the cores there are, more workers only hold more memory
 let worker = null, ready = null, nextId = 0;
-let fieldWorkers = [];
+let fieldWorkers = [], fieldFailed = false;
+let revealing = Promise.resolve(); // one reveal at a time: they share the pool's sessions
 const pending = new Map();
 
 /** The worker's script, started under a name (its role): a Blob URL's in the single file, worker.js's in the site. */
@@ -54,17 +55,29 @@ function startWorker() {
 /** The reveal worker's pool of field workers, `size` of them, each joined to it by a MessageChannel. The page
  * starts them: a worker of a page opened from disk may not start workers of its own (its origin is opaque). */
 async function usePool(size) {
-  if (fieldWorkers.length === size) return;
+  if (fieldWorkers.length === size && !fieldFailed) return;
   for (const field of fieldWorkers) field.terminate();
-  fieldWorkers = Array.from({ length: size }, () => spawn(FIELD_WORKER));
-  const ports = fieldWorkers.map((field, index) => {
+  fieldWorkers = [];
+  fieldFailed = false;
+  const started = Array.from({ length: size }, () => spawn(FIELD_WORKER));
+  const ports = started.map((field, index) => {
     const channel = new MessageChannel();
     field.postMessage({ port: channel.port1 }, [channel.port1]);
-    // a field worker that dies (out of memory) fails the chunks it holds rather than leaving the reveal waiting
-    field.onerror = (event) => worker.postMessage({ type: "fieldFailed", index, message: event.message ?? "unknown error" });
+    // a field worker that dies (out of memory) fails the chunks it holds rather than leaving the reveal waiting,
+    // and the pool is started afresh for the next reveal
+    field.onerror = (event) => {
+      fieldFailed = true;
+      worker.postMessage({ type: "fieldFailed", index, message: event.message ?? "unknown error" });
+    };
     return channel.port2;
   });
-  await call("pool", { ports }, null, ports);
+  try {
+    await call("pool", { ports }, null, ports);
+  } catch (error) {
+    for (const field of started) field.terminate();
+    throw error;
+  }
+  fieldWorkers = started;
 }
 
 function decodeBase64(text) {
@@ -90,9 +103,13 @@ export async function reveal({ model, bundle, passphrase = null, onProgress = nu
   if (!(Number.isInteger(workers) && workers >= 1 && workers <= MOST_WORKERS)) {
     throw new TypeError(`workers must be an integer from 1 to ${MOST_WORKERS}`);
   }
-  await startWorker();
-  await usePool(workers);
-  return { ...(await call("reveal", { model, bundle, passphrase }, onProgress)), workers };
+  const turn = revealing.then(async () => {
+    await startWorker();
+    await usePool(workers);
+    return { ...(await call("reveal", { model, bundle, passphrase }, onProgress)), workers };
+  });
+  revealing = turn.catch(() => {});
+  return turn;
 }
 
 /** Whether a bundle is a payload and sealed (inspectBundle), run in the worker. */

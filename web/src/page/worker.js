@@ -40,7 +40,10 @@ async function handle({ id, type, ...data }) {
     } else if (type === "reveal") {
       const result = await reveal({ model: data.model, bundle: data.bundle, passphrase: data.passphrase,
         onProgress: (progress) => self.postMessage({ id, type: "progress", progress }),
-        openRenderer: (model, networks) => pool.open(model, networks) });
+        openRenderer: (model, networks) => {
+          if (pool === null) throw new Error("the reveal's workers are not started");
+          return pool.open(model, networks);
+        } });
       const transfer = [result.bytes.buffer, result.pixels?.buffer].filter(Boolean);
       self.postMessage({ id, type: "done", result }, [...new Set(transfer)]);
     }
