@@ -7,7 +7,7 @@ at its default and with one worker, and the static site (web/dist/site/) at its 
 served from 127.0.0.1. Both sides are timed over the same work, from the two files' bytes to the revealed PNG:
 the browser's `noisenerf.reveal` (parse and check the bundle and the model, start the sessions, render, SHA-256,
 encode the PNG), in a page that has revealed once already (its first reveal, which also starts the workers and
-compiles the WASM, is reported apart); Python's `noisenerf-reveal` run in this process after one warm-up run
+compiles the WASM, is reported apart); Python's `noisenerf-reveal` run in this process after one warm-up reveal
 (read and check both files, start the session, render, write the PNG; the interpreter's start and imports
 excluded), its fastest on 1 and on as many onnxruntime threads as the page has workers. Python's render alone is
 reported beside it. (The page starts from bytes already fetched and keeps its PNG in memory; Python reads the
@@ -156,7 +156,8 @@ def measure_browser(context: BenchContext) -> Measured:
         bundle_name = f"browser_{len(bundles)}"
         report = context.hide(secret, bundle_name, hide_config)
         bundles[name] = context.work / f"{bundle_name}.bundle"
-        python_reveal(context.model_path, bundles[name], cores, context.work / f"{bundle_name}.png")  # warm, as the page is
+        if not python:  # warm once, as the page is (its first reveal)
+            python_reveal(context.model_path, bundles[name], cores, context.work / f"{bundle_name}.png")
         revealed = {threads: python_reveal(context.model_path, bundles[name], threads, context.work / f"{bundle_name}.png")
                     for threads in sorted({cores, 1})}
         python[name] = {"size": size_of(secret), "tiles": len(report["tiles"]), "python": revealed,

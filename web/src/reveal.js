@@ -24,8 +24,8 @@ export const raysPerChunk = (nSamples, mostRays = CHUNK_RAYS) => Math.max(1, Mat
 
 /** An onnxruntime-web session over the model's bytes, answering for one network (its outputs). */
 export class OnnxField {
-  static async create(modelBytes, networks, options = {}) {
-    const session = await ort.InferenceSession.create(modelBytes, { executionProviders: ["wasm"], ...options });
+  static async create(modelBytes, networks) {
+    const session = await ort.InferenceSession.create(modelBytes, { executionProviders: ["wasm"] });
     return new OnnxField(session, networks);
   }
   constructor(session, networks) {
@@ -73,7 +73,12 @@ async function marchRays(field, network, points, viewdirs, deltas, rows, m, S) {
     for (let r = 0; r < m; r++) {
       if (f32(Math.exp(-depthSoFar[r])) > 0) for (let s = s0; s < s1; s++) chosen[n++] = r * S + s;
     }
-    if (n) {
+    if (n === m && S === 1) {
+      // one sample a ray, every ray (a compact or exact tile): the chunk's own arrays are already in order
+      const out = await field.evaluate(network, points, viewdirs, noiseRows, n, dims);
+      sigmas.set(out.sigma);
+      rgbs.set(out.rgb);
+    } else if (n) {
       const p = new Float32Array(n * 3), v = new Float32Array(n * 3), noise = new Float32Array(n * dims);
       for (let q = 0; q < n; q++) {
         const index = chosen[q], r = Math.floor(index / S), s = index - r * S;
@@ -115,8 +120,8 @@ export async function renderChunk(job, field) {
 /** Chunks rendered in this thread on one onnxruntime-web session, one at a time (a renderer: slots, render,
  * release; src/pool.js's FieldPool is the other, over Web Workers). */
 export class LocalRenderer {
-  static async open(modelBytes, networks, sessionOptions = {}) {
-    return new LocalRenderer(await OnnxField.create(modelBytes, networks, sessionOptions));
+  static async open(modelBytes, networks) {
+    return new LocalRenderer(await OnnxField.create(modelBytes, networks));
   }
   constructor(field) {
     this.field = field;
