@@ -63,6 +63,7 @@ def page(browser, single_file):
     tab = context.new_page()
     errors = []
     tab.on("pageerror", lambda error: errors.append(error))
+    tab.on("console", lambda line: line.type == "error" and errors.append(line.text))  # a failed load, too
     tab.goto(single_file.as_uri())
     tab.wait_for_function("window.noisenerf !== undefined")
     yield tab
@@ -165,7 +166,7 @@ def test_the_page_saves_a_payload_under_a_chosen_name_and_the_secret_as_png(page
     page.set_input_files("#bundle", str(demo / "note.bundle"))
     page.wait_for_selector("#passphrase", state="visible")
     page.fill("#passphrase", DEMO_PASSPHRASE)
-    page.click("#reveal")
+    page.press("#passphrase", "Enter")  # reveals, as the button does
     page.wait_for_selector("#file-result", state="visible", timeout=60_000)
     assert page.input_value("#save-name") == "note.txt"
     page.fill("#save-name", "the note.txt")

@@ -229,6 +229,7 @@ document.addEventListener("DOMContentLoaded", () => {
   $("model").addEventListener("change", (e) => setFile("model", e.target.files[0] ?? null));
   $("bundle").addEventListener("change", (e) => setFile("bundle", e.target.files[0] ?? null));
   $("reveal").addEventListener("click", onReveal);
+  $("passphrase-row").addEventListener("submit", (e) => { e.preventDefault(); if (!$("reveal").disabled) onReveal(); }); // Enter
   $("save-image").addEventListener("click", () => window.noisenerfLast && download(window.noisenerfLast.bytes, window.noisenerfLast.name, "image/png"));
   $("save").addEventListener("click", () => {
     const name = $("save-name").value.trim();
