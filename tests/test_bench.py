@@ -4,6 +4,7 @@ are written with the figures the experiments measured."""
 import ast
 import csv
 import dataclasses
+import statistics
 from pathlib import Path
 
 import numpy as np
@@ -31,7 +32,7 @@ def inputs(tmp_path_factory):
     config = BenchConfig(scene=str(folder / "scene"), secret=str(folder / "secret.png"),
                          photos=(str(folder / "secret.png"),), small_width=12, paper_samples=3, paper_iters=60, ablation_samples=2,
                          twok_size=32, twok_tile=16, twok_rows=1, threads=(1,), payload_bytes=200, view_width=12,
-                         contention_width=12, browser_size=32, big_secret=(40, 24),
+                         contention_width=12, browser_size=32, browser_repeats=3, big_secret=(40, 24),
                          experiments=tuple(name for name in EXPERIMENTS if name != "cluster"))  # Ray: test_cluster.py
     return folder, config
 
@@ -83,6 +84,9 @@ def test_browser_reveals_the_bytes_python_reveals_or_says_why_it_could_not(repor
             on_as_many = {t: s for t, s in r["python_seconds_by_threads"].items() if t <= r["workers"]}
             assert r["python_seconds"] == min(on_as_many.values()) == on_as_many[r["python_threads"]]
             assert r["python_seconds"] >= r["python_render_seconds"] > 0 and r["ratio"] == r["seconds"] / r["python_seconds"]
+            # tiny reveals: every one runs browser_repeats times, the median compared
+            assert len(r["runs"]) == len(r["python_runs"]) == 3
+            assert r["seconds"] == statistics.median(r["runs"]) and r["python_seconds"] == statistics.median(r["python_runs"])
     else:
         assert [r["browser"] for r in rows] == [browser_missing()] * 2
 

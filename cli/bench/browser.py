@@ -10,7 +10,9 @@ encode the PNG), in a page that has revealed once already (its first reveal, whi
 compiles the WASM, is reported apart); Python's `noisenerf-reveal` run in this process after one warm-up reveal
 (read and check both files, start the session, render, write the PNG; the interpreter's start and imports
 excluded), its fastest on 1 and on as many onnxruntime threads as the page has workers. Python's render alone is
-reported beside it. (The page starts from bytes already fetched and keeps its PNG in memory; Python reads the
+reported beside it. Each reveal is timed several times on both sides (up to `browser_repeats`, fewer where they add
+up to REPEAT_SECONDS: a 2048² reveal runs once) and its median is compared: a single second-long reveal in a page
+varies by a third from run to run (V8 still tiering the WASM up, the collector). (The page starts from bytes already fetched and keeps its PNG in memory; Python reads the
 files from the page cache and writes the PNG: a few hundredths of a second in the page's favour.) Peak memory is the
 summed resident set of Chromium's processes, sampled during the reveal.
 """
@@ -22,7 +24,9 @@ import functools
 import importlib.util
 import os
 import shutil
+import statistics
 import threading
+from collections.abc import Callable
 from http.server import SimpleHTTPRequestHandler, ThreadingHTTPServer
 from pathlib import Path
 
@@ -41,6 +45,7 @@ WEB_DIST = Path(__file__).resolve().parents[2] / "web" / "dist"  # a checkout's 
 PAGES = {"single file": "noisenerf-reveal.html", "site": "site/index.html"}
 RUNS = (("single file", None), ("single file", 1), ("site", None))  # (page, workers: None is the pages' default)
 PAGE_MOST_WORKERS = 16  # web/src/page/page.js's MOST_WORKERS: a page's default is a worker per core, at most this
+REPEAT_SECONDS = 10  # a reveal is repeated (up to browser_repeats times) until its runs add up to this
 
 
 def page_workers(workers: int | None) -> int:
@@ -55,6 +60,18 @@ REVEAL_IN_PAGE = """async ([modelUrl, bundleUrl, workers]) => {
   return {seconds: (performance.now() - started) / 1000, exact: revealed.exact, sha256: revealed.sha256,
           workers: revealed.workers};
 }"""
+
+
+def repeated(reveal: Callable[[], dict], most: int) -> dict:
+    """`reveal()` -> {"seconds", ...} run up to `most` times, until REPEAT_SECONDS have been spent: the median of
+    each timing (a key ending in "seconds"), the runs' seconds, the other fields where every run gave the same
+    (else None: a reveal that differs from run to run is not exact)."""
+    runs = [reveal()]
+    while len(runs) < most and sum(run["seconds"] for run in runs) < REPEAT_SECONDS:
+        runs.append(reveal())
+    merged = {key: statistics.median(run[key] for run in runs) if key.endswith("seconds")
+              else (runs[0][key] if all(run[key] == runs[0][key] for run in runs) else None) for key in runs[0]}
+    return {**merged, "runs": [run["seconds"] for run in runs]}
 
 
 def browser_missing() -> str | None:
@@ -104,8 +121,9 @@ def chromium_rss() -> int:
 
 
 
-def browser_reveals(site: Path, bundles: dict[str, Path], model: Path) -> list[dict]:
-    """Each bundle revealed in each of RUNS; the page's own timing, exactness and digest, and peak memory."""
+def browser_reveals(site: Path, bundles: dict[str, Path], model: Path, repeats: int) -> list[dict]:
+    """Each bundle revealed in each of RUNS (`repeated`); the page's own timing, exactness and digest, and peak
+    memory."""
     from playwright.sync_api import sync_playwright
 
     for path in (model, *bundles.values()):
@@ -126,8 +144,8 @@ def browser_reveals(site: Path, bundles: dict[str, Path], model: Path) -> list[d
                     first = page.evaluate(REVEAL_IN_PAGE, urls)["seconds"]  # workers' start and WASM compile too
                     for name, bundle in bundles.items():
                         with peak_sampled(chromium_rss) as peak:
-                            result = page.evaluate(REVEAL_IN_PAGE, [f"{base}/{model.name}", f"{base}/{bundle.name}",
-                                                                    workers])
+                            result = repeated(functools.partial(page.evaluate, REVEAL_IN_PAGE, [
+                                f"{base}/{model.name}", f"{base}/{bundle.name}", workers]), repeats)
                         rows.append({"page": page_name, "secret": name, **result, "peak_mib": peak[0] / 2 ** 20,
                                      "first_reveal_seconds": first})
                     page.close()
@@ -140,7 +158,8 @@ def python_reveal(model: Path, bundle: Path, threads: int, out: Path) -> dict:
     """`noisenerf-reveal MODEL BUNDLE -o OUT --threads N` in this process: its seconds (files to PNG) and render."""
     report = reveal_cli.run(reveal_cli.build_parser().parse_args(
         [str(model), str(bundle), "-o", str(out), "--force", "--threads", str(threads)]))
-    return {"seconds": report["seconds"], "render_seconds": report["timings"]["render"], "exact": report["exact"]}
+    return {"seconds": float(report["seconds"]), "render_seconds": float(report["timings"]["render"]),
+            "exact": report["exact"]}
 
 
 def measure_browser(context: BenchContext) -> Measured:
@@ -158,10 +177,11 @@ def measure_browser(context: BenchContext) -> Measured:
         bundles[name] = context.work / f"{bundle_name}.bundle"
         if not python:  # warm once, as the page is (its first reveal)
             python_reveal(context.model_path, bundles[name], cores, context.work / f"{bundle_name}.png")
-        revealed = {threads: python_reveal(context.model_path, bundles[name], threads, context.work / f"{bundle_name}.png")
+        revealed = {threads: repeated(functools.partial(python_reveal, context.model_path, bundles[name], threads,
+                                                        context.work / f"{bundle_name}.png"), config.browser_repeats)
                     for threads in sorted({cores, 1})}
         python[name] = {"size": size_of(secret), "tiles": len(report["tiles"]), "python": revealed,
-                        "python_exact": all(r["exact"] for r in revealed.values()),
+                        "python_exact": all(r["exact"] is True for r in revealed.values()),
                         "python_sha256": secret_digest(load_secret(context.work / f"{bundle_name}.png")[0])}
     missing = browser_missing()
     if missing is not None:
@@ -170,7 +190,7 @@ def measure_browser(context: BenchContext) -> Measured:
     site = context.work / "browser_pages"
     shutil.rmtree(site, ignore_errors=True)
     shutil.copytree(WEB_DIST, site)
-    rows = browser_reveals(site, bundles, context.model_path)
+    rows = browser_reveals(site, bundles, context.model_path, config.browser_repeats)
     for row in rows:
         row.update(flat_python(python[row["secret"]], row["workers"]))
         row["ratio"] = row["seconds"] / row["python_seconds"]
@@ -184,7 +204,13 @@ def flat_python(values: dict, cores: int) -> dict:
     measured = values["python"][threads]
     return {**{key: value for key, value in values.items() if key != "python"}, "python_threads": threads,
             "python_seconds": measured["seconds"], "python_render_seconds": measured["render_seconds"],
+            "python_runs": measured["runs"],
             "python_seconds_by_threads": {t: r["seconds"] for t, r in values["python"].items()}}
+
+
+def spread(runs: list[float]) -> str:
+    """A repeated reveal's runs, for a table: their count and range."""
+    return "1 run" if len(runs) == 1 else f"{len(runs)} runs, {min(runs):.2f}–{max(runs):.2f}"
 
 
 def describe_browser(context: BenchContext, measured: Measured) -> list[str]:
@@ -198,6 +224,7 @@ def describe_browser(context: BenchContext, measured: Measured) -> list[str]:
     single = [row["ratio"] for row in rows if row["workers"] == 1]
     lines = [f"Chromium {CHROMIUM} (headless), onnxruntime-web WASM in a pool of workers of one thread each; Python: "
              "`noisenerf-reveal` in process, its fastest of 1 and as many onnxruntime threads as the page has workers; "
+             f"medians of up to {context.config.browser_repeats} runs (a {REPEAT_SECONDS} s budget) on both sides; "
              f"both from the files' bytes to the PNG. {os.cpu_count()} cores. The bench secret at native size and "
              f"resized to {context.config.browser_size}² in {context.config.twok_tile}-px tiles.", "",
              f"- the pages as shipped ({cores} workers, one per core) ÷ Python on as many cores, worst: **{worst:.1f}×** "
@@ -209,10 +236,11 @@ def describe_browser(context: BenchContext, measured: Measured) -> list[str]:
              + ".", "- Python on 1 / " + f"{cores} threads, s: "
              + ", ".join(sorted({f"{r['secret']} " + " / ".join(f"{v:.2f}" for _, v in sorted(r["python_seconds_by_threads"].items()))
                                  for r in rows})) + ".", "",
-             "| page | workers | secret | size | tiles | browser s | Python s (render), threads | browser ÷ Python | "
+             "| page | workers | secret | size | tiles | browser s (runs) | Python s (render; runs), threads | browser ÷ Python | "
              "exact (browser, Python) | same digest | peak Chromium MiB |", "|---|---|---|---|---|---|---|---|---|---|---|"]
     lines += [f"| {r['page']} | {r['workers']} | {r['secret']} | {r['size'][0]}×{r['size'][1]} | {r['tiles']} | "
-              f"{r['seconds']:.2f} | {r['python_seconds']:.2f} ({r['python_render_seconds']:.2f}), {r['python_threads']} "
+              f"{r['seconds']:.2f} ({spread(r['runs'])}) | {r['python_seconds']:.2f} ({r['python_render_seconds']:.2f}; "
+              f"{spread(r['python_runs'])}), {r['python_threads']} "
               f"thread{'s' if r['python_threads'] > 1 else ''} | {r['ratio']:.1f} | "
               f"{str(r['exact']).lower()}, {str(r['python_exact']).lower()} | "
               f"{str(r['sha256'] == r['python_sha256']).lower()} | {r['peak_mib']:.0f} |" for r in rows]

@@ -33,6 +33,7 @@ class BenchConfig:
     cluster_photo: tuple[int, int] = (4032, 3024)  # (width, height): a phone camera's 12 MP, hidden through Ray
     big_secret: tuple[int, int] = (7680, 4320)  # (width, height): an 8K secret, hidden and revealed by the CLI tools
     browser_size: int = 2048  # the browser experiment's tiled secret (square, twok_tile tiles), hidden whole
+    browser_repeats: int = 5  # most runs of each reveal, both sides (median; a 2048² one runs once)
     threads: tuple[int, ...] = (1, 2)
     payload_bytes: int = 1 << 20  # the file the payload experiment hides, plain and sealed (random bytes)
     views: int = 8  # views spread around the scene for the per-view hide times
