@@ -167,7 +167,9 @@ def test_the_page_saves_a_payload_under_a_chosen_name_and_the_secret_as_png(page
     page.wait_for_selector("#passphrase", state="visible")
     page.fill("#passphrase", DEMO_PASSPHRASE)
     page.press("#passphrase", "Enter")  # reveals, as the button does
+    assert page.is_disabled("#model") and page.is_disabled("#bundle") and page.is_disabled("#reveal")  # while it runs
     page.wait_for_selector("#file-result", state="visible", timeout=60_000)
+    assert page.is_enabled("#model") and page.is_enabled("#bundle") and page.is_enabled("#reveal")
     assert page.input_value("#save-name") == "note.txt"
     page.fill("#save-name", "the note.txt")
     with page.expect_download() as download:

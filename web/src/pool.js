@@ -90,17 +90,17 @@ export class FieldPool {
     worker.waiting.clear();
   }
 
-  /** Whether every worker is alive (a pool with a dead one is started afresh: page.js). */
-  get healthy() {
-    return this.workers.every((worker) => !worker.dead);
-  }
-
   call(worker, message, transfer = []) {
     return new Promise((resolve, reject) => {
       if (worker.dead) return reject(worker.dead);
       const id = this.nextId++;
       worker.waiting.set(id, { resolve, reject });
-      worker.endpoint.post({ id, ...message }, transfer);
+      try {
+        worker.endpoint.post({ id, ...message }, transfer);
+      } catch (error) { // not sent (a value that cannot be cloned): nothing will answer it
+        worker.waiting.delete(id);
+        reject(error);
+      }
     });
   }
 

@@ -13,16 +13,16 @@ import { workerCode, wasmBase64 } from "noisenerf-embedded";
 import { FIELD_WORKER, REVEAL_WORKER } from "./roles.js";
 
 const MOST_WORKERS = 16; // beyond the cores there are, more workers only hold more memory
-let worker = null, ready = null, nextId = 0;
+let worker = null, ready = null, nextId = 0, workerUrl = null;
 let fieldWorkers = [], fieldFailed = false;
 let revealing = Promise.resolve(); // one reveal at a time: they share the pool's sessions
 const pending = new Map();
 
 /** The worker's script, started under a name (its role): a Blob URL's in the single file, worker.js's in the site. */
 function spawn(name) {
-  return workerCode
-    ? new Worker(URL.createObjectURL(new Blob([workerCode], { type: "text/javascript" })), { name })
-    : new Worker(new URL("./worker.js", import.meta.url), { type: "module", name });
+  if (!workerCode) return new Worker(new URL("./worker.js", import.meta.url), { type: "module", name });
+  workerUrl ??= URL.createObjectURL(new Blob([workerCode], { type: "text/javascript" }));
+  return new Worker(workerUrl, { name });
 }
 
 function startWorker() {
@@ -42,10 +42,15 @@ function startWorker() {
       }
     }
   };
+  // it failed (to start, or out of memory): what it held fails, and the next reveal starts it and its pool afresh
   worker.onerror = (event) => {
-    const error = new Error(`the reveal worker failed to start: ${event.message ?? "unknown error"}`);
+    const error = new Error(`the reveal worker failed: ${event.message ?? "unknown error"}`);
     for (const call of pending.values()) call.reject(error);
     pending.clear();
+    worker.terminate();
+    for (const field of fieldWorkers) field.terminate();
+    fieldWorkers = [];
+    ready = null;
   };
   const init = wasmBase64 ? { wasmBinary: decodeBase64(wasmBase64) } : {};
   ready = call("init", init, null, init.wasmBinary ? [init.wasmBinary.buffer] : []);
@@ -124,7 +129,8 @@ window.noisenerf = { reveal, inspect };
 
 const $ = (id) => document.getElementById(id);
 const files = { model: null, bundle: null };
-let sealed = false, shown = null;
+let sealed = false, shown = null, last = null; // last: the shown result, for its save buttons
+let busy = false, picked = 0; // busy: a reveal runs (the files cannot change); picked: bundles chosen so far
 
 function message(text, kind = "error") {
   $("message").textContent = text;
@@ -134,6 +140,7 @@ function message(text, kind = "error") {
 function clearResult() {
   if (shown) URL.revokeObjectURL(shown);
   shown = null;
+  last = null;
   $("result").hidden = true;
   $("image-result").hidden = true;
   $("file-result").hidden = true;
@@ -143,27 +150,40 @@ async function readFile(file) {
   return new Uint8Array(await file.arrayBuffer());
 }
 
+/** Reveal is pressable when both files are chosen, the bundle inspected, and no reveal runs. */
+function updateControls(inspecting = false) {
+  $("model").disabled = $("bundle").disabled = busy;
+  $("reveal").disabled = busy || inspecting || !(files.model && files.bundle);
+}
+
 async function setFile(kind, file) {
+  if (busy) return;
   files[kind] = file;
   $(`${kind}-name`).textContent = file ? file.name : "none";
   clearResult();
   message("", "");
-  if (kind === "bundle") {
-    sealed = false;
-    $("passphrase-row").hidden = true;
-    if (file) {
-      try {
-        const info = await inspect(await readFile(file));
-        sealed = info.sealed;
-        $("passphrase-row").hidden = !sealed;
-      } catch (error) {
-        files.bundle = null;
-        $("bundle-name").textContent = "none";
-        message(error.message);
-      }
-    }
+  if (kind !== "bundle") return updateControls();
+  const pick = ++picked;
+  sealed = false;
+  $("passphrase-row").hidden = true;
+  if (!file) return updateControls();
+  updateControls(true);
+  let info = null, refusal = null;
+  try {
+    info = await inspect(await readFile(file));
+  } catch (error) {
+    refusal = error;
   }
-  $("reveal").disabled = !(files.model && files.bundle);
+  if (pick !== picked) return; // another bundle was chosen meanwhile: this answer is not about it
+  if (refusal) {
+    files.bundle = null;
+    $("bundle-name").textContent = "none";
+    message(refusal.message);
+  } else {
+    sealed = info.sealed;
+    $("passphrase-row").hidden = !sealed;
+  }
+  updateControls();
 }
 
 function download(bytes, name, type) {
@@ -178,11 +198,12 @@ function download(bytes, name, type) {
 }
 
 async function onReveal() {
+  if (busy) return;
   clearResult();
   if (!files.model || !files.bundle) return message("pick model.onnx and the bundle first");
-  const passphrase = sealed ? $("passphrase").value : null;
-  if (sealed && !passphrase) return message("the bundle is sealed: give its passphrase");
-  $("reveal").disabled = true;
+  const passphrase = sealed ? $("passphrase").value || null : null; // none given: the library's refusal
+  busy = true;
+  updateControls();
   $("progress").value = 0;
   $("progress").hidden = false;
   message("revealing…", "info");
@@ -200,14 +221,13 @@ async function onReveal() {
       shown = URL.createObjectURL(new Blob([result.bytes], { type: "image/png" }));
       $("image").src = shown;
       $("image-result").hidden = false;
-      $("image-result").dataset.name = result.name;
-      window.noisenerfLast = result;
+      last = result;
       message(`exact: ${result.exact} · ${result.width}x${result.height} · sha256 ${result.sha256} · ${seconds} s`,
         result.exact ? "ok" : "warn");
     } else {
       $("save-name").value = result.name ?? "payload.bin";
       $("file-result").hidden = false;
-      window.noisenerfLast = result;
+      last = result;
       message(`payload: file${result.name ? ` '${result.name}'` : ""}, ${result.bytes.length} bytes, sha256 ` +
         `${result.sha256}${result.sealed ? ", sealed" : ""} · ${seconds} s`, "ok");
     }
@@ -215,13 +235,15 @@ async function onReveal() {
     message(error.message);
   } finally {
     $("progress").hidden = true;
-    $("reveal").disabled = !(files.model && files.bundle);
+    busy = false;
+    updateControls();
   }
 }
 
 function onDrop(event) {
   event.preventDefault();
   $("drop").classList.remove("over");
+  if (busy) return message("a reveal is running: drop the files when it ends", "warn");
   for (const file of event.dataTransfer.files) setFile(file.name.toLowerCase().endsWith(".onnx") ? "model" : "bundle", file);
 }
 
@@ -230,11 +252,11 @@ document.addEventListener("DOMContentLoaded", () => {
   $("bundle").addEventListener("change", (e) => setFile("bundle", e.target.files[0] ?? null));
   $("reveal").addEventListener("click", onReveal);
   $("passphrase-row").addEventListener("submit", (e) => { e.preventDefault(); if (!$("reveal").disabled) onReveal(); }); // Enter
-  $("save-image").addEventListener("click", () => window.noisenerfLast && download(window.noisenerfLast.bytes, window.noisenerfLast.name, "image/png"));
+  $("save-image").addEventListener("click", () => last && download(last.bytes, last.name, "image/png"));
   $("save").addEventListener("click", () => {
     const name = $("save-name").value.trim();
     if (!name) return message("give the file a name");
-    download(window.noisenerfLast.bytes, name, "application/octet-stream");
+    if (last) download(last.bytes, name, "application/octet-stream");
   });
   const drop = $("drop");
   drop.addEventListener("dragover", (e) => { e.preventDefault(); drop.classList.add("over"); });
