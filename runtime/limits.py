@@ -18,7 +18,8 @@ MAX_PAYLOAD_PIXELS = 4096 * 4096  # px: a payload's secret (48 MiB; its bytes ar
 MAX_SAMPLES_PER_RAY = 1024  # samples per ray of any render (nerf-pytorch uses 64 + 128)
 MAX_RAY_LAYOUT_SAMPLES = 256  # ray layout: one stored vector serves this many samples at most
 MAX_COMPACT_COEFFICIENTS = 8  # compact layout: coefficients per pixel (int16: 16 bytes a pixel decompressed)
-MAX_XZ_MEMORY = 1 << 27  # bytes an xz decoder may use (a preset-9 stream needs ~65 MiB)
+MAX_XZ_MEMORY = 80 << 20  # bytes an xz decoder may use: a preset-9 stream's 64 MiB dictionary, not the next size a
+#   stream can state (96 MiB), which the browser's decoder (64 MiB at most) refuses too
 MAX_TILES = MAX_IMAGE_PIXELS // 16 ** 2  # tiles in one bundle: the largest secret in the smallest (16 px) tiles
 MAX_NOISE_DIMS = 4096  # width of the noise input (positional encodings use 90)
 MAX_FIELD_DEPTH = 64  # layers of a model's trunk (NeRF's is 8)

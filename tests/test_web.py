@@ -20,6 +20,7 @@ import dataclasses
 import hashlib
 import io
 import json
+import lzma
 import os
 import shutil
 import subprocess
@@ -196,6 +197,31 @@ def corrupt_tensor(name: str, position: int):
     return apply
 
 
+def replaced_tensor(name: str, replace):
+    """Replace a 1-D uint8 bundle tensor's bytes by replace(its bytes), the others kept (their offsets moved)."""
+    def apply(data: bytes) -> bytes:
+        size = int.from_bytes(data[:8], "little")
+        header = json.loads(data[8:8 + size])
+        body = data[8 + size:]
+        tensors = {key: body[slice(*info["data_offsets"])] for key, info in header.items() if key != "__metadata__"}
+        tensors[name] = replace(tensors[name])
+        header[name]["shape"] = [len(tensors[name])]
+        offset = 0
+        for key, value in tensors.items():
+            header[key]["data_offsets"] = [offset, offset + len(value)]
+            offset += len(value)
+        text = json.dumps(header).encode()
+        text += b" " * (-len(text) % 8)
+        return len(text).to_bytes(8, "little") + text + b"".join(tensors.values())
+    return apply
+
+
+def recompressed(stream: bytes, dict_size: int) -> bytes:
+    """The xz stream's data compressed again with a dictionary of dict_size bytes (the header states it)."""
+    return lzma.compress(lzma.decompress(stream), format=lzma.FORMAT_XZ,
+                         filters=[{"id": lzma.FILTER_LZMA2, "dict_size": dict_size, "mf": lzma.MF_HC3}])
+
+
 def write_fixtures(root: Path) -> dict:
     """Every fixture under root, and root/manifest.json describing them."""
     import torch
@@ -286,6 +312,12 @@ def write_fixtures(root: Path) -> dict:
             lambda meta: meta["tiles"][0]["rect"].__setitem__(0, 3))),
         tamper(root, "ray", "format_3", edit_bundle=bundle_metadata_edit(lambda meta: meta.update(format_version=3))),
         tamper(root, "compact_tiles", "xz_corrupt", edit_bundle=corrupt_tensor("tile_0001", 40)),
+        tamper(root, "compact_tiles", "xz_truncated", edit_bundle=replaced_tensor("tile_0001", lambda s: s[:len(s) // 2])),
+        tamper(root, "compact_tiles", "xz_trailing", edit_bundle=replaced_tensor("tile_0001", lambda s: s + b"junk")),
+        tamper(root, "compact_tiles", "xz_footer_cut", edit_bundle=replaced_tensor("tile_0001", lambda s: s[:-12])),
+        # 96 MiB: the first dictionary size over a preset-9 stream's 64 MiB, past both sides' decoder memory
+        tamper(root, "compact_tiles", "xz_dictionary", edit_bundle=replaced_tensor(
+            "tile_0001", lambda s: recompressed(s, 96 << 20))),
         tamper(root, "compact_tiles", "codec", edit_bundle=bundle_metadata_edit(
             lambda meta: meta["noise"].update(codec="zstd"))),
         tamper(root, "fine_compact", "wrong_model", edit_model=lambda data: (root / "scenes" / "plain.onnx").read_bytes()),

@@ -144,8 +144,11 @@ function tileTensor(tensors, name, what, dtype = null, ndim = null) {
   return value;
 }
 
-const XZ_MESSAGES = { 5: "Memory usage limit was reached", 6: "Input format not supported by decoder", 7: "Invalid or unsupported options",
-  8: "Corrupt input data", 9: "Insufficient buffer space" };
+// xz-embedded's error codes (enum xz_ret) in liblzma's words, as Python's lzma gives them. Its dictionaries stop at
+// 64 MiB; the next size a stream can state, 96 MiB, is over runtime's MAX_XZ_MEMORY too.
+const XZ_ERRORS = { 2: "Unsupported integrity check", 3: "Cannot allocate memory", 4: "Memory usage limit exceeded",
+  5: "Input format not supported by decoder", 6: "Invalid or unsupported options", 7: "Corrupt input data" };
+const XZ_BUF_ERROR = 8; // the stream ended early, or more followed it: Python reads on and finds the length wrong
 
 /** unpack_coefficients: the xz stream of byte planes -> Int8Array/Int16Array (h·w·k, row-major (h, w, k)). */
 async function unpackCoefficients(packed, shape, dtype, what) {
@@ -169,16 +172,13 @@ async function unpackCoefficients(packed, shape, dtype, what) {
     let at = 0;
     for (const part of parts) { data.set(part, at); at += part.length; }
   } catch (error) {
-    const code = /error code (\d+)/.exec(String(error?.message ?? error));
-    const xzCode = code ? Number(code[1]) : 7; // xz-embedded: 5 MEMLIMIT, 6 FORMAT, 7 OPTIONS, 8 DATA, 9 BUF
-    // xz-embedded's codes are enum xz_ret: XZ_OK 0, STREAM_END 1, UNSUPPORTED_CHECK 2, MEM_ERROR 3, MEMLIMIT 4,
-    // FORMAT 5, OPTIONS 6, DATA 7, BUF 8: liblzma's message for each
-    const message = { 2: "Unsupported integrity check", 3: "Cannot allocate memory", 4: "Memory usage limit was reached",
-      5: "Input format not supported by decoder", 6: "Invalid or unsupported options", 7: "Corrupt input data",
-      8: "Corrupt input data" }[xzCode] ?? XZ_MESSAGES[xzCode] ?? "Corrupt input data";
-    throw new UserError(`${what}: compressed coefficients are corrupt (${message})`);
+    const code = Number(/error code (\d+)/.exec(String(error?.message ?? error))?.[1]);
+    if (code !== XZ_BUF_ERROR) {
+      throw new UserError(`${what}: compressed coefficients are corrupt (${XZ_ERRORS[code] ?? "Corrupt input data"})`);
+    }
+    data = null;
   }
-  if (data.length !== expected) {
+  if (data === null || data.length !== expected) {
     throw new UserError(`${what}: compressed coefficients do not hold exactly ${repr(tuple(height, width, k))} ${dtype} values`);
   }
   const n = height * width;

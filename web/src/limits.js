@@ -1,14 +1,13 @@
-// Mirrors runtime/limits.py: caps on every number a file may dictate, checked before anything is allocated.
+// Mirrors runtime/limits.py: caps on every number a file may dictate, checked before anything is allocated (the
+// hide's own caps and MAX_XZ_MEMORY, which xz-decompress's decoder enforces itself: src/bundle.js, are not here).
 
 import { UserError, PyFloat, reprCut, formatG, repr } from "./errors.js";
 
 export const MAX_IMAGE_SIDE = 16384;
 export const MAX_IMAGE_PIXELS = 8192 * 8192;
-export const MAX_PAYLOAD_PIXELS = 4096 * 4096;
 export const MAX_SAMPLES_PER_RAY = 1024;
 export const MAX_RAY_LAYOUT_SAMPLES = 256;
 export const MAX_COMPACT_COEFFICIENTS = 8;
-export const MAX_XZ_MEMORY = 1 << 27;
 export const MAX_TILES = Math.floor(MAX_IMAGE_PIXELS / 16 ** 2);
 export const MAX_NOISE_DIMS = 4096;
 export const MAX_FIELD_DEPTH = 64;

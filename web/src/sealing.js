@@ -17,7 +17,6 @@ export const CIPHER = "chacha20-poly1305";
 export const KDF = "scrypt";
 export const SALT_BYTES = 16;
 export const NONCE_BYTES = 12;
-export const TAG_BYTES = 16;
 export const MAC_KEY = "noisenerf_seal_mac";
 export const WRONG = "wrong passphrase, or the bundle or model was altered";
 export const MAX_KDF_MEMORY = 2 ** 29;
