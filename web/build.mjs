@@ -3,7 +3,7 @@
 //                              any static server
 //   dist/noisenerf-reveal.html one self-contained file that works opened from disk (file://): the page's script,
 //                              the worker (run from a Blob URL) and the WASM binary (base64) inline
-// Nothing is fetched at run time in either.
+// Neither fetches anything from elsewhere at run time: the site loads only its own files, the single file nothing.
 
 import * as esbuild from "esbuild";
 import fs from "node:fs";

@@ -22,7 +22,7 @@ const READABLE_FORMATS = { 1: ["ray", "sample"], 2: ["ray", "sample", "compact"]
 const LAYOUTS = READABLE_FORMATS[2];
 const LAYOUT_DTYPES = { ray: ["float16", "float32"], sample: ["float32", "float16"], compact: ["int16", "int8"] };
 const SAFETENSORS_DTYPES = ["F16", "F32", "U8", "I32"];
-const NUMPY_NAMES = { F16: "float16", F32: "float32", U8: "uint8", I32: "int32", I8: "int8", I16: "int16" };
+const NUMPY_NAMES = { F16: "float16", F32: "float32", U8: "uint8", I32: "int32" };
 const ITEM_SIZE = { F16: 2, F32: 4, U8: 1, I32: 4, I8: 1, I16: 2, BOOL: 1, F64: 8, I64: 8, U16: 2, U32: 4, U64: 8, BF16: 2 };
 export const NETWORKS = ["coarse", "fine"];
 const FLOAT32_TINY = 1.1754943508222875e-38, FLOAT32_MAX = 3.4028234663852886e38;
@@ -34,20 +34,20 @@ for (let h = 0; h < 65536; h++) {
   HALF[h] = exp === 0 ? sign * frac * 2 ** -24 : exp === 31 ? (frac ? NaN : sign * Infinity) : sign * (1 + frac / 1024) * 2 ** (exp - 15);
 }
 
-/** A tensor as read: {dtype (numpy name), shape, values (typed array, float16 decoded to Float32Array)}. */
+/** float16 values (their bits) -> Float32Array. */
+function widened(halves) {
+  const values = new Float32Array(halves.length);
+  for (let i = 0; i < halves.length; i++) values[i] = HALF[halves[i]];
+  return values;
+}
+
+/** A tensor as read: {dtype (numpy name), shape, values (typed array; float16 kept as its bits, a Uint16Array, and
+ * widened a chunk at a time as runtime/ does: a float16 view's noise is not held twice as large)}. */
 function decodeTensor(dtype, shape, bytes) {
   const copy = bytes.slice();
   const count = copy.length / ITEM_SIZE[dtype];
-  let values;
-  if (dtype === "F32") values = new Float32Array(copy.buffer, 0, count);
-  else if (dtype === "I32") values = new Int32Array(copy.buffer, 0, count);
-  else if (dtype === "U8") values = copy;
-  else {
-    const halves = new Uint16Array(copy.buffer, 0, count);
-    values = new Float32Array(count);
-    for (let i = 0; i < count; i++) values[i] = HALF[halves[i]];
-  }
-  return { dtype: NUMPY_NAMES[dtype], shape, values };
+  const Kind = { F32: Float32Array, I32: Int32Array, U8: Uint8Array, F16: Uint16Array }[dtype];
+  return { dtype: NUMPY_NAMES[dtype], shape, values: new Kind(copy.buffer, 0, count) };
 }
 
 /** The safetensors file: header checks as the safetensors library makes them -> {metadata, tensors (lazy)}. */
@@ -235,7 +235,8 @@ export function chunkNoise(tile, bundle, start, stop) {
   const dims = bundle.noiseDims;
   if (bundle.layout !== "compact") {
     const per = bundle.layout === "sample" ? tile.sampling.nSamples : 1;
-    return { layout: bundle.layout, values: tile.noise.values.slice(start * per * dims, stop * per * dims), perSample: per, dims };
+    const stored = tile.noise.values.subarray(start * per * dims, stop * per * dims);
+    return { layout: bundle.layout, values: stored instanceof Uint16Array ? widened(stored) : stored.slice(), perSample: per, dims };
   }
   const k = bundle.coefficients, { basis, offset, scale, escapes, escapeNoise } = tile.noise.basis;
   const inside = [];
@@ -284,6 +285,7 @@ async function parseTile(i, data, tensors, header) {
 }
 
 function allFinite(values) {
+  if (values instanceof Uint16Array) return values.every((half) => (half & 0x7c00) !== 0x7c00); // float16's bits
   for (let i = 0; i < values.length; i++) if (!Number.isFinite(values[i])) return false;
   return true;
 }
@@ -384,7 +386,7 @@ export async function loadBundle(data, source = "secret.bundle") {
   for (const tile of bundle.tiles) {
     if (tile.noise.kind === "vector") tile.noise.values = tile.noise.tensor.values;
     else tile.noise.basis = { basis: tile.noise.basis.basis.values, offset: tile.noise.basis.offset.values,
-      scale: tile.noise.basis.scale, escapes: tile.noise.basis.escapes.values, escapeNoise: tile.noise.basis.escapeNoise.values };
+      scale: tile.noise.basis.scale, escapes: tile.noise.basis.escapes.values, escapeNoise: widened(tile.noise.basis.escapeNoise.values) };
   }
   return bundle;
 }
