@@ -13,7 +13,7 @@ import pytest
 from helpers import make_tiny_scene
 from noisenerf.cli.bench import (EXPERIMENTS, REGISTRY, BenchConfig, BenchContext, Experiment, config, field_flops,
                                   run_bench, stress)
-from noisenerf.cli.bench.browser import RUNS, browser_missing, page_workers
+from noisenerf.cli.bench.browser import RUNS, browser_missing
 from noisenerf.cli.bench.context import Measured
 from noisenerf.cli.bench.registry import selected
 from noisenerf.cli.bench.report import verdict
@@ -78,8 +78,11 @@ def test_browser_reveals_the_bytes_python_reveals_or_says_why_it_could_not(repor
     if browser_missing() is None:
         assert [(r["page"], r["secret"]) for r in rows] == [(page, secret) for page, _ in RUNS for secret in ("native", "32²")]
         assert all(r["exact"] and r["sha256"] == r["python_sha256"] and r["peak_mib"] > 0 for r in rows)
-        # a page's default is a worker per core; Python is its fastest on at most as many threads
-        assert [r["workers"] for r in rows] == [page_workers(workers) for _, workers in RUNS for _ in range(2)]
+        # the pages' own default (a worker per core) where a run asks for none; Python is its fastest on at most as
+        # many threads
+        assert [r["default"] for r in rows] == [workers is None for _, workers in RUNS for _ in range(2)]
+        assert [r["workers"] for r in rows if not r["default"]] == [workers for _, workers in RUNS if workers for _ in range(2)]
+        assert len({r["workers"] for r in rows if r["default"]}) == 1 and all(r["workers"] >= 1 for r in rows)
         for r in rows:
             on_as_many = {t: s for t, s in r["python_seconds_by_threads"].items() if t <= r["workers"]}
             assert r["python_seconds"] == min(on_as_many.values()) == on_as_many[r["python_threads"]]

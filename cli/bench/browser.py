@@ -2,9 +2,9 @@
 onnxruntime-web's WASM backend) and by the Python runtime, in one run.
 
 Both builds render in a pool of Web Workers, one onnxruntime-web session of one thread each (web/src/pool.js),
-one per core by default: the single-file build (web/dist/noisenerf-reveal.html, as it runs opened from disk)
-at its default and with one worker, and the static site (web/dist/site/) at its default. Pages and files are
-served from 127.0.0.1. Both sides are timed over the same work, from the two files' bytes to the revealed PNG:
+one per core by default (`navigator.hardwareConcurrency`): the single-file build (web/dist/noisenerf-reveal.html)
+at its default and with one worker, and the static site (web/dist/site/) at its default. Both pages and the files
+are served from 127.0.0.1 (the single file runs the same opened from disk: tests/test_web_browser.py). Both sides are timed over the same work, from the two files' bytes to the revealed PNG:
 the browser's `noisenerf.reveal` (parse and check the bundle and the model, start the sessions, render, SHA-256,
 encode the PNG), in a page that has revealed once already (its first reveal, which also starts the workers and
 compiles the WASM, is reported apart); Python's `noisenerf-reveal` run in this process after one warm-up reveal
@@ -44,19 +44,15 @@ CHROMIUM = Path(os.environ.get("NOISENERF_CHROMIUM", "/usr/lib/chromium/chromium
 WEB_DIST = Path(__file__).resolve().parents[2] / "web" / "dist"  # a checkout's web/ build (not in a wheel)
 PAGES = {"single file": "noisenerf-reveal.html", "site": "site/index.html"}
 RUNS = (("single file", None), ("single file", 1), ("site", None))  # (page, workers: None is the pages' default)
-PAGE_MOST_WORKERS = 16  # web/src/page/page.js's MOST_WORKERS: a page's default is a worker per core, at most this
 REPEAT_SECONDS = 10  # a reveal is repeated (up to browser_repeats times) until its runs add up to this
 
 
-def page_workers(workers: int | None) -> int:
-    """The workers a run asks its page for: the page's default (one per core) where None."""
-    return workers or min(available_cores(), PAGE_MOST_WORKERS)
 
 REVEAL_IN_PAGE = """async ([modelUrl, bundleUrl, workers]) => {
   const fetched = async url => new Uint8Array(await (await fetch(url)).arrayBuffer());
   const [model, bundle] = await Promise.all([fetched(modelUrl), fetched(bundleUrl)]);
   const started = performance.now();
-  const revealed = await window.noisenerf.reveal({model, bundle, workers});
+  const revealed = await window.noisenerf.reveal({model, bundle, workers: workers ?? undefined});  // null: its default
   return {seconds: (performance.now() - started) / 1000, exact: revealed.exact, sha256: revealed.sha256,
           workers: revealed.workers};
 }"""
@@ -134,7 +130,6 @@ def browser_reveals(site: Path, bundles: dict[str, Path], model: Path, repeats: 
         browser = playwright.chromium.launch(executable_path=str(CHROMIUM), args=["--no-sandbox"])
         try:
             for page_name, workers in RUNS:
-                workers = page_workers(workers)
                 page_path = Path(PAGES[page_name])
                 with served(site / page_path.parent) as base:
                     page = browser.new_page()
@@ -146,7 +141,8 @@ def browser_reveals(site: Path, bundles: dict[str, Path], model: Path, repeats: 
                         with peak_sampled(chromium_rss) as peak:
                             result = repeated(functools.partial(page.evaluate, REVEAL_IN_PAGE, [
                                 f"{base}/{model.name}", f"{base}/{bundle.name}", workers]), repeats)
-                        rows.append({"page": page_name, "secret": name, **result, "peak_mib": peak[0] / 2 ** 20,
+                        rows.append({"page": page_name, "secret": name, **result, "default": workers is None,
+                                     "peak_mib": peak[0] / 2 ** 20,
                                      "first_reveal_seconds": first})
                     page.close()
         finally:
@@ -169,7 +165,7 @@ def measure_browser(context: BenchContext) -> Measured:
     big = resized(context.secret, config.browser_size, config.browser_size)
     secrets = {"native": (context.secret, HideConfig(view=config.view)),
                f"{config.browser_size}²": (big, HideConfig(view=config.view, tile_size=config.twok_tile))}
-    cores = page_workers(None)
+    cores = available_cores()
     python, bundles = {}, {}
     for name, (secret, hide_config) in secrets.items():
         bundle_name = f"browser_{len(bundles)}"
@@ -218,8 +214,8 @@ def describe_browser(context: BenchContext, measured: Measured) -> list[str]:
     if any("browser" in row for row in rows):
         return [f"Not measured in the browser: {rows[0]['browser']}. Python reveal (files to PNG): "
                 + ", ".join(f"{row['secret']} {row['python_seconds']:.2f} s" for row in rows) + "."]
-    cores = page_workers(None)
-    shipped = [row for row in rows if row["workers"] == cores]  # the pages as a recipient gets them
+    shipped = [row for row in rows if row["default"]]  # the pages as a recipient gets them
+    cores = max(row["workers"] for row in shipped)
     worst = max(row["ratio"] for row in shipped)
     single = [row["ratio"] for row in rows if row["workers"] == 1]
     lines = [f"Chromium {CHROMIUM} (headless), onnxruntime-web WASM in a pool of workers of one thread each; Python: "
