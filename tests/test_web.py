@@ -311,6 +311,9 @@ def write_fixtures(root: Path) -> dict:
         tamper(root, "ray", "tile_outside", edit_bundle=bundle_metadata_edit(
             lambda meta: meta["tiles"][0]["rect"].__setitem__(0, 3))),
         tamper(root, "ray", "format_3", edit_bundle=bundle_metadata_edit(lambda meta: meta.update(format_version=3))),
+        # quoted as repr() quotes it: a no-break space, a line separator and a zero-width space escaped
+        tamper(root, "ray", "odd_tensor_name", edit_bundle=bundle_metadata_edit(
+            lambda meta: meta["tiles"][0].update(tensor="n\u00a0o\u2028pe\u200b"))),
         tamper(root, "compact_tiles", "xz_corrupt", edit_bundle=corrupt_tensor("tile_0001", 40)),
         tamper(root, "compact_tiles", "xz_truncated", edit_bundle=replaced_tensor("tile_0001", lambda s: s[:len(s) // 2])),
         tamper(root, "compact_tiles", "xz_trailing", edit_bundle=replaced_tensor("tile_0001", lambda s: s + b"junk")),

@@ -15,6 +15,12 @@ export function tuple(...items) {
   return t;
 }
 
+// str.isprintable's complement: control, format, surrogate, private-use, unassigned and separator characters
+// (the space excepted), which repr() escapes
+const NOT_PRINTABLE = /^[\p{Cc}\p{Cf}\p{Cs}\p{Co}\p{Cn}\p{Z}]$/u;
+const escaped = (c) => (c < 0x100 ? "\\x" + c.toString(16).padStart(2, "0")
+  : c < 0x10000 ? "\\u" + c.toString(16).padStart(4, "0") : "\\U" + c.toString(16).padStart(8, "0"));
+
 /** repr() of a Python str. */
 export function reprStr(s) {
   const quote = s.includes("'") && !s.includes('"') ? '"' : "'";
@@ -26,7 +32,7 @@ export function reprStr(s) {
     else if (ch === "\n") out += "\\n";
     else if (ch === "\r") out += "\\r";
     else if (ch === "\t") out += "\\t";
-    else if (c < 0x20 || c === 0x7f) out += "\\x" + c.toString(16).padStart(2, "0");
+    else if (ch !== " " && NOT_PRINTABLE.test(ch)) out += escaped(c);
     else out += ch;
   }
   return out + quote;
