@@ -115,23 +115,21 @@ def chromium_rss() -> int:
     return total
 
 
-
-
-def browser_reveals(site: Path, bundles: dict[str, Path], model: Path, repeats: int) -> list[dict]:
-    """Each bundle revealed in each of RUNS (`repeated`); the page's own timing, exactness and digest, and peak
-    memory."""
+def browser_reveals(dist: Path, bundles: dict[str, Path], model: Path, repeats: int) -> list[dict]:
+    """Each bundle revealed in each of RUNS (`repeated`) from a copy of web/dist/ at `dist`; the page's own timing,
+    exactness and digest, and peak memory."""
     from playwright.sync_api import sync_playwright
 
     for path in (model, *bundles.values()):
-        shutil.copy(path, site / "site" / path.name)
-        shutil.copy(path, site / path.name)
+        shutil.copy(path, dist / "site" / path.name)
+        shutil.copy(path, dist / path.name)
     rows = []
     with sync_playwright() as playwright:
         browser = playwright.chromium.launch(executable_path=str(CHROMIUM), args=["--no-sandbox"])
         try:
             for page_name, workers in RUNS:
                 page_path = Path(PAGES[page_name])
-                with served(site / page_path.parent) as base:
+                with served(dist / page_path.parent) as base:
                     page = browser.new_page()
                     page.goto(f"{base}/{page_path.name}")
                     page.wait_for_function("window.noisenerf !== undefined")
@@ -183,10 +181,10 @@ def measure_browser(context: BenchContext) -> Measured:
     if missing is not None:
         return Measured([{"secret": name, **flat_python(values, cores), "browser": missing}
                          for name, values in python.items()])
-    site = context.work / "browser_pages"
-    shutil.rmtree(site, ignore_errors=True)
-    shutil.copytree(WEB_DIST, site)
-    rows = browser_reveals(site, bundles, context.model_path, config.browser_repeats)
+    dist = context.work / "browser_pages"
+    shutil.rmtree(dist, ignore_errors=True)
+    shutil.copytree(WEB_DIST, dist)
+    rows = browser_reveals(dist, bundles, context.model_path, config.browser_repeats)
     for row in rows:
         row.update(flat_python(python[row["secret"]], row["workers"]))
         row["ratio"] = row["seconds"] / row["python_seconds"]

@@ -4,7 +4,7 @@
 
 import xz from "xz-decompress";
 import { UserError, repr, reprCut, tuple, PyFloat } from "./errors.js";
-import { parseJson } from "./json.js";
+import { isJsonObject as isObject, parseJson } from "./json.js";
 import {
   MAX_CAMERAS, MAX_COMPACT_COEFFICIENTS, MAX_IMAGE_SIDE, MAX_NOISE_DIMS, MAX_RAY_LAYOUT_SAMPLES, MAX_TILES,
   checkedFloat, checkedImageSize, checkedInt, checkedList,
@@ -124,8 +124,6 @@ function noiseHeader(noise, layouts) {
   validateNoiseHeader(header.layout, header.dtype, header.dims, header.coefficients, layouts);
   return header;
 }
-
-function isObject(v) { return v !== null && typeof v === "object" && !Array.isArray(v) && !(v instanceof PyFloat); }
 
 function checkedRect(i, data) {
   if (!isObject(data)) throw new UserError(`bundle: tile ${i} must be a JSON object`);

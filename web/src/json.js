@@ -94,6 +94,10 @@ export function loads(textValue) {
 }
 
 /** parse_json: JSON text (or UTF-8 bytes) someone else made -> value, one UserError when malformed or deep. */
+/** isinstance(value, dict) of a value parsed here (a PyFloat is a float, not an object). */
+export const isJsonObject = (value) => value !== null && typeof value === "object" && !Array.isArray(value) &&
+  !(value instanceof PyFloat);
+
 export function parseJson(input, what, source = "") {
   let data;
   try {

@@ -5,7 +5,7 @@
 import { sha256 } from "@noble/hashes/sha2.js";
 import { bytesToHex } from "@noble/hashes/utils.js";
 import { UserError, repr, PyFloat } from "./errors.js";
-import { parseJson, dumpsSorted } from "./json.js";
+import { isJsonObject as isObject, parseJson, dumpsSorted } from "./json.js";
 import { parseModel } from "./onnx.js";
 import { checkGraph, fieldGraph } from "./graph.js";
 import { MAX_CAMERAS, MAX_GRID_RESOLUTION, MAX_NOISE_DIMS, checkedFloat, checkedInt, checkedList } from "./limits.js";
@@ -14,8 +14,6 @@ import { samplingFromDict } from "./sampling.js";
 
 export const MODEL_FORMAT_VERSION = 2;
 const METADATA_KEY = "noisenerf", VERSION_KEY = "noisenerf_format_version";
-const isObject = (v) => v !== null && typeof v === "object" && !Array.isArray(v) && !(v instanceof PyFloat);
-
 class Malformed extends Error {}
 
 function renderConfigFromDict(data) {

@@ -5,7 +5,7 @@
 
 import { sha256 } from "@noble/hashes/sha2.js";
 import { UserError } from "./errors.js";
-import { pyEqual } from "./json.js";
+import { isJsonObject, pyEqual } from "./json.js";
 import { sealFromDict, associatedData, decrypt } from "./sealing.js";
 
 export const MAGIC = [0x4e, 0x4e, 0x50, 0x4c]; // b"NNPL"
@@ -18,9 +18,8 @@ export const INEXACT = "the revealed pixels do not reproduce the payload's SHA-2
 
 /** checked_payload: a bundle's payload object, refused unless it is exactly one payload_metadata writes. */
 export function checkedPayload(data) {
-  const isObject = data !== null && typeof data === "object" && !Array.isArray(data);
-  const keys = isObject ? Object.keys(data).sort() : [];
-  if (!isObject || !pyEqual(data.version ?? null, PAYLOAD_VERSION) || keys.length !== 2 || keys[0] !== "sealed" || keys[1] !== "version") {
+  const keys = isJsonObject(data) ? Object.keys(data).sort() : [];
+  if (!isJsonObject(data) || !pyEqual(data.version ?? null, PAYLOAD_VERSION) || keys.length !== 2 || keys[0] !== "sealed" || keys[1] !== "version") {
     throw new UserError(`bundle: payload must be an object with version ${PAYLOAD_VERSION} and sealed`);
   }
   sealOf(data);

@@ -10,7 +10,7 @@ import { sha256 } from "@noble/hashes/sha2.js";
 import { bytesToHex } from "@noble/hashes/utils.js";
 import { chacha20poly1305 } from "@noble/ciphers/chacha.js";
 import { UserError, repr } from "./errors.js";
-import { canonicalJson, parseJson, pyEqual } from "./json.js";
+import { canonicalJson, isJsonObject as isObject, parseJson, pyEqual } from "./json.js";
 import { checkedInt } from "./limits.js";
 
 export const CIPHER = "chacha20-poly1305";
@@ -24,8 +24,6 @@ export const MAX_KDF_WORK = 2 ** 24;
 // cli/reveal.py's refusal without a passphrase, up to its command-line hints (a page has a passphrase field)
 export const NO_PASSPHRASE = "the bundle is sealed: give its passphrase";
 export const EMPTY_PASSPHRASE = "the passphrase is empty";
-
-const isObject = (v) => v !== null && typeof v === "object" && !Array.isArray(v);
 
 /** ScryptParams.from_dict: parameters read from a bundle, refused beyond MAX_KDF_MEMORY or MAX_KDF_WORK. */
 export function scryptParams(data) {
