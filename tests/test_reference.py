@@ -7,9 +7,12 @@ bundles record the two new settings; their noise stayed bit-identical, the other
 `exact_compact.bundle` is the small exact bundle itself, and `digests.json` holds the SHA-256 of every
 artifact below (bundles of each method and layout, a plain and a sealed payload, a fitted scene's files
 and an exported ONNX file). Each artifact is rebuilt here from seeds alone and must match byte for byte.
-Torch runs one thread, so the bytes do not depend on the machine's core count; the ONNX file also
-depends on the onnx package's serialisation, so that comparison skips under another torch than the
-reference's.
+Torch runs one thread, so the bytes do not depend on the machine's core count. They do depend on the float
+kernels the CPU takes (vector width and FMA use differ between an AVX2 and an AVX-512 machine, and between
+vendors' library paths), so the references are kept per kind of machine, `tests/reference/VENDOR-CAPABILITY/`
+(`float_kernels`), each written on such a machine from the same code; a machine of a kind without references
+skips, saying which. The ONNX file also depends on the onnx package's serialisation, so that comparison skips
+under another torch than the reference's.
 """
 
 from __future__ import annotations
@@ -18,6 +21,7 @@ import contextlib
 import dataclasses
 import hashlib
 import json
+import platform
 from pathlib import Path
 
 import numpy as np
@@ -26,8 +30,19 @@ import torch
 
 from helpers import make_tiny_scene  # run as a script, this file's folder is sys.path[0]
 
-REFERENCE = Path(__file__).resolve().parent / "reference"
 CPU = torch.device("cpu")
+
+
+def float_kernels() -> str:
+    """The kind of machine bytes are reproducible on: its CPU vendor and torch's vector capability."""
+    cpuinfo = Path("/proc/cpuinfo")
+    lines = cpuinfo.read_text().splitlines() if cpuinfo.is_file() else []
+    vendor = next((line.split(":", 1)[1].strip() for line in lines if line.startswith("vendor_id")), platform.machine())
+    return f"{vendor}-{torch.backends.cpu.get_cpu_capability()}"
+
+
+REFERENCES = Path(__file__).resolve().parent / "reference"
+REFERENCE = REFERENCES / float_kernels()
 
 
 @contextlib.contextmanager
@@ -101,11 +116,15 @@ def sha256(path: Path) -> str:
 
 @pytest.fixture(scope="module")
 def artifacts(tmp_path_factory):
+    if not REFERENCE.is_dir():
+        kinds = sorted(path.name for path in REFERENCES.iterdir() if path.is_dir())
+        pytest.skip(f"no references for this machine's float kernels ({REFERENCE.name}; kept: {', '.join(kinds)}); "
+                    f"`python tests/test_reference.py` writes them")
     return build_artifacts(tmp_path_factory.mktemp("reference"))
 
 
 @pytest.fixture(scope="module")
-def digests():
+def digests(artifacts):
     return json.loads((REFERENCE / "digests.json").read_text())
 
 
