@@ -61,6 +61,11 @@ PASSPHRASE_ENV = "NOISENERF_PASSPHRASE"
 MAX_PASSPHRASE_BYTES = 4096
 
 
+def passphrase_given(path: str | None) -> bool:
+    """Whether the user gave a passphrase without being asked (a file, or NOISENERF_PASSPHRASE)."""
+    return path is not None or PASSPHRASE_ENV in os.environ
+
+
 def read_passphrase(path: str | None, confirm: bool = False) -> bytes | None:
     """The passphrase, never from the command line (it would land in shell history): the file `path`
     (one trailing newline dropped), else the NOISENERF_PASSPHRASE environment variable, else a hidden

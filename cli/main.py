@@ -117,7 +117,7 @@ def cmd_hide(args) -> None:
                         chunk_pixels=chunk_pixels_for(device.type), settings=settings)
     scene = load_scene(args.scene_dir)
     if args.file is None:
-        secret, warnings = load_secret(args.secret)
+        secret, warnings, bits = load_secret(args.secret)
         for warning in warnings:
             print(f"{PROG}: warning: {warning}", file=sys.stderr)
     if args.file is not None or passphrase is not None:
@@ -133,6 +133,8 @@ def cmd_hide(args) -> None:
             off = [f"tile {k}: {t['inexact_pixels']} px off by up to {t['max_error']}"
                    for k, t in enumerate(report["tiles"]) if t["inexact_pixels"]]
             print(f"{PROG}: warning: the bundle is not exact (--allow-inexact): {'; '.join(off)}", file=sys.stderr)
+    if args.file is None:
+        report["precision"] = "8-bit" if bits == 8 else f"8-bit (secret had {bits})"
     lines = [f"bundle: {report['bundle']} ({report['bundle_bytes']} bytes, {report['bytes_per_pixel']:.1f} B/px)",
              f"tiles: {len(report['tiles'])}, exact fraction {report['exact_fraction']:.6f}, "
              f"exact: {str(report['exact']).lower()}", f"seconds: {report['seconds']}"]

@@ -4,11 +4,12 @@
     noisenerf-reveal MODEL.onnx X.bundle -o OUT [--passphrase-file F] reveal a payload: OUT gets its bytes
     noisenerf-reveal MODEL.onnx --view I -o OUT.png [--json]         an ordinary render of dataset view I
 
-OUT's extension picks the format: .png 8-bit (the very pixels the bundle's digest is checked on), .tif
-16-bit, .exr float; a reveal refuses JPEG (lossy: the pixels written would not be the ones checked), an
-ordinary --view render may be one. `exact` says whether the revealed 8-bit pixels hash to the bundle's
-secret digest; an inexact reveal still exits 0 (the image is written), bad input exits 2 with one line on
-stderr.
+OUT's extension picks the format: .png 8-bit, .tif 16-bit, .exr float. A reveal writes the very 8-bit
+pixels the bundle's digest is checked on, in a .tif or .exr scaled exactly (v·257, v/255), so `exact`
+describes the file written (--json's `written` says how it holds them); it refuses JPEG (lossy: the pixels
+written would not be the ones checked). An ordinary --view render writes its float render, and may be a
+JPEG. `exact` says whether the revealed 8-bit pixels hash to the bundle's secret digest; an inexact reveal
+still exits 0 (the image is written), bad input exits 2 with one line on stderr.
 
 A payload bundle (`noisenerf hide --file`, or sealed) is all or nothing: OUT is written, whatever its
 extension, with exactly the payload's bytes (a sealed image, known only once opened, is written as an
@@ -30,7 +31,8 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from noisenerf.cli.common import FAILURES, OneLineParser, failure, payload_line, quiet_warnings, read_passphrase
+from noisenerf.cli.common import (FAILURES, OneLineParser, failure, passphrase_given, payload_line, quiet_warnings,
+                                  read_passphrase)
 from noisenerf.runtime.errors import UserError
 from noisenerf.runtime.files import json_text
 
@@ -41,6 +43,9 @@ if TYPE_CHECKING:
     from noisenerf.runtime.sealing import Keys
 
 PROG = "noisenerf-reveal"
+# how a revealed image's file holds its 8-bit values, by the pixel type written (runtime.images.encoded)
+WRITTEN_AS = {"uint8": "8-bit values", "uint16": "8-bit values scaled exactly to 16 bits (v*257)",
+              "float": "8-bit values as floats (v/255)"}
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -71,15 +76,15 @@ def progress_bar(total: int):
     return tqdm(total=total, unit="ray", unit_scale=True, file=sys.stderr, disable=None, leave=False)
 
 
-def reveal_secret(model: Model, bundle: Bundle, keep_float: bool = False) -> tuple[Revealed, dict]:
-    """Render and stitch a bundle's tiles -> the revealed image (the float render too if keep_float), report."""
+def reveal_secret(model: Model, bundle: Bundle) -> tuple[Revealed, dict]:
+    """Render and stitch a bundle's tiles -> the revealed 8-bit image, report."""
     from noisenerf.runtime.model import check_bundle
     from noisenerf.runtime.reveal import reveal
 
     check_bundle(model, bundle)
     rays = sum(tile.rect[2] * tile.rect[3] for tile in bundle.tiles)
     with progress_bar(rays) as bar:
-        revealed = reveal(bundle, model.render_config, model.fields(), progress=bar, keep_float=keep_float)
+        revealed = reveal(bundle, model.render_config, model.fields(), progress=bar)
     return revealed, {"exact": revealed.exact, "width": bundle.width, "height": bundle.height,
                             "tiles": len(bundle.tiles), "rays": rays,
                             "samples": sum(tile.rect[2] * tile.rect[3] * tile.sampling.n_samples
@@ -120,12 +125,16 @@ def checked_output(path: str, force: bool, reveal: bool) -> Path:
 
 
 def unseal(bundle: Bundle, bundle_path: str, passphrase_file: str | None) -> Keys | None:
-    """A sealed bundle's keys, its tag checked before anything is rendered; None for an unsealed one."""
+    """A sealed bundle's keys, its tag checked before anything is rendered; None for an unsealed one. A
+    passphrase given for a bundle that is not sealed is refused: a sealed bundle stripped of its seal reads
+    exactly so, and revealing it would pass its ciphertext off as the secret."""
     from noisenerf.runtime.payload import seal_of
-    from noisenerf.runtime.sealing import unseal_keys
+    from noisenerf.runtime.sealing import NOT_SEALED, unseal_keys
 
-    seal = seal_of(bundle.payload)
+    seal = None if bundle.payload is None else seal_of(bundle.payload)
     if seal is None:
+        if passphrase_given(passphrase_file):
+            raise UserError(NOT_SEALED)
         return None
     passphrase = read_passphrase(passphrase_file)
     if passphrase is None:
@@ -138,7 +147,7 @@ def write_payload(args: argparse.Namespace, revealed: Revealed, bundle: Bundle, 
                   keys: Keys | None) -> dict:
     """Open the payload in the revealed pixels and write it to OUT (a file's bytes; a sealed image by
     OUT's extension); nothing is written unless every byte checks. -> the payload's report."""
-    from noisenerf.runtime.files import atomic_output
+    from noisenerf.runtime.files import write_bytes
     from noisenerf.runtime.images import write_image
     from noisenerf.runtime.payload import INEXACT, open_payload
 
@@ -146,10 +155,9 @@ def write_payload(args: argparse.Namespace, revealed: Revealed, bundle: Bundle, 
         raise UserError(INEXACT)
     record = open_payload(revealed.pixels, bundle.payload, model.fingerprint, keys)
     if record.kind == "image":
-        write_image(checked_output(args.output, args.force, reveal=True), record.pixels())
+        write_image(checked_output(args.output, args.force, reveal=True), record.pixels(), replace=args.force)
     else:
-        with atomic_output(args.output) as tmp:
-            tmp.write_bytes(record.body)
+        write_bytes(args.output, record.body, replace=args.force)
     return record.report()
 
 
@@ -165,14 +173,14 @@ def run(args: argparse.Namespace) -> dict:
     payload = bundle is not None and bundle.payload is not None
     output = (check_output_path(args.output, force=args.force) if payload
               else checked_output(args.output, args.force, reveal=bundle is not None))
-    keys = unseal(bundle, args.bundle, args.passphrase_file) if payload else None
+    keys = unseal(bundle, args.bundle, args.passphrase_file) if bundle is not None else None
     model = load_model(args.model, device=args.device, threads=args.threads)
     loaded = time.perf_counter()
     if bundle is not None:
-        # 8-bit images get the very pixels `exact` judged (quantised once); 16-bit and float, the render
-        keep_float = not payload and written_format(output)[1] != "uint8"
-        revealed, report = reveal_secret(model, bundle, keep_float)
-        image = revealed.image if keep_float else revealed.pixels
+        revealed, report = reveal_secret(model, bundle)
+        image = revealed.pixels  # the very pixels `exact` judged, in every format
+        if not payload:
+            report["written"] = WRITTEN_AS[written_format(output)[1]]
     else:
         image, report = render_dataset_view(model, args.view, skip=not args.no_skip)
     rendered = time.perf_counter()
@@ -180,7 +188,7 @@ def run(args: argparse.Namespace) -> dict:
         report = {**report, "sealed": keys is not None,
                   "payload": write_payload(args, revealed, bundle, model, keys)}
     else:
-        write_image(output, image)
+        write_image(output, image, replace=args.force)
     done = time.perf_counter()
     timings = {"load": loaded - start, "render": rendered - loaded, "write": done - rendered}
     return {**report, "output": str(output), "seconds": round(done - start, 3),

@@ -30,7 +30,7 @@ import numpy as np
 import onnx
 
 from noisenerf.runtime.errors import UserError
-from noisenerf.runtime.files import atomic_output, check_output_path
+from noisenerf.runtime.files import check_output_path, write_bytes
 from noisenerf.runtime.fingerprint import weights_fingerprint
 from noisenerf.runtime.model import ModelMetadata
 from noisenerf.runtime.onnx_file import ModelFile, parse_model
@@ -181,8 +181,7 @@ def export_scene(scene_dir: str | os.PathLike, out_path: str | os.PathLike, prob
                             f"onnxruntime is off by {case.onnx_error:.3g}, torch float32 by "
                             f"{case.torch_error:.3g} (allowed: {PROBE_TOLERANCE:g} + {FLOAT32_SLACK:g}x torch's)")
     check_as_runtime(file, metadata)
-    with atomic_output(out_path) as tmp:
-        tmp.write_bytes(data)
+    write_bytes(out_path, data, replace=force)
     return {"model": str(out_path), "fingerprint": scene.fingerprint(), "bytes": len(data),
             "seconds": round(time.perf_counter() - start, 3), "opset": OPSET, "networks": list(scene.fields()),
             "max_abs_diff": max(case.max_abs_diff for case in probe), "probe": [case.to_dict() for case in probe]}

@@ -36,15 +36,15 @@ from pathlib import Path
 
 import numpy as np
 from safetensors import SafetensorError, safe_open
-from safetensors.numpy import save_file
+from safetensors.numpy import save
 
 from noisenerf import __version__
 from noisenerf.runtime.camera import Camera
 from noisenerf.runtime.errors import UserError
-from noisenerf.runtime.files import atomic_output, parse_json
+from noisenerf.runtime.files import parse_json, write_bytes
 from noisenerf.runtime.limits import (
     MAX_CAMERAS, MAX_COMPACT_COEFFICIENTS, MAX_IMAGE_SIDE, MAX_NOISE_DIMS, MAX_RAY_LAYOUT_SAMPLES, MAX_TILES,
-    MAX_XZ_MEMORY, checked_float, checked_image_size, checked_int, checked_list,
+    MAX_XZ_MEMORY, checked_expansion, checked_float, checked_image_size, checked_int, checked_list,
 )
 from noisenerf.runtime.networks import NETWORKS
 from noisenerf.runtime.payload import checked_payload
@@ -242,13 +242,13 @@ class Bundle:
             **({"payload": self.payload} if self.payload is not None else {}),
         }
 
-    def save(self, path: str | Path) -> None:
-        """Validate, then write atomically."""
+    def save(self, path: str | Path, replace: bool = False) -> None:
+        """Validate, then write atomically (replace: whether an existing file may be replaced, --force)."""
         validate(self)
         tensors = {name: value for i, tile in enumerate(self.tiles)
                    for name, value in tile.noise.tensors(f"tile_{i:04d}").items()}
-        with atomic_output(path) as tmp:
-            save_file(tensors, str(tmp), metadata={METADATA_KEY: json.dumps(self.metadata(), sort_keys=True)})
+        write_bytes(path, save(tensors, metadata={METADATA_KEY: json.dumps(self.metadata(), sort_keys=True)}),
+                    replace=replace)
 
 
 def noise_shape(layout: str, height: int, width: int, n_samples: int, per_vector: int) -> tuple[int, ...]:
@@ -450,6 +450,11 @@ def parse_bundle(meta, tensors: dict[str, np.ndarray], path: Path) -> Bundle:
     areas = np.array([w * h for _, _, w, h in (checked_rect(i, tile) for i, tile in enumerate(tiles))], np.int64)
     if header["layout"] == "compact" and areas.sum() != width * height:  # before inflating any stream
         raise UserError(f"bundle: the tiles' areas do not add up to the {width}x{height} secret")
+    if header["layout"] == "compact":
+        streams = (tensors.get(tile.get("tensor")) if isinstance(tile.get("tensor"), str) else None for tile in tiles)
+        checked_expansion(sum(stream.nbytes for stream in streams if stream is not None),
+                          int(areas.sum()) * header["coefficients"] * np.dtype(DTYPES[header["dtype"]]).itemsize,
+                          "bundle")
     extra = meta.get("extra", {})
     return Bundle(model_fingerprint=checked_text(meta.get("model_fingerprint"), "bundle: model_fingerprint"),
                   width=width, height=height, secret_sha256=checked_text(secret.get("sha256"), "bundle: sha256"),

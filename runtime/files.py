@@ -1,14 +1,18 @@
-"""Output files appear whole or not at all: everything is written to a temporary sibling, fsynced, then renamed.
+"""Output files appear whole or not at all: everything is written to a temporary sibling, fsynced, checked, then
+published under its name.
 
 Every output check lives here, so each command refuses the same things the same way, before any work:
 a missing folder, an existing path that is not a regular file (a symlink, FIFO, device or folder is
 never replaced, even with --force), an existing file without --force, and a folder we cannot write to.
-Every OSError while writing becomes one UserError line.
+An output that may not replace a file is published by link(), which fails if anything has appeared under
+its name since that check (a concurrent writer): the check and the publication are one atomic step.
+Every OSError while writing becomes one UserError line; a full disk says so ("no space left on …").
 """
 
 from __future__ import annotations
 
 import contextlib
+import errno
 import json
 import math
 import os
@@ -23,9 +27,23 @@ from noisenerf.runtime.limits import MAX_JSON_DEPTH, json_depth
 LOSSY_SUFFIXES = (".jpg", ".jpeg", ".jpe", ".jfif", ".webp", ".heic", ".heif", ".avif", ".jxl", ".jp2", ".gif")
 
 
+# errors that mean the file system is out of room (blocks or quota) rather than refusing this path
+NO_SPACE = (errno.ENOSPC, errno.EDQUOT)
+# link() refused by the file system itself (not by the name being taken): publish by rename instead
+NO_HARD_LINKS = (errno.EPERM, errno.EOPNOTSUPP, errno.ENOTSUP, errno.EXDEV, errno.EMLINK)
+
+
 def os_failure(what: str, path: str | os.PathLike, error: OSError) -> UserError:
     """One readable line for an OSError: what we tried, on which path, and the system's reason."""
     return UserError(f"cannot {what} {path}: {error.strerror or error}")
+
+
+def write_failure(path: Path, error: OSError) -> UserError:
+    """One line for an OSError while writing `path`; a full file system is named as such."""
+    if error.errno in NO_SPACE:
+        return UserError(f"no space left on the file system of {path.parent} while writing {path.name}; "
+                         f"nothing was written")
+    return os_failure("write", path, error)
 
 
 def existing_kind(path: Path) -> str | None:
@@ -96,30 +114,61 @@ def fsync_path(path: str | os.PathLike) -> None:
 
 
 @contextlib.contextmanager
-def atomic_output(path: str | os.PathLike):
-    """Yield a temporary path beside `path`; fsync it and rename it onto `path` only if the block succeeds.
+def atomic_output(path: str | os.PathLike, *, replace: bool):
+    """Yield a temporary path beside `path`; fsync it and publish it as `path` only if the block succeeds.
 
-    The temporary name is short (not derived from the output's), so any valid output name works.
+    replace: whether an existing file at `path` may be replaced (--force, or a file the program owns such as
+    a checkpoint); without it the file is published by link(), so a file that appeared at `path` while this
+    one was written (another writer) is never replaced: one UserError instead. The temporary name is short
+    (not derived from the output's), so any valid output name works; it never outlives a failed block.
     """
-    path = check_output_path(path)
+    path = check_output_path(path, force=replace)
     try:
         fd, tmp = tempfile.mkstemp(prefix=".noisenerf-", suffix=path.suffix[:16] or ".tmp", dir=path.parent)
         os.close(fd)
     except OSError as error:
-        raise os_failure("write", path, error) from None
+        raise write_failure(path, error) from None
     umask = os.umask(0)
     os.umask(umask)
     try:
         yield Path(tmp)
         os.chmod(tmp, 0o666 & ~umask)  # mkstemp's 0600 would make every output owner-only
         fsync_path(tmp)
-        os.replace(tmp, path)
+        publish(Path(tmp), path, replace)
         fsync_path(path.parent)
     except OSError as error:
-        raise os_failure("write", path, error) from None
+        raise write_failure(path, error) from None
     finally:
-        if os.path.exists(tmp):
+        if os.path.lexists(tmp):
             os.unlink(tmp)
+
+
+def publish(tmp: Path, path: Path, replace: bool) -> None:
+    """Give the finished temporary file its name: rename over `path` when replace, else link (refused at once
+    if the name is taken, by whatever took it since the output was checked)."""
+    if replace:
+        os.replace(tmp, path)
+        return
+    try:
+        os.link(tmp, path)
+    except FileExistsError:
+        raise UserError(f"output exists (pass --force to overwrite): {path} appeared while this one was "
+                        f"written") from None
+    except OSError as error:
+        if error.errno not in NO_HARD_LINKS:
+            raise
+        check_output_path(path, force=False)  # a file system without hard links: check, then rename
+        os.replace(tmp, path)
+
+
+def write_bytes(path: str | os.PathLike, data: bytes, *, replace: bool) -> None:
+    """Write `data` to `path` atomically (atomic_output), its size checked before it is published."""
+    path = Path(path)
+    with atomic_output(path, replace=replace) as tmp:
+        with open(tmp, "wb") as handle:
+            handle.write(data)
+        if tmp.stat().st_size != len(data):  # a write that lost bytes without an error is still a failure
+            raise UserError(f"cannot write {path}: {tmp.stat().st_size} of {len(data)} bytes reached the disk")
 
 
 def finite_json(data):
@@ -138,10 +187,9 @@ def json_text(data, indent: int | None = None) -> str:
     return json.dumps(finite_json(data), indent=indent, allow_nan=False)
 
 
-def write_json(path: str | os.PathLike, data) -> None:
-    """Atomically write indented JSON."""
-    with atomic_output(path) as tmp:
-        tmp.write_text(json_text(data, indent=2) + "\n")
+def write_json(path: str | os.PathLike, data, *, replace: bool = True) -> None:
+    """Atomically write indented JSON (a file the program owns: replaced unless told otherwise)."""
+    write_bytes(path, (json_text(data, indent=2) + "\n").encode(), replace=replace)
 
 
 def parse_json(text: str | bytes, what: str, source: str | os.PathLike = ""):

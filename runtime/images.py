@@ -8,9 +8,11 @@ premultiply them; files that store associated alpha (EXR, associated TIFF) are d
 from __future__ import annotations
 
 import contextlib
+import errno
 import os
 import sys
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 import OpenImageIO as oiio
@@ -126,14 +128,23 @@ def composite_over(pixels: np.ndarray, background) -> np.ndarray:
     return (colour * alpha + np.asarray(background, np.float32) * (1.0 - alpha)).astype(np.float32, copy=False)
 
 
-def load_secret(path: str | os.PathLike) -> tuple[np.ndarray, list[str]]:
-    """The secret image as (H, W, 3) uint8, plus human-readable warnings.
+class Secret(NamedTuple):
+    """A secret image as hidden: its 8-bit pixels, warnings for the user, and the bits per channel its file held."""
+
+    pixels: np.ndarray  # (H, W, 3) uint8
+    warnings: list[str]
+    bits: int  # 8, 16 or 32 (float): more than 8 means the hidden secret is the file's 8-bit quantisation
+
+
+def load_secret(path: str | os.PathLike) -> Secret:
+    """The secret image as (H, W, 3) uint8, plus human-readable warnings and the file's bits per channel.
 
     Rules:
     - PNG, JPEG, TIFF or EXR (anything OpenImageIO reads), 8-bit, 16-bit or float.
     - grey -> RGB by repeating the channel; grey+alpha and RGBA are composited over white (straight alpha).
     - 8-bit grey/RGB pass through bit-exactly; other values are quantised with `to_uint8` (round half up),
-      16-bit as value / 65535.
+      16-bit as value / 65535. A file of more than 8 bits per channel is hidden as its 8-bit quantisation,
+      with a warning that says so (the low bits are not kept: `exact` is about the 8-bit values).
     - float values outside [0, 1] are clipped, with a warning; NaN is refused.
     - a missing, empty or unreadable file, or a channel count other than 1–4, is a UserError naming the file.
     """
@@ -142,18 +153,21 @@ def load_secret(path: str | os.PathLike) -> tuple[np.ndarray, list[str]]:
     if channels not in SECRET_CHANNELS:
         raise UserError(f"secret image {path} has {channels} channels; expected {', '.join(SECRET_CHANNELS.values())}")
     if pixels.dtype == np.uint8 and channels in (1, 3):
-        return np.ascontiguousarray(np.broadcast_to(pixels, pixels.shape[:2] + (3,))), []
+        return Secret(np.ascontiguousarray(np.broadcast_to(pixels, pixels.shape[:2] + (3,))), [], 8)
     values = normalized(pixels)
     if np.isnan(values).any():
         raise UserError(f"secret image {path} contains NaN values")
-    warnings = []
+    bits = 8 * pixels.dtype.itemsize
+    kind = "float" if pixels.dtype.kind == "f" else f"{bits}-bit"
+    warnings = [] if bits == 8 else [f"{path} has {kind} channels; it is hidden as 8 bits per channel (the "
+                                     f"finer values are not kept, and `exact` is about the 8-bit values)"]
     outside = np.count_nonzero((values < 0) | (values > 1))
     if outside:
         warnings.append(f"{path}: {outside} values outside [0, 1] clipped")
         values = np.clip(values, 0.0, 1.0)
     if channels in (2, 4):
         values = composite_over(values, 1.0)
-    return to_uint8(np.broadcast_to(values, values.shape[:2] + (3,))), warnings
+    return Secret(to_uint8(np.broadcast_to(values, values.shape[:2] + (3,))), warnings, bits)
 
 
 def to_uint8(image: np.ndarray) -> np.ndarray:
@@ -182,8 +196,10 @@ def written_format(path: Path) -> tuple[str, str]:
 
 
 @c_stderr_silenced()
-def write_image(path: str | os.PathLike, image: np.ndarray) -> None:
-    """Write (H, W, 3) RGB or (H, W, 4) straight RGBA, uint8 or float in [0, 1], atomically.
+def write_image(path: str | os.PathLike, image: np.ndarray, replace: bool = True) -> None:
+    """Write (H, W, 3) RGB or (H, W, 4) straight RGBA, uint8 or float in [0, 1], atomically; the file is read
+    back before it is published (OpenImageIO does not always report a write the disk refused), so what
+    lands at `path` holds exactly these pixels (JPEG: this size). replace: see files.atomic_output.
 
     By extension: .png (also for a path without extension) and .jpg/.jpeg (quality 95, alpha dropped)
     8-bit, floats via `to_uint8`; .tif/.tiff 16-bit (round half up of v·65535, 8-bit as v·257); .exr 32-bit
@@ -203,16 +219,42 @@ def write_image(path: str | os.PathLike, image: np.ndarray) -> None:
         spec.attribute("oiio:UnassociatedAlpha", 1)  # else OpenImageIO would divide by alpha on write
     if format_name == "jpeg":
         spec.attribute("Compression", f"jpeg:{JPEG_QUALITY}")
-    with atomic_output(path) as tmp:
+    pixels = np.ascontiguousarray(pixels)
+    with atomic_output(path, replace=replace) as tmp:
         output = oiio.ImageOutput.create(format_name)
         # write_image after a failed open crashes the interpreter, so check open first
         if not output.open(str(tmp), spec):
-            raise UserError(f"cannot write image {path}: {output.geterror()}")
-        written = output.write_image(np.ascontiguousarray(pixels))
+            raise written_failure(path, output.geterror())
+        written = output.write_image(pixels)
         error = output.geterror()
-        output.close()
-        if not written:
-            raise UserError(f"cannot write image {path}: {error}")
+        closed = output.close()
+        if not written or not closed:
+            raise written_failure(path, error or output.geterror())
+        check_written(tmp, path, pixels, lossless=format_name != "jpeg")
+
+
+def written_failure(path: Path, error: str) -> Exception:
+    """What a failed OpenImageIO write is: a full file system (an OSError, which atomic_output words) when the
+    folder has no room left, since the libraries' own messages do not say so; else their message."""
+    if os.statvfs(path.parent).f_bavail == 0:
+        return OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), str(path))
+    return UserError(f"cannot write image {path}: {error}")
+
+
+def check_written(tmp: Path, path: Path, pixels: np.ndarray, lossless: bool) -> None:
+    """Refuse a written image that does not read back as `pixels` (a lossy one: as their size). A disk that
+    filled can leave a short file behind a write OpenImageIO reported as done."""
+    config = oiio.ImageSpec()
+    config.attribute("oiio:UnassociatedAlpha", 1)  # as written: straight alpha stays straight
+    image = oiio.ImageInput.open(str(tmp), config)
+    stored = None if image is None else image.read_image("float" if pixels.dtype.kind == "f" else str(pixels.dtype))
+    error = oiio.geterror() if image is None else image.geterror()  # read, so none is left pending at exit
+    if image is not None:
+        image.close()
+    intact = stored is not None and stored.size == pixels.size and (
+        not lossless or np.array_equal(stored.reshape(pixels.shape), pixels))
+    if not intact:
+        raise written_failure(path, f"the file written does not read back as the image ({error or 'other pixels'})")
 
 
 def area_weights(n_in: int, n_out: int) -> np.ndarray:

@@ -20,6 +20,9 @@ MAX_RAY_LAYOUT_SAMPLES = 256  # ray layout: one stored vector serves this many s
 MAX_COMPACT_COEFFICIENTS = 8  # compact layout: coefficients per pixel (int16: 16 bytes a pixel decompressed)
 MAX_XZ_MEMORY = 80 << 20  # bytes an xz decoder may use: a preset-9 stream's 64 MiB dictionary, not the next size a
 #   stream can state (96 MiB), which the browser's decoder (64 MiB at most) refuses too
+MAX_XZ_RATIO = 64  # bytes an xz coefficient stream may state per byte it is: noise coefficients are nearly random
+#   (a flat-colour secret's compress 2.4-2.7x), while a crafted stream of zeros holds ~7000x its size
+FREE_XZ_BYTES = 1 << 20  # bytes any bundle may decompress, whatever its streams' size
 MAX_TILES = MAX_IMAGE_PIXELS // 16 ** 2  # tiles in one bundle: the largest secret in the smallest (16 px) tiles
 MAX_NOISE_DIMS = 4096  # width of the noise input (positional encodings use 90)
 MAX_FIELD_DEPTH = 64  # layers of a model's trunk (NeRF's is 8)
@@ -67,6 +70,14 @@ def checked_image_size(width, height, what: str) -> tuple[int, int]:
     if width * height > MAX_IMAGE_PIXELS:
         raise UserError(f"{what} is {width}x{height}, more than the {MAX_IMAGE_PIXELS} pixels noisenerf renders")
     return width, height
+
+
+def checked_expansion(packed: int, stated: int, what: str) -> None:
+    """Refuse compressed streams of `packed` bytes stated to hold `stated` bytes beyond MAX_XZ_RATIO (and
+    FREE_XZ_BYTES): a reveal's decoding and rendering then follow the size of the file, not what it claims."""
+    if stated > max(FREE_XZ_BYTES, MAX_XZ_RATIO * packed):
+        raise UserError(f"{what}: {packed} bytes of compressed coefficients cannot hold the {stated} bytes the tiles "
+                        f"state (at most {MAX_XZ_RATIO} times their size)")
 
 
 def json_depth(data) -> int:

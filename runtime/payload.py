@@ -114,6 +114,10 @@ def unpack_record(data: bytes) -> Record:
     body = data[RECORD.size + name_length:end]
     if hashlib.sha256(body).digest() != digest or (KINDS[kind] == "image" and width * height * 3 != length):
         raise UserError(INEXACT)
+    if name_length > MAX_NAME_BYTES:  # what Record.pack writes at most
+        raise UserError(f"the payload's file name is {name_length} bytes; a record holds at most {MAX_NAME_BYTES}")
+    if KINDS[kind] == "image":  # before any image library sees them
+        checked_image_size(width, height, "the payload's image")
     return Record(KINDS[kind], body, data[RECORD.size:RECORD.size + name_length], width, height)
 
 

@@ -36,7 +36,7 @@ from cryptography.hazmat.primitives.ciphers.aead import ChaCha20Poly1305
 from cryptography.hazmat.primitives.kdf.scrypt import Scrypt
 
 from noisenerf.runtime.errors import UserError
-from noisenerf.runtime.files import atomic_output, parse_json
+from noisenerf.runtime.files import parse_json, write_bytes
 from noisenerf.runtime.limits import checked_int
 
 CIPHER = "chacha20-poly1305"
@@ -46,6 +46,8 @@ NONCE_BYTES = 12
 TAG_BYTES = 16  # Poly1305's: the ciphertext is this much longer than the plaintext
 MAC_KEY = "noisenerf_seal_mac"
 WRONG = "wrong passphrase, or the bundle or model was altered"
+NOT_SEALED = ("a passphrase was given but the bundle is not sealed (a sealed bundle stripped of its seal reads so); "
+              "nothing revealed: reveal it without a passphrase only if it was sent unsealed")
 
 # Caps on the scrypt parameters a bundle may ask for, so a hostile bundle cannot demand huge memory or time:
 # at most 512 MiB (128·r·n bytes, 4x the default's) and 8x the default's work (a few seconds).
@@ -190,8 +192,7 @@ def add_bundle_tag(path: Path, keys: Keys) -> None:
     header["__metadata__"] = {**header.get("__metadata__", {}), MAC_KEY: bundle_tag(header, body, keys)}
     text = json.dumps(header, separators=(",", ":")).encode()
     text += b" " * (-len(text) % 8)  # safetensors keeps the data 8-byte aligned
-    with atomic_output(path) as tmp:
-        tmp.write_bytes(len(text).to_bytes(8, "little") + text + body)
+    write_bytes(path, len(text).to_bytes(8, "little") + text + body, replace=True)  # the bundle just written
 
 
 def check_bundle_tag(path: Path, keys: Keys) -> None:

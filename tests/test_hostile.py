@@ -29,6 +29,7 @@ from safetensors.torch import load_file as load_torch_file
 from safetensors.torch import save_file as save_torch_file
 
 from helpers import Result, assert_refused, bundle_contents, rewrite_bundle, run_main, turning_llff
+from noisenerf.cli.bench.reliability import stated, streamed
 from noisenerf.cli.main import main as noisenerf_main
 from noisenerf.cli.reveal import main as reveal_main
 from noisenerf.runtime.bundle import METADATA_KEY, load_bundle
@@ -388,6 +389,15 @@ def bundle_case(edit):
                              "-o", d / "out.png"]
 
 
+def compact_case(edit):
+    """A reveal of the session's compact bundle (`noisenerf hide`'s) after `edit`."""
+    def command(world, d):
+        (d / "hidden.bundle").write_bytes(world.hidden)
+        return ["noisenerf.cli.reveal", world.model, rewrite_bundle(d / "hidden.bundle", d / "b.bundle", edit),
+                "-o", d / "out.png"]
+    return command
+
+
 def view_case(edit):
     """An ordinary --view render of the model after `edit` to its metadata."""
     return lambda world, d: ["noisenerf.cli.reveal", write_model(d / "m.onnx", world.model, edit), "--view", 0,
@@ -417,6 +427,12 @@ ALLOCATIONS = {  # case: (command(world, folder), message)
     "model camera 100000 square": (view_case(MODELS["camera 100000 square"][0]), "between 1 and"),
     "model grid 10**6 cells a side": (view_case(meta_set("grid", "resolution", 10 ** 6)), "between 1 and"),
     "secret PNG claims 20000x20000": (header_case, "header claims"),  # OpenImageIO checks PNG headers
+    # decompression bombs (compact, the one layout with compressed streams): stated far beyond what the streams
+    # can hold, refused before decoding; a stream expanding past what is stated, refused once it does
+    "compact claims 8192x8192": (compact_case(stated(8192, 8192)), "at most 64 times their size"),
+    "compact claims 4096x2048": (compact_case(stated(4096, 2048)), "at most 64 times their size"),
+    "stream of 256 MiB of zeros": (compact_case(streamed(256 << 20)), "do not hold exactly (8, 16, "),
+    "stream of 1 MiB of zeros": (compact_case(streamed(1 << 20)), "do not hold exactly (8, 16, "),
 }
 
 
@@ -751,6 +767,9 @@ PARTIALS = {  # case: corrupt(partial folder); the rerun must recompute and writ
     "chunk counts float32, stamped": with_tensors(lambda t: t.update(counts=t["counts"].float())),
     "chunk params off the lattice, stamped": with_tensors(lambda t: t["noise"].view(-1).__setitem__(0, 1e-3)),
     "chunk escaped 7, stamped": with_tensors(lambda t: t["escaped"].view(-1).__setitem__(0, 7)),
+    # sound by every check a part can make alone, wrong for its tile: found when the tile renders, solved again
+    "chunk moved along the lattice, stamped": with_tensors(lambda t: t.update(noise=t["noise"] + 37)),
+    "chunk of zeros, stamped": with_tensors(lambda t: t.update(noise=torch.zeros_like(t["noise"]))),
     "chunk NaN": with_tensors(lambda t: t["noise"].view(-1).__setitem__(5, float("nan"))),
     "chunk without counts": with_tensors(lambda t: t.pop("counts")),
     "chunk with an extra field": with_tensors(lambda t: t.update(extra=torch.zeros(3))),

@@ -51,34 +51,49 @@ def test_16_bit_reads_as_unit_range_and_float_raw(tmp_path):
 def test_8_bit_secret_passes_through_bit_exactly(tmp_path):
     pixels = np.random.default_rng(0).permutation(np.arange(256 * 3, dtype=np.int64) % 256).astype(np.uint8)
     pixels = pixels.reshape(16, 16, 3)
-    secret, warnings = load_secret(write_raw(tmp_path / "s.png", pixels, "uint8"))
+    secret, warnings, _ = load_secret(write_raw(tmp_path / "s.png", pixels, "uint8"))
     np.testing.assert_array_equal(secret, pixels)
     assert secret.dtype == np.uint8 and warnings == []
-    grey, _ = load_secret(write_raw(tmp_path / "g.png", pixels[..., :1], "uint8"))
+    grey, _, _ = load_secret(write_raw(tmp_path / "g.png", pixels[..., :1], "uint8"))
     np.testing.assert_array_equal(grey, np.repeat(pixels[..., :1], 3, axis=-1))
 
 
 def test_16_bit_secret_rounds_half_up(tmp_path):
     values = np.array([[[0, 128 * 257, 32767, 32768, 65535]]], np.uint16).reshape(1, 5, 1)
-    secret, _ = load_secret(write_raw(tmp_path / "s.tif", np.repeat(values, 3, axis=-1), "uint16"))
+    secret, _, _ = load_secret(write_raw(tmp_path / "s.tif", np.repeat(values, 3, axis=-1), "uint16"))
     # 32767 / 65535 · 255 = 127.498, 32768 / 65535 · 255 = 127.502
     np.testing.assert_array_equal(secret[0, :, 0], [0, 128, 127, 128, 255])
 
 
+@pytest.mark.parametrize("channels", [1, 3, 4])
+def test_16_bit_secrets_say_their_low_bits_are_not_kept(tmp_path, channels):
+    """RGB, grey and RGBA 16-bit PNGs: the 8-bit quantisation is hidden, and the warning and bits say so."""
+    values = np.random.default_rng(channels).integers(0, 65536, (4, 5, channels), dtype=np.uint16)
+    values[..., channels - 1] |= 1 if channels != 4 else 0xFFFF  # opaque alpha; odd values lose bits
+    secret, warnings, bits = load_secret(write_raw(tmp_path / "s.png", values, "uint16", unassociated=True))
+    assert bits == 16 and len(warnings) == 1
+    assert warnings[0].endswith("has 16-bit channels; it is hidden as 8 bits per channel (the finer values are "
+                                "not kept, and `exact` is about the 8-bit values)")
+    colour = values[..., :3] if channels != 1 else np.repeat(values, 3, axis=-1)
+    scaled = colour.astype(np.float32) / np.float32(65535) * np.float32(255) + np.float32(0.5)
+    np.testing.assert_array_equal(secret, np.floor(scaled).astype(np.uint8))
+
+
 def test_alpha_secrets_are_composited_over_white(tmp_path):
     rgba = np.array([[[255, 0, 0, 128], [10, 20, 30, 0], [10, 20, 30, 255]]], np.uint8)
-    secret, _ = load_secret(write_raw(tmp_path / "rgba.png", rgba, "uint8", unassociated=True))
+    secret, _, _ = load_secret(write_raw(tmp_path / "rgba.png", rgba, "uint8", unassociated=True))
     np.testing.assert_array_equal(secret[0], [[255, 127, 127], [255, 255, 255], [10, 20, 30]])
     grey_alpha = np.array([[[0, 51]]], np.uint8)  # black at 20 % over white: 0.8 · 255
-    secret, _ = load_secret(write_raw(tmp_path / "ya.png", grey_alpha, "uint8", unassociated=True))
+    secret, _, _ = load_secret(write_raw(tmp_path / "ya.png", grey_alpha, "uint8", unassociated=True))
     np.testing.assert_array_equal(secret[0, 0], [204, 204, 204])
 
 
 def test_float_secret_is_clipped_with_a_warning(tmp_path):
     pixels = np.array([[[-0.5, 1.5, 0.5]]], np.float32)
-    secret, warnings = load_secret(write_raw(tmp_path / "s.exr", pixels, "float"))
+    secret, warnings, _ = load_secret(write_raw(tmp_path / "s.exr", pixels, "float"))
     np.testing.assert_array_equal(secret[0, 0], [0, 255, 128])
-    assert len(warnings) == 1 and "2 values outside [0, 1] clipped" in warnings[0]
+    assert len(warnings) == 2 and "has float channels; it is hidden as 8 bits" in warnings[0]
+    assert "2 values outside [0, 1] clipped" in warnings[1]
 
 
 @pytest.mark.parametrize("name, content, message", [
@@ -186,7 +201,7 @@ def test_resize_fractional_factor_weights_by_overlap():
 @pytest.mark.parametrize("name", ["ost/OST_013.png", "celeba_hq/female_039913.jpg"])
 def test_real_secrets_load_as_stored(shared_data, name):
     path = shared_data / "secrets" / name
-    secret, warnings = load_secret(path)
+    secret, warnings, _ = load_secret(path)
     assert secret.dtype == np.uint8 and secret.shape[-1] == 3 and warnings == []
     np.testing.assert_array_equal(secret, read_raw(path)[..., :3])
 

@@ -37,7 +37,7 @@ def lego(shared_data, tmp_path_factory):
 
 def small_photo(shared_data, name_index=0, width=48):
     photo = sorted((shared_data / "secrets" / "imagenet").iterdir())[name_index]
-    secret, _ = load_secret(photo)
+    secret, _, _ = load_secret(photo)
     height = round(secret.shape[0] * width / secret.shape[1])
     return to_uint8(resize_image(secret.astype(np.float32) / 255.0, width, height))
 

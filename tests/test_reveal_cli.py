@@ -42,13 +42,25 @@ def test_sample_layout_bundle_reveals_exactly(reveal_inputs, tmp_path):
     assert json.loads(result.stdout)["exact"] is True
 
 
-def test_exr_output_holds_the_float_image(reveal_inputs, tmp_path):
+WIDE = {"out.tif": (lambda v: v.astype(np.uint16) * np.uint16(257), "16 bits (v*257)"),
+        "out.exr": (lambda v: v.astype(np.float32) / np.float32(255), "(v/255)")}
+
+
+@pytest.mark.parametrize("name", WIDE)
+def test_wide_outputs_hold_the_pixels_exact_judged(reveal_inputs, tmp_path, name):
+    """A 16-bit or float file holds the 8-bit pixels the digest was checked on, scaled exactly, and says so,
+    not the float render, whose values `exact` says nothing about."""
     _, model, bundle = reveal_inputs
-    result = run_reveal(model, bundle, "-o", tmp_path / "out.exr")
+    scaled, written = WIDE[name]
+    result = run_reveal(model, bundle, "-o", tmp_path / name, "--json")
     assert result.returncode == 0, result.stderr
+    report = json.loads(result.stdout)
+    assert report["exact"] is True and report["written"].endswith(written)
     loaded = load_model(model)
     expected = reveal(load_bundle(bundle), loaded.render_config, loaded.fields(), keep_float=True)
-    np.testing.assert_array_equal(read_image(tmp_path / "out.exr"), expected.image)
+    stored = read_native(tmp_path / name)
+    np.testing.assert_array_equal(stored, scaled(expected.pixels))
+    assert not np.array_equal(stored, scaled(expected.image * 255).astype(stored.dtype))  # not the float render
 
 
 def test_another_digest_is_reported_inexact(reveal_inputs, tmp_path):

@@ -216,6 +216,13 @@ def replaced_tensor(name: str, replace):
     return apply
 
 
+def stated_4096(meta: dict) -> None:
+    """A compact bundle's metadata claiming a 4096² secret in one tile, its streams unchanged."""
+    meta["secret"].update(width=4096, height=4096)
+    meta["tiles"][0]["rect"] = [0, 0, 4096, 4096]
+    del meta["tiles"][1:]
+
+
 def recompressed(stream: bytes, dict_size: int) -> bytes:
     """The xz stream's data compressed again with a dictionary of dict_size bytes (the header states it)."""
     return lzma.compress(lzma.decompress(stream), format=lzma.FORMAT_XZ,
@@ -321,6 +328,14 @@ def write_fixtures(root: Path) -> dict:
         # 96 MiB: the first dictionary size over a preset-9 stream's 64 MiB, past both sides' decoder memory
         tamper(root, "compact_tiles", "xz_dictionary", edit_bundle=replaced_tensor(
             "tile_0001", lambda s: recompressed(s, 96 << 20))),
+        # bombs: a stream of 64 MiB of zeros where 5.8 KB are stated (refused once the stated size is passed),
+        # and a secret stated 4096² on the same few KB of streams (refused before any decoding)
+        tamper(root, "compact_tiles", "xz_bomb_expands", edit_bundle=replaced_tensor(
+            "tile_0001", lambda s: lzma.compress(bytes(64 << 20), format=lzma.FORMAT_XZ))),
+        tamper(root, "compact_tiles", "xz_bomb_stated", edit_bundle=bundle_metadata_edit(stated_4096)),
+        # a sealed bundle stripped of its seal, revealed with the passphrase its recipient holds
+        tamper(root, "payload_sealed", "sealed_stripped", passphrase=PASSPHRASE,
+               edit_bundle=bundle_metadata_edit(lambda meta: meta.pop("payload"))),
         tamper(root, "compact_tiles", "codec", edit_bundle=bundle_metadata_edit(
             lambda meta: meta["noise"].update(codec="zstd"))),
         tamper(root, "fine_compact", "wrong_model", edit_model=lambda data: (root / "scenes" / "plain.onnx").read_bytes()),

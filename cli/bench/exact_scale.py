@@ -30,7 +30,7 @@ def measure_photos(context: BenchContext) -> Measured:
     """Each photo at native size: exact in torch and in onnxruntime, and time."""
     rows = []
     for path in context.config.photos:
-        photo, _ = load_secret(path)
+        photo, _, _ = load_secret(path)
         report, revealed, reveal_seconds = context.hide_and_reveal(photo, "photo", HideConfig(view=context.config.view))
         rows.append({"secret": Path(path).name, "width": photo.shape[1], "height": photo.shape[0],
                      "tiles": len(report["tiles"]), "hide_seconds": report["seconds"],

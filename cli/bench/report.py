@@ -52,13 +52,13 @@ def curves_plot(rows: list[dict], path: Path, group: str, x: str, y: str, labels
 
 
 def save_figure(figure, path: Path) -> None:
-    with atomic_output(path) as tmp:
+    with atomic_output(path, replace=True) as tmp:
         figure.savefig(tmp, dpi=90, format="png")
 
 
 def write_csv(path: Path, rows: list[dict]) -> None:
     keys = list(dict.fromkeys(key for row in rows for key in row))
-    with atomic_output(path) as tmp, open(tmp, "w", newline="") as handle:
+    with atomic_output(path, replace=True) as tmp, open(tmp, "w", newline="") as handle:
         writer = csv.DictWriter(handle, keys)
         writer.writeheader()
         writer.writerows(rows)
@@ -78,5 +78,5 @@ def write_report(path: Path, config: BenchConfig, sections: list[Section], comma
         lines += [f"## {section.title}", "", *section.lines, ""]
         lines += [f"![{section.title}]({plot})" for plot in section.plots]
         lines += [f"Data: [{section.name}.csv]({section.name}.csv)", ""]
-    with atomic_output(path) as tmp:
+    with atomic_output(path, replace=True) as tmp:
         tmp.write_text("\n".join(lines) + "\n")

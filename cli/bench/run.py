@@ -28,7 +28,7 @@ def run_bench(config: BenchConfig, out: Path, run_stress: bool, command: str, pr
         raise UserError(f"output folder does not exist: {out.parent}")
     out.mkdir(exist_ok=True)
     scene = load_scene(config.scene)
-    secret, _ = load_secret(config.secret)
+    secret, _, _ = load_secret(config.secret)
     sections = []
     with tempfile.TemporaryDirectory() as tmp:
         model_path = Path(tmp) / "model.onnx"

@@ -11,10 +11,10 @@ from typing import Callable
 
 import torch
 from safetensors import safe_open
-from safetensors.torch import save_file
+from safetensors.torch import save
 
 from noisenerf.runtime.errors import UserError
-from noisenerf.runtime.files import atomic_output, existing_kind
+from noisenerf.runtime.files import existing_kind, write_bytes
 
 
 class Progress:
@@ -42,8 +42,7 @@ class Progress:
             fcntl.flock(self.lock, fcntl.LOCK_EX | fcntl.LOCK_NB)
             if not self.owns_folder():
                 self.discard_all()
-            with atomic_output(self.directory / "key") as tmp:
-                tmp.write_text(key)
+            write_bytes(self.directory / "key", key.encode(), replace=True)
         except BlockingIOError:
             os.close(self.lock)
             raise UserError(f"another hide is writing to {self.directory}; wait for it or choose another -o") from None
@@ -107,10 +106,13 @@ class Progress:
             return None
         return tensors
 
+    def discard(self, tile: int, chunk: int) -> None:
+        """Delete a saved chunk (one its tile's check showed to be wrong), so no resume takes it again."""
+        remove(self.path(tile, chunk))
+
     def save(self, tile: int, chunk: int, tensors: dict) -> None:
         tensors = {k: v.contiguous().cpu() for k, v in tensors.items()}
-        with atomic_output(self.path(tile, chunk)) as tmp:
-            save_file(tensors, str(tmp), metadata=self.stamp(tile, chunk, tensors))
+        write_bytes(self.path(tile, chunk), save(tensors, metadata=self.stamp(tile, chunk, tensors)), replace=True)
 
     def clear(self) -> None:
         """Remove the folder once the bundle is written (the lock is released on leaving the run)."""

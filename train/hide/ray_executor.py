@@ -8,6 +8,8 @@ optional extra, imported only here, when the executor is chosen.
 
 from __future__ import annotations
 
+import logging
+import socket
 from typing import Iterator
 
 import torch
@@ -16,6 +18,7 @@ from noisenerf.runtime.errors import UserError
 from noisenerf.train.hide.executors import Executor
 from noisenerf.train.hide.jobs import PREPARE, FieldWeights, Job, run_job
 
+CONNECT_SECONDS = 5.0  # how long an address may take to accept a connection before the hide gives up
 MAX_RETRIES = 3  # a task's reruns after its worker dies (a node lost, a process killed); not for errors
 INSTALL = "--executor ray needs Ray: pip install 'noisenerf[cluster]'"
 
@@ -39,8 +42,10 @@ class RayExecutor(Executor):
         self.ray = import_ray()
         self.started = not self.ray.is_initialized()
         if self.started:
+            check_reachable(address)
             try:
-                self.ray.init(address=address, include_dashboard=False, log_to_driver=False)
+                self.ray.init(address=address, include_dashboard=False, log_to_driver=False,
+                              logging_level=logging.ERROR)
             except ConnectionError as error:
                 raise UserError(f"cannot connect to the Ray cluster at {address or 'RAY_ADDRESS'}: {error}") from None
         resources = {"num_gpus": 1} if device.type == "cuda" else {"num_cpus": 1}
@@ -74,6 +79,20 @@ class RayExecutor(Executor):
             self.ray.cancel(reference, force=True)
         if self.started:
             self.ray.shutdown()
+
+
+def check_reachable(address: str | None, timeout: float = CONNECT_SECONDS) -> None:
+    """Refuse at once a cluster address nothing answers at (HOST:PORT or ray://HOST:PORT): ray.init would
+    retry for minutes, logging as it goes. None, "auto" and "local" are Ray's to resolve."""
+    if address is None or address in ("auto", "local"):
+        return
+    host, _, port = address.removeprefix("ray://").rpartition(":")
+    if not host or not port.isdigit():
+        raise UserError(f"--ray-address must be HOST:PORT or ray://HOST:PORT, got {address!r:.80}")
+    try:
+        socket.create_connection((host.strip("[]"), int(port)), timeout=timeout).close()
+    except OSError as error:
+        raise UserError(f"cannot reach the Ray cluster at {address}: {error.strerror or error}") from None
 
 
 def describe(job: Job) -> str:

@@ -42,7 +42,7 @@ PAYLOAD_IS_EXACT = "a payload is revealed whole or not at all: --allow-inexact i
 @dataclass
 class TileWork:
     """A tile on its way through the hide: its pixels (n, 3) uint8 on the CPU, its parts' rows, its shared
-    result once known, and its parts' results as they come."""
+    result once known, its parts' results as they come, and which of those a resume loaded from disk."""
 
     k: int
     tile: Tile
@@ -51,6 +51,7 @@ class TileWork:
     started: float
     prepared: object = None
     solved: dict = field(default_factory=dict)
+    loaded: set = field(default_factory=set)
 
 
 def hide(scene: Scene, secret: np.ndarray, output: Path, config: HideConfig, device: torch.device,
@@ -94,14 +95,24 @@ def hide(scene: Scene, secret: np.ndarray, output: Path, config: HideConfig, dev
             return Job(work.k, part, work.tile, rows, work.pixels[rows.start:rows.stop].clone(), config, str(device))
 
         def finish(work: TileWork) -> None:
-            """The tile assembled from its parts, checked by rendering it whole, and let go of."""
+            """The tile assembled from its parts, checked by rendering it whole, and let go of. A tile left
+            inexact by parts a resume loaded (another run's, or edited, and stamped anew) has those parts
+            deleted and solved again: a saved part is never trusted over a fresh solve."""
             x0, y0, w, h = work.tile.rect
             secret_view = tile_view(weights, work.tile, device)  # the jobs' own where they ran in this process
             pixels = work.pixels.to(device)
             solved = solver.assemble(secret_view, pixels, (h, w), config, work.prepared,
-                                     [work.solved.pop(c) for c in range(len(work.parts))])
+                                     [work.solved[c] for c in range(len(work.parts))])
             colors = secret_view.render_all(solved.noise, pass_samples_for(device.type))
             quality = tile_quality(colors.cpu().numpy(), pixels.cpu().numpy(), (h, w))
+            if solver.method.exact and quality["inexact_pixels"] and work.loaded:
+                for c in sorted(work.loaded):
+                    progress.discard(work.k, c)
+                    del work.solved[c]
+                    bar.update(-len(work.parts[c]))
+                    jobs.submit(job(work, c, work.parts[c]), work.prepared)
+                work.loaded.clear()
+                return
             if solver.method.exact and quality["inexact_pixels"] and not allow_inexact:
                 raise InexactResult(
                     f"tile {work.k} (view {work.tile.view}, {w}x{h} px at x={x0}, y={y0}) has "
@@ -122,6 +133,7 @@ def hide(scene: Scene, secret: np.ndarray, output: Path, config: HideConfig, dev
                     jobs.submit(job(work, c, rows), work.prepared)
                 else:
                     work.solved[c] = saved
+                    work.loaded.add(c)
                     bar.update(len(rows))
             return len(work.solved) == len(work.parts)
 
@@ -159,7 +171,7 @@ def hide(scene: Scene, secret: np.ndarray, output: Path, config: HideConfig, dev
                         extra={"method": config.method, "noisenerf": noisenerf.__version__,
                                "config": config.to_dict()}, payload=payload,
                         coefficients=tiles[0].noise.shape[-1] if config.layout == "compact" else None)
-        bundle.save(output)
+        bundle.save(output, replace=force)
         progress.clear()
     n_pixels = secret.shape[0] * secret.shape[1]
     exact_pixels = sum(r["exact_fraction"] * r["rect"][2] * r["rect"][3] for r in reports)

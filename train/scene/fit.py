@@ -23,14 +23,14 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
-from safetensors.torch import load_file, save_file
+from safetensors.torch import load_file, save
 from tqdm import tqdm
 
 from noisenerf.runtime import render as numpy_render
 from noisenerf.runtime.camera import camera_rays
 from noisenerf.runtime.errors import UserError
 from noisenerf.runtime.field_callbacks import plain
-from noisenerf.runtime.files import atomic_output, check_output_directory, read_json, write_json
+from noisenerf.runtime.files import check_output_directory, read_json, write_bytes, write_json
 from noisenerf.runtime.metrics import psnr, ssim
 from noisenerf.runtime.occupancy import OccupancyGrid
 from noisenerf.runtime.rays import camera_ray_batch, field_space_rays
@@ -243,8 +243,7 @@ class Fitter:
         tensors["tracker.density"] = torch.from_numpy(self.tracker.density)
         tensors["generator"] = self.generator.get_state()
         tensors = {k: v.detach().cpu().contiguous() for k, v in tensors.items()}
-        with atomic_output(directory / "checkpoint.safetensors") as tmp:
-            save_file(tensors, str(tmp))
+        write_bytes(directory / "checkpoint.safetensors", save(tensors), replace=True)
         write_json(directory / "checkpoint.json", {
             "fit": self.config.to_dict(), "step": self.step, "seconds": self.seconds,
             "samples_evaluated": self.samples_evaluated,

@@ -16,11 +16,11 @@ from pathlib import Path
 import numpy as np
 import torch
 from safetensors import SafetensorError
-from safetensors.numpy import load_file, save_file
+from safetensors.numpy import load_file, save
 
 from noisenerf.runtime.camera import Camera
 from noisenerf.runtime.errors import UserError
-from noisenerf.runtime.files import atomic_output, check_output_directory, read_json, write_json
+from noisenerf.runtime.files import check_output_directory, read_json, write_bytes, write_json
 from noisenerf.runtime.fingerprint import weights_fingerprint
 from noisenerf.runtime.networks import render_network
 from noisenerf.runtime.occupancy import OccupancyGrid
@@ -119,10 +119,9 @@ class Scene:
     def save(self, directory: str | Path) -> Path:
         directory = check_output_directory(directory)
         directory.mkdir(exist_ok=True)
-        with atomic_output(directory / "weights.safetensors") as tmp:
-            save_file(self.weight_arrays(), str(tmp))
-        with atomic_output(directory / "occupancy.safetensors") as tmp:
-            save_file({"occupied": self.grid.occupied.astype(np.uint8)}, str(tmp))
+        write_bytes(directory / "weights.safetensors", save(self.weight_arrays()), replace=True)
+        write_bytes(directory / "occupancy.safetensors", save({"occupied": self.grid.occupied.astype(np.uint8)}),
+                    replace=True)
         write_json(directory / "scene.json", {**self.config.to_dict(), "fingerprint": self.fingerprint()})
         return directory
 

@@ -6,7 +6,7 @@ import xz from "xz-decompress";
 import { UserError, repr, reprCut, tuple, PyFloat } from "./errors.js";
 import { isJsonObject as isObject, parseJson } from "./json.js";
 import {
-  MAX_CAMERAS, MAX_COMPACT_COEFFICIENTS, MAX_IMAGE_SIDE, MAX_NOISE_DIMS, MAX_RAY_LAYOUT_SAMPLES, MAX_TILES,
+  MAX_CAMERAS, MAX_COMPACT_COEFFICIENTS, checkedExpansion, MAX_IMAGE_SIDE, MAX_NOISE_DIMS, MAX_RAY_LAYOUT_SAMPLES, MAX_TILES,
   checkedFloat, checkedImageSize, checkedInt, checkedList,
 } from "./limits.js";
 import { cameraFromDict } from "./camera.js";
@@ -372,6 +372,11 @@ export async function loadBundle(data, source = "secret.bundle") {
   const areas = tileData.map((tile, i) => checkedRect(i, tile)).reduce((n, r) => n + r[2] * r[3], 0);
   if (header.layout === "compact" && areas !== width * height) {
     throw new UserError(`bundle: the tiles' areas do not add up to the ${width}x${height} secret`);
+  }
+  if (header.layout === "compact") {
+    const streams = tileData.map((tile) => (typeof tile.tensor === "string" ? tensors.get(tile.tensor) : undefined));
+    const packed = streams.reduce((n, stream) => n + (stream === undefined ? 0 : stream.values.byteLength), 0);
+    checkedExpansion(packed, areas * header.coefficients * (header.dtype === "int16" ? 2 : 1), "bundle");
   }
   const fingerprint = checkedText(meta.model_fingerprint ?? null, "bundle: model_fingerprint");
   const sha256 = checkedText(secret.sha256 ?? null, "bundle: sha256");

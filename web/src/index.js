@@ -11,7 +11,7 @@ import { checkModel, checkBundle } from "./model.js";
 import { LocalRenderer, revealBundle } from "./reveal.js";
 import { encodePng } from "./png.js";
 import { INEXACT, openPayload, sealOf } from "./payload.js";
-import { NO_PASSPHRASE, passphraseBytes, unsealKeys } from "./sealing.js";
+import { NO_PASSPHRASE, NOT_SEALED, passphraseBytes, unsealKeys } from "./sealing.js";
 
 export { UserError } from "./errors.js";
 
@@ -23,7 +23,8 @@ export async function inspectBundle(bundle) {
 }
 
 /**
- * model, bundle: Uint8Array; passphrase: string or Uint8Array (sealed bundles only).
+ * model, bundle: Uint8Array; passphrase: string or Uint8Array (sealed bundles only: given for an unsealed one, it is
+ *   refused, as a sealed bundle stripped of its seal would be revealed as its ciphertext).
  * onProgress({stage: "kdf" | "render", done, total}), optional.
  * openRenderer(model, networks) -> a renderer of chunks (src/reveal.js's LocalRenderer, this thread, by default;
  *   src/pool.js's FieldPool renders them in Web Workers), released when the reveal ends.
@@ -36,8 +37,9 @@ export async function reveal({ model, bundle, passphrase = null, onProgress = nu
   const secret = await loadBundle(bundle, "secret.bundle");
   const seal = secret.payload === null ? null : sealOf(secret.payload);
   let keys = null;
+  const phrase = passphraseBytes(passphrase);
+  if (seal === null && phrase !== null) throw new UserError(NOT_SEALED);
   if (seal !== null) {
-    const phrase = passphraseBytes(passphrase);
     if (phrase === null) throw new UserError(NO_PASSPHRASE);
     keys = await unsealKeys(bundle, seal, phrase, onProgress && ((done) => onProgress({ stage: "kdf", done, total: 1 })));
   }

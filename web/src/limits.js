@@ -8,6 +8,8 @@ export const MAX_IMAGE_PIXELS = 8192 * 8192;
 export const MAX_SAMPLES_PER_RAY = 1024;
 export const MAX_RAY_LAYOUT_SAMPLES = 256;
 export const MAX_COMPACT_COEFFICIENTS = 8;
+export const MAX_XZ_RATIO = 64;
+export const FREE_XZ_BYTES = 1 << 20;
 export const MAX_TILES = Math.floor(MAX_IMAGE_PIXELS / 16 ** 2);
 export const MAX_NOISE_DIMS = 4096;
 export const MAX_FIELD_DEPTH = 64;
@@ -69,4 +71,12 @@ export function checkedImageSize(width, height, what) {
 /** A JSON number (int or PyFloat) as a JS number, or undefined. */
 export function num(value) {
   return value instanceof PyFloat ? value.value : isInt(value) ? Number(value) : undefined;
+}
+
+/** checked_expansion: compressed streams of `packed` bytes may state at most MAX_XZ_RATIO times that (or FREE_XZ_BYTES). */
+export function checkedExpansion(packed, stated, what) {
+  if (stated > Math.max(FREE_XZ_BYTES, MAX_XZ_RATIO * packed)) {
+    throw new UserError(`${what}: ${packed} bytes of compressed coefficients cannot hold the ${stated} bytes the tiles `
+      + `state (at most ${MAX_XZ_RATIO} times their size)`);
+  }
 }

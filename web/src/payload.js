@@ -5,6 +5,7 @@
 
 import { sha256 } from "@noble/hashes/sha2.js";
 import { UserError } from "./errors.js";
+import { checkedImageSize } from "./limits.js";
 import { isJsonObject, pyEqual } from "./json.js";
 import { sealFromDict, associatedData, decrypt } from "./sealing.js";
 
@@ -12,6 +13,7 @@ export const MAGIC = [0x4e, 0x4e, 0x50, 0x4c]; // b"NNPL"
 export const RECORD_VERSION = 1;
 export const RECORD_SIZE = 56;
 export const KINDS = ["file", "image"];
+export const MAX_NAME_BYTES = 255; // what a record's writer (runtime/payload.py Record.pack) allows
 export const PAYLOAD_VERSION = 1;
 export const INEXACT = "the revealed pixels do not reproduce the payload's SHA-256 (the bundle or model was altered, " +
   "or this machine renders differently); nothing written";
@@ -47,6 +49,10 @@ export function unpackRecord(data) {
   if (!equalBytes(sha256(body), digest) || (KINDS[kind] === "image" && width * height * 3 !== Number(length))) {
     throw new UserError(INEXACT);
   }
+  if (nameLength > MAX_NAME_BYTES) {
+    throw new UserError(`the payload's file name is ${nameLength} bytes; a record holds at most ${MAX_NAME_BYTES}`);
+  }
+  if (KINDS[kind] === "image") checkedImageSize(width, height, "the payload's image");
   return { kind: KINDS[kind], body, name: data.slice(RECORD_SIZE, RECORD_SIZE + nameLength), width, height };
 }
 

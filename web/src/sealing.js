@@ -24,6 +24,8 @@ export const MAX_KDF_WORK = 2 ** 24;
 // cli/reveal.py's refusal without a passphrase, up to its command-line hints (a page has a passphrase field)
 export const NO_PASSPHRASE = "the bundle is sealed: give its passphrase";
 export const EMPTY_PASSPHRASE = "the passphrase is empty";
+export const NOT_SEALED = "a passphrase was given but the bundle is not sealed (a sealed bundle stripped of its seal reads so); "
+  + "nothing revealed: reveal it without a passphrase only if it was sent unsealed";
 
 /** ScryptParams.from_dict: parameters read from a bundle, refused beyond MAX_KDF_MEMORY or MAX_KDF_WORK. */
 export function scryptParams(data) {
