@@ -104,6 +104,17 @@ def test_exact_curve_ends_exact_and_photos_reveal_exactly(report):
     assert sections["twok"].rows[0]["tiles"] == 2 and sections["twok"].rows[0]["hide_seconds_2k"] > 0
 
 
+def test_every_reliability_case_is_refused_cleanly(report):
+    _, sections = report
+    rows = sections["reliability"].rows
+    assert {row["class"] for row in rows} == {"decompression bomb", "downgrade", "race", "full disk"}
+    verdicts = {row["verdict"] for row in rows}
+    assert verdicts <= {"refused", "skipped (needs root)"} and "refused" in verdicts, rows
+    refused = sum(row["verdict"] == "refused" for row in rows)
+    assert sections["reliability"].lines[0].startswith(f"{len(rows)} cases: {refused} refused cleanly")
+    assert all(row["seconds"] < 10 for row in rows if row["seconds"] is not None), rows
+
+
 def test_payload_rows_are_byte_exact_and_sealed_fills_its_bucket(report):
     _, sections = report
     plain, sealed = sections["payload"].rows

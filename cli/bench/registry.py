@@ -10,7 +10,8 @@ from typing import Any, Callable, Mapping
 
 from noisenerf.runtime.errors import UserError
 
-from noisenerf.cli.bench import big_secret, browser, cluster, coverage, exact_cost, exact_scale, paper, payload
+from noisenerf.cli.bench import (big_secret, browser, cluster, coverage, exact_cost, exact_scale, paper, payload,
+                                 reliability)
 from noisenerf.cli.bench.context import BenchContext, Measured, Section
 
 
@@ -58,6 +59,8 @@ REGISTRY = (
     Experiment("coverage", "Exact everywhere: hard secrets at every camera", coverage.measure_coverage,
                coverage.describe_coverage),
     Experiment("payload", "File payloads, plain and sealed", payload.measure_payload, payload.describe_payload),
+    Experiment("reliability", "Hostile and failing conditions, by verdict", reliability.measure_reliability,
+               reliability.describe_reliability),
     Experiment("browser", "Reveal in a browser", browser.measure_browser, browser.describe_browser),
     Experiment("cluster", "Hiding on Ray", cluster.measure_cluster, cluster.describe_cluster),
     Experiment("big_secret", "An 8K secret, and the memory it takes", big_secret.measure_big_secret,
