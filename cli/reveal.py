@@ -26,26 +26,16 @@ import argparse
 import json
 import sys
 import time
-from pathlib import Path
 from typing import TYPE_CHECKING
-
-import numpy as np
 
 from noisenerf.cli.common import (FAILURES, OneLineParser, failure, passphrase_given, payload_line, quiet_warnings,
                                   read_passphrase)
-from noisenerf.runtime.errors import UserError
 from noisenerf.runtime.files import json_text
 
 if TYPE_CHECKING:
-    from noisenerf.runtime.bundle import Bundle
-    from noisenerf.runtime.model import Model
-    from noisenerf.runtime.reveal import Revealed
-    from noisenerf.runtime.sealing import Keys
+    from noisenerf.runtime.api import RevealResult
 
 PROG = "noisenerf-reveal"
-# how a revealed image's file holds its 8-bit values, by the pixel type written (runtime.images.encoded)
-WRITTEN_AS = {"uint8": "8-bit values", "uint16": "8-bit values scaled exactly to 16 bits (v*257)",
-              "float": "8-bit values as floats (v/255)"}
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -69,129 +59,56 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-def progress_bar(total: int):
+def progress_bar(total: int | None):
     """Rays done, on stderr, shown only on a terminal."""
     from tqdm import tqdm
 
     return tqdm(total=total, unit="ray", unit_scale=True, file=sys.stderr, disable=None, leave=False)
 
 
-def reveal_secret(model: Model, bundle: Bundle) -> tuple[Revealed, dict]:
-    """Render and stitch a bundle's tiles -> the revealed 8-bit image, report."""
-    from noisenerf.runtime.model import check_bundle
-    from noisenerf.runtime.reveal import reveal
-
-    check_bundle(model, bundle)
-    rays = sum(tile.rect[2] * tile.rect[3] for tile in bundle.tiles)
-    with progress_bar(rays) as bar:
-        revealed = reveal(bundle, model.render_config, model.fields(), progress=bar)
-    return revealed, {"exact": revealed.exact, "width": bundle.width, "height": bundle.height,
-                            "tiles": len(bundle.tiles), "rays": rays,
-                            "samples": sum(tile.rect[2] * tile.rect[3] * tile.sampling.n_samples
-                                           for tile in bundle.tiles)}
-
-
-def render_dataset_view(model: Model, view: int, skip: bool) -> tuple[np.ndarray, dict]:
-    """An ordinary render of one of the model's cameras -> float image (h, w, 3), report. A model with a
-    fine network renders hierarchically, as nerf-pytorch does, and never skips (see render_rays)."""
-    from noisenerf.runtime.render import render_view
-
-    camera = model.camera(view)
-    hierarchical = model.coarse is not None
-    with progress_bar(camera.width * camera.height) as bar:
-        grid = model.grid if skip else model.grid.box_only()
-        image, stats = render_view(camera, model.render_config, model.field, grid, early_stop=None if skip else 0.0,
-                                   progress=bar, coarse=model.coarse)
-    return image, {"view": view, "width": camera.width, "height": camera.height,
-                   "skip": skip and not hierarchical, "hierarchical": hierarchical,
-                   "rays": stats.n_rays, "samples": stats.n_samples_evaluated,
-                   "samples_dense": stats.n_samples_dense}
-
-
-def checked_output(path: str, force: bool, reveal: bool) -> Path:
-    """Refuse an output path before any rendering: missing or unwritable folder, existing file (or anything
-    not a regular file), unknown format, and for a reveal a lossy one (the exactness claim is made on the
-    8-bit pixels, so they must be the pixels written; an ordinary --view render may be a JPEG)."""
-    from noisenerf.runtime.files import check_output_path, refuse_lossy
-    from noisenerf.runtime.images import WRITE_FORMATS
-
-    output = check_output_path(path, force=force)
-    if (output.suffix.lower() or ".png") not in WRITE_FORMATS:
-        raise UserError(f"unknown image extension {output.suffix!r} for {output}; use one of "
-                        f"{', '.join(WRITE_FORMATS)}")
-    if reveal:
-        refuse_lossy(output)
-    return output
-
-
-def unseal(bundle: Bundle, bundle_path: str, passphrase_file: str | None) -> Keys | None:
-    """A sealed bundle's keys, its tag checked before anything is rendered; None for an unsealed one. A
-    passphrase given for a bundle that is not sealed is refused: a sealed bundle stripped of its seal reads
-    exactly so, and revealing it would pass its ciphertext off as the secret."""
-    from noisenerf.runtime.payload import seal_of
-    from noisenerf.runtime.sealing import NOT_SEALED, unseal_keys
-
-    seal = None if bundle.payload is None else seal_of(bundle.payload)
-    if seal is None:
-        if passphrase_given(passphrase_file):
-            raise UserError(NOT_SEALED)
-        return None
-    passphrase = read_passphrase(passphrase_file)
-    if passphrase is None:
-        raise UserError("the bundle is sealed: give its passphrase with --passphrase-file F, NOISENERF_PASSPHRASE, "
-                        "or at the prompt (stdin a terminal)")
-    return unseal_keys(Path(bundle_path), seal, passphrase)
-
-
-def write_payload(args: argparse.Namespace, revealed: Revealed, bundle: Bundle, model: Model,
-                  keys: Keys | None) -> dict:
-    """Open the payload in the revealed pixels and write it to OUT (a file's bytes; a sealed image by
-    OUT's extension); nothing is written unless every byte checks. -> the payload's report."""
-    from noisenerf.runtime.files import write_bytes
-    from noisenerf.runtime.images import write_image
-    from noisenerf.runtime.payload import INEXACT, open_payload
-
-    if not revealed.exact:
-        raise UserError(INEXACT)
-    record = open_payload(revealed.pixels, bundle.payload, model.fingerprint, keys)
-    if record.kind == "image":
-        write_image(checked_output(args.output, args.force, reveal=True), record.pixels(), replace=args.force)
-    else:
-        write_bytes(args.output, record.body, replace=args.force)
-    return record.report()
+def reveal_report(result: RevealResult) -> dict:
+    """--json's object for a reveal, but for where it was written."""
+    report = {"exact": result.exact, "width": result.secret_size[0], "height": result.secret_size[1],
+              "tiles": result.tiles, "rays": result.rays, "samples": result.samples}
+    if result.payload:
+        report.update(sealed=result.sealed, payload=result.payload_report())
+    return report
 
 
 def run(args: argparse.Namespace) -> dict:
-    """Everything but argument parsing and printing; bad input raises UserError before any output."""
-    from noisenerf.runtime.bundle import load_bundle
+    """Everything but argument parsing and printing; bad input raises UserError before any output. The output
+    is checked before any work, so a bad one costs nothing."""
+    from noisenerf.runtime import api
     from noisenerf.runtime.files import check_output_path
-    from noisenerf.runtime.images import write_image, written_format
-    from noisenerf.runtime.model import load_model
 
     start = time.perf_counter()
-    bundle = load_bundle(args.bundle) if args.bundle is not None else None
-    payload = bundle is not None and bundle.payload is not None
-    output = (check_output_path(args.output, force=args.force) if payload
-              else checked_output(args.output, args.force, reveal=bundle is not None))
-    keys = unseal(bundle, args.bundle, args.passphrase_file) if bundle is not None else None
-    model = load_model(args.model, device=args.device, threads=args.threads)
-    loaded = time.perf_counter()
-    if bundle is not None:
-        revealed, report = reveal_secret(model, bundle)
-        image = revealed.pixels  # the very pixels `exact` judged, in every format
-        if not payload:
-            report["written"] = WRITTEN_AS[written_format(output)[1]]
+    if args.view is not None:
+        check_output_path(args.output, force=args.force)
+        with progress_bar(None) as bar:
+            result = api.render(args.model, args.view, skip=not args.no_skip, device=args.device,
+                                threads=args.threads, progress=bar.update)
+        rendered = time.perf_counter()
+        result.save(args.output, force=args.force)
+        report = {"view": result.view, "width": result.image.shape[1], "height": result.image.shape[0],
+                  "skip": result.skip, "hierarchical": result.hierarchical, "rays": result.rays,
+                  "samples": result.samples, "samples_dense": result.samples_dense}
     else:
-        image, report = render_dataset_view(model, args.view, skip=not args.no_skip)
-    rendered = time.perf_counter()
-    if payload:
-        report = {**report, "sealed": keys is not None,
-                  "payload": write_payload(args, revealed, bundle, model, keys)}
-    else:
-        write_image(output, image, replace=args.force)
+        read = api.read_bundle(args.bundle)
+        bundle = read.bundle
+        if bundle.payload is None:  # an image: its format is known now (a sealed image's once decrypted)
+            api.checked_image_output(args.output, args.force)
+        else:
+            check_output_path(args.output, force=args.force)
+        ask = read.sealed or passphrase_given(args.passphrase_file)
+        passphrase = read_passphrase(args.passphrase_file) if ask else None
+        with progress_bar(bundle.width * bundle.height) as bar:
+            result = api.reveal(args.model, read, passphrase, device=args.device, threads=args.threads,
+                                progress=bar.update)
+        rendered = time.perf_counter()
+        report = {**reveal_report(result), **result.save(args.output, force=args.force)}
     done = time.perf_counter()
-    timings = {"load": loaded - start, "render": rendered - loaded, "write": done - rendered}
-    return {**report, "output": str(output), "seconds": round(done - start, 3),
+    timings = {**result.timings, "write": done - rendered}
+    return {**report, "output": str(args.output), "seconds": round(done - start, 3),
             "timings": {name: round(seconds, 3) for name, seconds in timings.items()}}
 
 

@@ -35,19 +35,20 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-from safetensors import SafetensorError, safe_open
-from safetensors.numpy import save
+from safetensors import SafetensorError
+from safetensors.numpy import load, save
 
 from noisenerf import __version__
 from noisenerf.runtime.camera import Camera
 from noisenerf.runtime.errors import UserError
-from noisenerf.runtime.files import parse_json, write_bytes
+from noisenerf.runtime.files import os_failure, parse_json, write_bytes
 from noisenerf.runtime.limits import (
     MAX_CAMERAS, MAX_COMPACT_COEFFICIENTS, MAX_IMAGE_SIDE, MAX_NOISE_DIMS, MAX_RAY_LAYOUT_SAMPLES, MAX_TILES,
     MAX_XZ_MEMORY, checked_expansion, checked_float, checked_image_size, checked_int, checked_list,
 )
 from noisenerf.runtime.networks import NETWORKS
 from noisenerf.runtime.payload import checked_payload
+from noisenerf.runtime.sealing import split_safetensors
 from noisenerf.runtime.sampling import SamplingConfig
 
 BUNDLE_FORMAT_VERSION = 2
@@ -348,16 +349,17 @@ def validate(bundle: Bundle) -> None:
         covered[y0:y0 + h, x0:x0 + w] = 1
 
 
-def read_tensors(handle, path: Path) -> dict[str, np.ndarray]:
+def read_tensors(header: dict, data: bytes, source: str) -> dict[str, np.ndarray]:
     """Every tensor, refusing any dtype but SAFETENSORS_DTYPES (bfloat16 has no numpy type) before reading."""
-    tensors = {}
-    for name in handle.keys():
-        dtype = handle.get_slice(name).get_dtype()
-        if dtype not in SAFETENSORS_DTYPES:
-            raise UserError(f"bundle tensor {name!r} is {dtype}; noise is stored as "
-                            f"{' or '.join(SAFETENSORS_DTYPES)}: {path}")
-        tensors[name] = handle.get_tensor(name)
-    return tensors
+    for name, info in header.items():
+        dtype = info.get("dtype") if isinstance(info, dict) else None
+        if name != "__metadata__" and dtype not in SAFETENSORS_DTYPES:
+            raise UserError(f"bundle tensor {name!r:.60} is {dtype!r:.20}; noise is stored as "
+                            f"{' or '.join(SAFETENSORS_DTYPES)}: {source}")
+    try:
+        return load(data)
+    except (SafetensorError, ValueError, TypeError) as error:
+        raise UserError(f"not a readable safetensors bundle: {source} ({error})") from None
 
 
 def tile_tensor(tensors: dict[str, np.ndarray], name: str, what: str, dtype=None, ndim: int | None = None) -> np.ndarray:
@@ -483,20 +485,31 @@ def checked_rect(i: int, data) -> tuple[int, int, int, int]:
     return (x0, y0, *checked_image_size(rect[2], rect[3], f"bundle: tile {i} rect"))
 
 
-def load_bundle(path: str | Path) -> Bundle:
-    """Read and validate a bundle; anything malformed is one UserError."""
-    path = Path(path)
+def bundle_bytes(source: str | Path | bytes) -> tuple[bytes, str]:
+    """A bundle's bytes and the name its refusals give it: a path's contents, or the bytes themselves."""
+    if isinstance(source, (bytes, bytearray, memoryview)):
+        return bytes(source), "the bundle"
+    path = Path(source)
     if not path.is_file():
         raise UserError(f"bundle not found: {path}")
     try:
-        with safe_open(str(path), framework="numpy") as handle:
-            raw = (handle.metadata() or {}).get(METADATA_KEY)
-            if raw is None:
-                raise UserError(f"not a noisenerf bundle (no '{METADATA_KEY}' metadata): {path}")
-            meta = parse_json(raw, "bundle metadata", path)
-            tensors = read_tensors(handle, path)
-    except (SafetensorError, OSError, ValueError, TypeError) as error:
-        raise UserError(f"not a readable safetensors bundle: {path} ({error})") from None
-    bundle = parse_bundle(meta, tensors, path)
+        return path.read_bytes(), str(path)
+    except OSError as error:
+        raise os_failure("read bundle", path, error) from None
+
+
+def load_bundle(source: str | Path | bytes) -> Bundle:
+    """Read and validate a bundle (a path, or its bytes); anything malformed is one UserError."""
+    return parse_bundle_bytes(*bundle_bytes(source))
+
+
+def parse_bundle_bytes(data: bytes, name: str) -> Bundle:
+    """A bundle from its bytes, validated; refusals name it `name` (its path)."""
+    header, _ = split_safetensors(data, name)
+    raw = header.get("__metadata__", {}).get(METADATA_KEY)
+    if not isinstance(raw, str):
+        raise UserError(f"not a noisenerf bundle (no '{METADATA_KEY}' metadata): {name}")
+    meta = parse_json(raw, "bundle metadata", name)
+    bundle = parse_bundle(meta, read_tensors(header, data, name), Path(name))
     validate(bundle)
     return bundle

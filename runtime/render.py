@@ -136,10 +136,10 @@ def rays_per_chunk(n_samples: int, most_rays: int = CHUNK_RAYS) -> int:
 ChunkRenderer = Callable[[int, int], tuple[np.ndarray, RenderStats]]  # (start, stop) -> colours (m, 3), counts
 
 
-def render_in_chunks(n_rays: int, chunk_rays: int, render_chunk: ChunkRenderer, progress=None
-                     ) -> tuple[np.ndarray, RenderStats]:
+def render_in_chunks(n_rays: int, chunk_rays: int, render_chunk: ChunkRenderer,
+                     progress: Callable[[int], None] | None = None) -> tuple[np.ndarray, RenderStats]:
     """The one render loop: colours (n_rays, 3) float32 of rays 0..n_rays, `chunk_rays` at a time, so a
-    render holds one chunk's rays, samples and noise at once; `progress` (tqdm-like) counts rays."""
+    render holds one chunk's rays, samples and noise at once; `progress(n)` is told of each chunk's n rays."""
     colors = np.empty((n_rays, 3), dtype=np.float32)
     stats = RenderStats(0, 0, 0)
     for start in range(0, n_rays, chunk_rays):
@@ -147,7 +147,7 @@ def render_in_chunks(n_rays: int, chunk_rays: int, render_chunk: ChunkRenderer, 
         colors[start:stop], chunk_stats = render_chunk(start, stop)
         stats = stats + chunk_stats
         if progress is not None:
-            progress.update(stop - start)
+            progress(stop - start)
     return colors, stats
 
 

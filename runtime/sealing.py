@@ -166,12 +166,15 @@ def decrypt(ciphertext: bytes, keys: Keys, seal: Seal, associated: bytes) -> byt
         raise UserError(WRONG) from None
 
 
-def split_safetensors(data: bytes, source: Path) -> tuple[dict, bytes]:
+def split_safetensors(data: bytes, source: str | Path) -> tuple[dict, bytes]:
     """A safetensors file's parsed header and its tensor data (everything after the header)."""
     size = int.from_bytes(data[:8], "little") if len(data) >= 8 else -1
     if not 0 < size <= len(data) - 8:
         raise UserError(f"not a readable safetensors bundle: {source}")
-    header = parse_json(data[8:8 + size], "bundle header", source)
+    try:
+        header = parse_json(data[8:8 + size], "bundle header", source)
+    except UserError as error:
+        raise UserError(f"not a readable safetensors bundle: {source} ({str(error).split(': ', 1)[0]})") from None
     if not isinstance(header, dict) or not isinstance(header.get("__metadata__", {}), dict):
         raise UserError(f"not a readable safetensors bundle: {source}")
     return header, data[8 + size:]
@@ -195,16 +198,16 @@ def add_bundle_tag(path: Path, keys: Keys) -> None:
     write_bytes(path, len(text).to_bytes(8, "little") + text + body, replace=True)  # the bundle just written
 
 
-def check_bundle_tag(path: Path, keys: Keys) -> None:
-    """Refuse (WRONG) a bundle whose tag is missing or is not this key's over its present bytes."""
-    header, body = split_safetensors(path.read_bytes(), path)
+def check_bundle_tag(data: bytes, keys: Keys) -> None:
+    """Refuse (WRONG) a bundle (its bytes) whose tag is missing or is not this key's over those bytes."""
+    header, body = split_safetensors(data, "the bundle")
     stored = header.get("__metadata__", {}).get(MAC_KEY)
     if not isinstance(stored, str) or not stored.isascii() or not hmac.compare_digest(stored, bundle_tag(header, body, keys)):
         raise UserError(WRONG)
 
 
-def unseal_keys(path: Path, seal: Seal, passphrase: bytes) -> Keys:
-    """The keys of the sealed bundle at `path`, once its tag shows it unchanged under this passphrase."""
+def unseal_keys(data: bytes, seal: Seal, passphrase: bytes) -> Keys:
+    """The keys of the sealed bundle of these bytes, once its tag shows it unchanged under this passphrase."""
     keys = derive_keys(passphrase, seal)
-    check_bundle_tag(path, keys)
+    check_bundle_tag(data, keys)
     return keys

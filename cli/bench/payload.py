@@ -3,16 +3,13 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
-from pathlib import Path
 
 import numpy as np
 import torch
 
-from noisenerf.runtime.bundle import load_bundle
-from noisenerf.runtime.model import Model
-from noisenerf.runtime.payload import Record, open_payload, seal_of
-from noisenerf.runtime.reveal import reveal
-from noisenerf.runtime.sealing import ScryptParams, derive_keys, new_seal, unseal_keys
+from noisenerf.runtime.api import reveal
+from noisenerf.runtime.payload import Record
+from noisenerf.runtime.sealing import ScryptParams, derive_keys, new_seal
 from noisenerf.train.hide.payload import hide_payload
 from noisenerf.train.hide.plan import HideConfig
 
@@ -24,15 +21,6 @@ BENCH_PASSPHRASE = b"noisenerf bench"
 @dataclass(frozen=True, kw_only=True)
 class Payload(Measured):
     kdf: ScryptParams  # the default parameters the KDF was timed with
-
-
-def reveal_payload_file(path: Path, model: Model, passphrase: bytes) -> Record:
-    """What `noisenerf-reveal` does with a payload bundle, without writing: unseal, reveal, open."""
-    bundle = load_bundle(path)
-    seal = seal_of(bundle.payload)
-    keys = None if seal is None else unseal_keys(path, seal, passphrase)
-    revealed = reveal(bundle, model.render_config, model.fields())
-    return open_payload(revealed.pixels, bundle.payload, model.fingerprint, keys)
 
 
 def measure_payload(context: BenchContext) -> Payload:
@@ -48,12 +36,13 @@ def measure_payload(context: BenchContext) -> Payload:
         report, hide_seconds = timed(hide_payload, context.scene, record, path, HideConfig(view=config.view),
                                      torch.device("cpu"), passphrase=BENCH_PASSPHRASE if sealed else None,
                                      force=True, show_progress=False)
-        opened, reveal_seconds = timed(reveal_payload_file, path, context.model, BENCH_PASSPHRASE)
+        # what `noisenerf-reveal` does with it, without writing: unseal, reveal, open
+        opened, reveal_seconds = timed(reveal, context.model, path, BENCH_PASSPHRASE if sealed else None)
         room = report["capacity"]
         rows.append({"sealed": sealed, "payload_bytes": config.payload_bytes,
                      "secret": f"{room['width']}x{room['height']}", "pixels": room["pixels"], "tiles": room["tiles"],
                      "hide_seconds": hide_seconds, "reveal_seconds": reveal_seconds,
-                     "bundle_bytes": report["bundle_bytes"], "exact": opened.body == record.body,
+                     "bundle_bytes": report["bundle_bytes"], "exact": opened.bytes == record.body,
                      "kdf_seconds": kdf_seconds})
     return Payload(rows, kdf=seal.kdf)
 

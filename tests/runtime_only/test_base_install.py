@@ -97,3 +97,25 @@ def test_base_install_opens_the_sealed_note_byte_for_byte(demo_dir, tmp_path):
 def test_base_install_refuses_the_note_without_its_passphrase(demo_dir, tmp_path, passphrase, message):
     assert_refused(reveal_note(demo_dir, tmp_path / "note.txt", passphrase), tmp_path / "note.txt", message,
                    exact=True)
+
+
+def readme_python(heading: str) -> str:
+    """The ```python blocks of the README section under `heading`, joined."""
+    text = (Path(__file__).resolve().parents[2] / "README.md").read_text()
+    section = text.split(f"\n## {heading}\n", 1)[1].split("\n## ", 1)[0]
+    return "\n".join(block.split("```", 1)[0] for block in section.split("```python\n")[1:])
+
+
+def test_the_readme_python_api_runs_as_written_without_torch(demo_dir, tmp_path):
+    """The README's Python API section, run where `noisenerf demo` wrote noisenerf-demo/: it reveals the image
+    exactly, opens the sealed note, refuses it without its passphrase and renders a view, loading no torch."""
+    (tmp_path / "noisenerf-demo").symlink_to(demo_dir.resolve())
+    code = readme_python("Python API") + "\nimport sys\nassert 'torch' not in sys.modules\n"
+    result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=tmp_path)
+    assert result.returncode == 0, result.stderr
+    image, note, refusal, view = result.stdout.splitlines()
+    assert image.startswith("image True (72, 96, 3) ") and note == f"file note.txt {(demo_dir / 'note.txt').read_bytes()!r}"
+    assert refusal.startswith("the bundle is sealed: give its passphrase")
+    assert view.startswith("float32 (") and " samples" in view
+    from noisenerf.runtime.images import read_native
+    assert (read_native(tmp_path / "revealed.png") == read_native(demo_dir / "secret.png")).all()

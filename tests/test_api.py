@@ -1,0 +1,102 @@
+"""The Python API (`noisenerf.reveal`, `noisenerf.render`): the CLI's results and refusals, from paths or bytes."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+import noisenerf
+from helpers import run_reveal
+from noisenerf.cli.main import main as noisenerf_main
+from noisenerf.runtime.bundle import load_bundle
+from noisenerf.runtime.images import read_native, write_image
+from noisenerf.runtime.sealing import NOT_SEALED, WRONG
+
+
+@pytest.fixture(scope="module")
+def sealed_note(reveal_inputs, tmp_path_factory):
+    """(bundle, its payload's bytes): a file sealed with the passphrase "api"."""
+    folder, _, _ = reveal_inputs
+    work = tmp_path_factory.mktemp("api")
+    (work / "note.txt").write_bytes(b"under the third stone\n")
+    (work / "pass.txt").write_text("api")
+    code = noisenerf_main([str(a) for a in ("hide", folder / "scene", "--file", work / "note.txt", "-o",
+                                            work / "note.bundle", "--passphrase-file", work / "pass.txt", "--quiet")])
+    assert code == 0
+    return work / "note.bundle", (work / "note.txt").read_bytes()
+
+
+def test_reveal_from_paths_or_bytes_is_the_cli_reveal(reveal_inputs, tmp_path):
+    _, model, bundle = reveal_inputs
+    told = []
+    from_paths = noisenerf.reveal(model, bundle, progress=told.append)
+    from_bytes = noisenerf.reveal(model.read_bytes(), bundle.read_bytes())
+    assert from_paths.kind == from_bytes.kind == "image" and from_paths.exact and from_bytes.exact
+    np.testing.assert_array_equal(from_paths.pixels, from_bytes.pixels)
+    assert from_paths.sha256 == load_bundle(bundle).secret_sha256
+    assert sum(told) == from_paths.rays == from_paths.width * from_paths.height
+    assert run_reveal(model, bundle, "-o", tmp_path / "cli.png").returncode == 0
+    assert from_paths.save(tmp_path / "api.png") == {"written": "8-bit values"}
+    assert (tmp_path / "api.png").read_bytes() == (tmp_path / "cli.png").read_bytes()
+    with pytest.raises(noisenerf.UserError, match="output exists"):
+        from_paths.save(tmp_path / "api.png")
+
+
+def test_a_sealed_file_comes_back_with_its_name_and_bytes(reveal_inputs, sealed_note):
+    _, model, _ = reveal_inputs
+    bundle, body = sealed_note
+    note = noisenerf.reveal(model, bundle, passphrase="api")
+    assert (note.kind, note.name, note.bytes, note.sealed, note.exact) == ("file", "note.txt", body, True, True)
+    assert note.pixels is None
+    for passphrase, message in ((None, "the bundle is sealed"), ("API", WRONG), (b"ap", WRONG)):
+        with pytest.raises(noisenerf.UserError, match=message):
+            noisenerf.reveal(model, bundle, passphrase=passphrase)
+
+
+def test_a_passphrase_for_an_unsealed_bundle_is_refused(reveal_inputs):
+    _, model, bundle = reveal_inputs
+    with pytest.raises(noisenerf.UserError) as refused:
+        noisenerf.reveal(model, bundle, passphrase="anything")
+    assert str(refused.value) == NOT_SEALED
+
+
+def test_render_is_the_cli_view_render(reveal_inputs, tmp_path):
+    _, model, _ = reveal_inputs
+    view = noisenerf.render(model, 2)
+    result = run_reveal(model, "--view", 2, "-o", tmp_path / "v.png", "--json")
+    assert result.returncode == 0, result.stderr
+    report = json.loads(result.stdout)
+    assert (report["samples"], report["samples_dense"], report["skip"]) == (view.samples, view.samples_dense, True)
+    np.testing.assert_array_equal(read_native(tmp_path / "v.png"), view.pixels)
+    dense = noisenerf.render(model, 2, skip=False)
+    unskipped = json.loads(run_reveal(model, "--view", 2, "-o", tmp_path / "d.png", "--json", "--no-skip").stdout)
+    assert (dense.samples, dense.skip) == (unskipped["samples"], False) and view.samples <= dense.samples
+    np.testing.assert_array_equal(read_native(tmp_path / "d.png"), dense.pixels)
+
+
+def test_bad_input_is_the_cli_line(reveal_inputs, tmp_path):
+    _, model, bundle = reveal_inputs
+    with pytest.raises(noisenerf.UserError, match="^bundle not found: "):
+        noisenerf.reveal(model, tmp_path / "missing.bundle")
+    with pytest.raises(noisenerf.UserError, match="^not a readable safetensors bundle: the bundle"):
+        noisenerf.reveal(model, b"\x00" * 40)
+    with pytest.raises(noisenerf.UserError, match="view"):
+        noisenerf.render(model, 10 ** 6)
+    write_image(tmp_path / "x.png", np.zeros((2, 2, 3), np.uint8))
+    with pytest.raises(noisenerf.UserError, match="lossy"):
+        noisenerf.reveal(model, bundle).save(tmp_path / "x.jpg")
+
+
+def test_import_noisenerf_loads_nothing_heavy_until_used():
+    code = ("import sys, noisenerf\n"
+            "assert 'onnxruntime' not in sys.modules and 'torch' not in sys.modules\n"
+            "noisenerf.reveal\n"
+            "assert 'onnxruntime' in sys.modules and 'torch' not in sys.modules\n"
+            "try:\n    noisenerf.nothing\nexcept AttributeError as error:\n    print(error)\n")
+    result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    assert result.returncode == 0, result.stderr
+    assert result.stdout.strip() == "module 'noisenerf' has no attribute 'nothing'"
