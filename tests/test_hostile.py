@@ -29,7 +29,7 @@ from safetensors.torch import load_file as load_torch_file
 from safetensors.torch import save_file as save_torch_file
 
 from helpers import Result, assert_refused, bundle_contents, rewrite_bundle, run_main, turning_llff
-from noisenerf.cli.bench.reliability import stated, streamed
+from noisenerf.cli.bench.reliability import stated, streamed, zeros_as_stated
 from noisenerf.cli.main import main as noisenerf_main
 from noisenerf.cli.reveal import main as reveal_main
 from noisenerf.runtime.bundle import METADATA_KEY, load_bundle
@@ -433,6 +433,7 @@ ALLOCATIONS = {  # case: (command(world, folder), message)
     "compact claims 4096x2048": (compact_case(stated(4096, 2048)), "at most 64 times their size"),
     "stream of 256 MiB of zeros": (compact_case(streamed(256 << 20)), "do not hold exactly (8, 16, "),
     "stream of 1 MiB of zeros": (compact_case(streamed(1 << 20)), "do not hold exactly (8, 16, "),
+    "2048x2048 of zeros, as stated": (compact_case(zeros_as_stated(2048, 2048)), "at most 64 times their size"),
 }
 
 

@@ -49,6 +49,18 @@ def stated(width: int, height: int):
     return edit
 
 
+def zeros_as_stated(width: int, height: int):
+    """A bundle edit: a compact bundle whose one tile is a width x height camera with exactly the zero
+    coefficients it states, a stream of a few KB: every number in the caps, every stream the size it says."""
+    def edit(meta, tensors):
+        stated(width, height)(meta, tensors)
+        camera = meta["tiles"][0]["camera"]
+        camera.update(width=width, height=height, cx=width / 2, cy=height / 2)
+        item = 2 if meta["noise"]["dtype"] == "int16" else 1
+        streamed(width * height * meta["noise"]["coefficients"] * item)(meta, tensors)
+    return edit
+
+
 def streamed(n_bytes: int):
     """A bundle edit: the first tile's stream replaced by one of n_bytes zeros."""
     def edit(meta, tensors):
@@ -106,7 +118,8 @@ def measure_reliability(context: BenchContext) -> Measured:
 
     out = work / "out.png"
     for name, edit in (("stated 8192x8192", stated(8192, 8192)), ("stated 4096x4096", stated(4096, 4096)),
-                       ("stream of 256 MiB of zeros", streamed(256 << 20)), ("stream of 4 MiB of zeros", streamed(4 << 20))):
+                       ("stream of 256 MiB of zeros", streamed(256 << 20)), ("stream of 4 MiB of zeros", streamed(4 << 20)),
+                       ("2048x2048 of zeros as stated", zeros_as_stated(2048, 2048))):
         case("decompression bomb", name, reveal_process(model, rewritten(compact, work / "bomb.bundle", edit), "-o", out), out)
     payload = work / "note.txt"
     payload.write_bytes(b"a sealed note")
