@@ -57,6 +57,39 @@ def failure(prog: str, error: BaseException) -> int:
     return getattr(error, "exit_code", 2)
 
 
+class TerminalProgress:
+    """A ProgressEvent callback (runtime.progress) drawing a bar per stage on stderr: on a terminal only, never when
+    quiet. Use as a context manager, so the last bar is cleared."""
+
+    def __init__(self, quiet: bool = False):
+        self.quiet = quiet
+        self.bar = None
+        self.stage = None
+
+    def __call__(self, event) -> None:
+        from tqdm import tqdm
+
+        if self.bar is None or self.stage != event.stage:
+            self.close()
+            self.stage = event.stage
+            self.bar = tqdm(total=event.total, desc=event.stage, unit=event.unit, unit_scale=True, file=sys.stderr,
+                            disable=True if self.quiet else None, leave=False, dynamic_ncols=True)
+        if event.detail:
+            self.bar.set_postfix_str(event.detail, refresh=False)
+        self.bar.update(event.done - self.bar.n)
+
+    def close(self) -> None:
+        if self.bar is not None:
+            self.bar.close()
+            self.bar = None
+
+    def __enter__(self) -> "TerminalProgress":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+
 PASSPHRASE_ENV = "NOISENERF_PASSPHRASE"
 MAX_PASSPHRASE_BYTES = 4096
 

@@ -21,6 +21,7 @@ from noisenerf.runtime.images import to_uint8, write_image
 from noisenerf.runtime.metrics import exact_fraction, psnr, ssim
 from noisenerf.runtime.model import load_model
 from noisenerf.runtime.payload import read_payload_file
+from noisenerf.runtime.progress import ProgressFn
 from noisenerf.runtime.render import render_view
 from noisenerf.runtime.reveal import reveal
 from noisenerf.train.hide.plan import HideConfig
@@ -48,7 +49,7 @@ def side_by_side(images: list[np.ndarray], gap: int = 4) -> np.ndarray:
     return canvas
 
 
-def run_demo(out_dir: Path, device: torch.device, show_progress: bool = True) -> dict:
+def run_demo(out_dir: Path, device: torch.device, progress: ProgressFn | None = None) -> dict:
     from noisenerf.export.onnx_export import export_scene
 
     check_output_directory(out_dir).mkdir(exist_ok=True)
@@ -58,14 +59,14 @@ def run_demo(out_dir: Path, device: torch.device, show_progress: bool = True) ->
     secret = procedural_secret(*SECRET_SIZE)
     write_image(out_dir / "secret.png", secret)
     hidden = hide(scene, secret, out_dir / "secret.bundle", HideConfig(tile_size=TILE_SIZE, view=DEMO_VIEW),
-                  device, force=True, show_progress=show_progress)
+                  device, force=True, progress=progress)
     timings["hide"] = time.perf_counter() - started
 
     started = time.perf_counter()
     (out_dir / "note.txt").write_text(NOTE)
     hide_payload(scene, read_payload_file(out_dir / "note.txt"), out_dir / "note.bundle",
                  HideConfig(tile_size=TILE_SIZE, view=DEMO_VIEW), device, passphrase=DEMO_PASSPHRASE.encode(),
-                 force=True, show_progress=show_progress)
+                 force=True, progress=progress)
     timings["seal"] = time.perf_counter() - started
 
     started = time.perf_counter()

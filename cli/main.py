@@ -11,33 +11,18 @@ import re
 import sys
 from pathlib import Path
 
-from noisenerf.cli.common import FAILURES, OneLineParser, failure, payload_line, quiet_warnings, read_passphrase
+from noisenerf.api import resolve_device
+from noisenerf.cli.common import (FAILURES, OneLineParser, TerminalProgress, failure, payload_line, quiet_warnings,
+                                  read_passphrase)
 from noisenerf.runtime.bundle import LAYOUT_DTYPES, LAYOUTS
 from noisenerf.runtime.errors import UserError
-from noisenerf.runtime.files import check_output_directory, json_text
+from noisenerf.runtime.files import json_text
 from noisenerf.train.hide.methods import METHODS
 from noisenerf.train.hide.plan import HideConfig
 from noisenerf.train.hide.settings import RECIPES, REVIVALS, PaperSettings
 from noisenerf.train.hide.tiling import DEFAULT_TILE_SIZE
 
 PROG = "noisenerf"
-
-
-DEVICE_PATTERN = re.compile(r"auto|cpu|cuda(:[0-9]{1,2})?")
-
-
-def resolve_device(name: str):
-    """'auto' picks CUDA when torch sees a GPU; an explicit 'cuda' without one is refused, and so is any
-    name but auto, cpu, cuda and cuda:N."""
-    if not DEVICE_PATTERN.fullmatch(name):
-        raise UserError(f"unknown --device {name[:40]!r} (expected auto, cpu, cuda or cuda:N)")
-    import torch
-
-    if name == "auto":
-        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    if name.startswith("cuda") and not torch.cuda.is_available():
-        raise UserError("--device cuda requested but torch sees no CUDA device")
-    return torch.device(name)
 
 
 def size_argument(text: str, flag: str) -> tuple[int, int]:
@@ -57,24 +42,12 @@ def emit(report: dict, as_json: bool, lines: list[str]) -> None:
 
 
 def cmd_fit(args) -> None:
-    from noisenerf.train.scene.datasets import load_dataset
-    from noisenerf.train.scene.fit import PRESETS, Budget, fit
+    from noisenerf import api
 
-    if (args.minutes is None) == (args.iters is None):
-        raise UserError("give exactly one of --minutes M or --iters N")
-    if (args.iters is not None and args.iters < 1) or (args.minutes is not None and args.minutes <= 0):
-        raise UserError("--minutes and --iters must be positive")
-    device = resolve_device(args.device)
-    check_output_directory(args.output)
-    config = PRESETS[args.preset]
-    if args.seed is not None or args.no_skip:
-        import dataclasses
-
-        config = dataclasses.replace(config, seed=config.seed if args.seed is None else args.seed,
-                                     skipping=config.skipping and not args.no_skip)
-    dataset = load_dataset(args.data_dir, resolution=args.resolution)
-    report = fit(dataset, Path(args.output), config, Budget(args.iters, args.minutes), device,
-                 progress=not args.quiet)
+    with TerminalProgress(quiet=args.quiet) as bar:
+        report = api.fit(args.data_dir, args.output, preset=args.preset, resolution=args.resolution,
+                         minutes=args.minutes, iters=args.iters, seed=args.seed, skip=not args.no_skip,
+                         device=args.device, progress=bar)
     test = report["test"]
     emit(report, args.json, [f"scene: {report['scene']}", f"steps: {report['steps']} in {report['seconds']} s",
                              f"test PSNR {test['psnr']:.2f} dB, SSIM {test['ssim']:.4f} over {test['views']} views"])
@@ -90,51 +63,25 @@ def cmd_import(args) -> None:
 
 
 def cmd_hide(args) -> None:
-    from noisenerf.runtime.images import load_secret
-    from noisenerf.train.hide.run import PAYLOAD_IS_EXACT, hide
-    from noisenerf.train.hide.settings import chunk_pixels_for
-    from noisenerf.train.scene.scene import load_scene
+    from noisenerf import api
 
-    if (args.secret is None) == (args.file is None):
-        raise UserError("give exactly one of SECRET_IMAGE or --file PAYLOAD")
-    if args.workers is not None and args.workers < 1:
-        raise UserError(f"--workers must be at least 1, got {args.workers}")
-    if args.ray_address is not None and args.executor != "ray":
-        raise UserError("--ray-address is for --executor ray")
-    if args.executor == "ray":  # before the scene loads: a missing extra is one line at once
-        from noisenerf.train.hide.ray_executor import import_ray
-
-        import_ray()
     passphrase = sealing_passphrase(args)
-    if args.allow_inexact and (args.file is not None or passphrase is not None):
-        raise UserError(PAYLOAD_IS_EXACT)
-    output = Path(args.output)
-    device = resolve_device(args.device)
+    device = api.resolve_device(args.device)
     # every method's settings as the flags say (the bundle records those of the method that runs)
     settings = tuple(s for method in METHODS.values() for s in method.from_arguments(args, device.type))
-    config = HideConfig(method=args.method, layout=args.layout, dtype=args.dtype,
-                        n_samples=args.samples, tile_size=args.tile_size, view=args.view, seed=args.seed,
-                        chunk_pixels=chunk_pixels_for(device.type), settings=settings)
-    scene = load_scene(args.scene_dir)
-    if args.file is None:
-        secret, warnings, bits = load_secret(args.secret)
-        for warning in warnings:
-            print(f"{PROG}: warning: {warning}", file=sys.stderr)
-    if args.file is not None or passphrase is not None:
-        from noisenerf.runtime.payload import image_record, read_payload_file
-
-        record = read_payload_file(args.file) if args.file is not None else image_record(secret)
-        report = hide_record(args, scene, record, output, config, device, passphrase)
-    else:
-        report = hide(scene, secret, output, config, device, force=args.force, show_progress=not args.quiet,
-                      workers=args.workers, allow_inexact=args.allow_inexact, executor=args.executor,
-                      ray_address=args.ray_address)
-        if METHODS[args.method].exact and not report["exact"]:
-            off = [f"tile {k}: {t['inexact_pixels']} px off by up to {t['max_error']}"
-                   for k, t in enumerate(report["tiles"]) if t["inexact_pixels"]]
-            print(f"{PROG}: warning: the bundle is not exact (--allow-inexact): {'; '.join(off)}", file=sys.stderr)
-    if args.file is None:
-        report["precision"] = "8-bit" if bits == 8 else f"8-bit (secret had {bits})"
+    with TerminalProgress(quiet=args.quiet) as bar:
+        report = api.hide(args.scene_dir, args.secret, args.output, file=args.file, passphrase=passphrase,
+                          method=args.method, layout=args.layout, dtype=args.dtype, samples=args.samples,
+                          tile_size=args.tile_size, view=args.view, seed=args.seed, settings=settings,
+                          workers=args.workers, executor=args.executor, ray_address=args.ray_address,
+                          device=args.device, force=args.force, allow_inexact=args.allow_inexact, progress=bar,
+                          announce=None if args.quiet else announce_capacity(args.tile_size),
+                          warn=lambda line: print(f"{PROG}: warning: {line}", file=sys.stderr))
+    report.pop("warnings", None)  # said on stderr
+    if METHODS[args.method].exact and not report["exact"]:
+        off = [f"tile {k}: {t['inexact_pixels']} px off by up to {t['max_error']}"
+               for k, t in enumerate(report["tiles"]) if t["inexact_pixels"]]
+        print(f"{PROG}: warning: the bundle is not exact (--allow-inexact): {'; '.join(off)}", file=sys.stderr)
     lines = [f"bundle: {report['bundle']} ({report['bundle_bytes']} bytes, {report['bytes_per_pixel']:.1f} B/px)",
              f"tiles: {len(report['tiles'])}, exact fraction {report['exact_fraction']:.6f}, "
              f"exact: {str(report['exact']).lower()}", f"seconds: {report['seconds']}"]
@@ -154,33 +101,27 @@ def sealing_passphrase(args) -> bytes | None:
     return passphrase
 
 
-def hide_record(args, scene, record, output: Path, config, device, passphrase: bytes | None) -> dict:
-    """Hide a payload record (--file's bytes, or a secret image to seal) under `passphrase` if given; the
-    capacity and the time to expect go to stderr first."""
-    from noisenerf.train.hide.payload import hide_payload
-
+def announce_capacity(tile_size: int):
+    """A payload's size and the time to expect, on stderr before its hide starts."""
     def announce(room: dict) -> None:
-        if not args.quiet:
-            print(f"{PROG}: {record.kind} payload of {len(record.body)} bytes -> {room['width']}x{room['height']} "
-                  f"secret ({room['pixels']} px, {room['tiles']} tiles of at most {config.tile_size} px); "
-                  f"expect about {room['expected_seconds']} s of hiding on 2 CPU cores", file=sys.stderr, flush=True)
-
-    return hide_payload(scene, record, output, config, device, passphrase=passphrase, force=args.force,
-                        show_progress=not args.quiet, announce=announce, workers=args.workers,
-                        executor=args.executor, ray_address=args.ray_address)
+        print(f"{PROG}: {room['kind']} payload of {room['bytes']} bytes -> {room['width']}x{room['height']} secret "
+              f"({room['pixels']} px, {room['tiles']} tiles of at most {tile_size} px); expect about "
+              f"{room['expected_seconds']} s of hiding on 2 CPU cores", file=sys.stderr, flush=True)
+    return announce
 
 
 def cmd_export(args) -> None:
-    from noisenerf.export.onnx_export import export_scene
+    from noisenerf import api
 
-    report = export_scene(Path(args.scene_dir), Path(args.output))
+    report = api.export_model(args.scene_dir, args.output)
     emit(report, args.json, [f"model: {args.output}", *(f"{k}: {v}" for k, v in report.items())])
 
 
 def cmd_demo(args) -> None:
     from noisenerf.cli.demo import run_demo
 
-    report = run_demo(Path(args.output), resolve_device(args.device), show_progress=not args.quiet)
+    with TerminalProgress(quiet=args.quiet) as bar:
+        report = run_demo(Path(args.output), resolve_device(args.device), progress=bar)
     emit(report, args.json, report["summary"])
 
 

@@ -28,8 +28,8 @@ import sys
 import time
 from typing import TYPE_CHECKING
 
-from noisenerf.cli.common import (FAILURES, OneLineParser, failure, passphrase_given, payload_line, quiet_warnings,
-                                  read_passphrase)
+from noisenerf.cli.common import (FAILURES, OneLineParser, TerminalProgress, failure, passphrase_given, payload_line,
+                                  quiet_warnings, read_passphrase)
 from noisenerf.runtime.files import json_text
 
 if TYPE_CHECKING:
@@ -59,13 +59,6 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-def progress_bar(total: int | None):
-    """Rays done, on stderr, shown only on a terminal."""
-    from tqdm import tqdm
-
-    return tqdm(total=total, unit="ray", unit_scale=True, file=sys.stderr, disable=None, leave=False)
-
-
 def reveal_report(result: RevealResult) -> dict:
     """--json's object for a reveal, but for where it was written."""
     report = {"exact": result.exact, "width": result.secret_size[0], "height": result.secret_size[1],
@@ -84,9 +77,9 @@ def run(args: argparse.Namespace) -> dict:
     start = time.perf_counter()
     if args.view is not None:
         check_output_path(args.output, force=args.force)
-        with progress_bar(None) as bar:
+        with TerminalProgress() as bar:
             result = api.render(args.model, args.view, skip=not args.no_skip, device=args.device,
-                                threads=args.threads, progress=bar.update)
+                                threads=args.threads, progress=bar)
         rendered = time.perf_counter()
         result.save(args.output, force=args.force)
         report = {"view": result.view, "width": result.image.shape[1], "height": result.image.shape[0],
@@ -101,9 +94,9 @@ def run(args: argparse.Namespace) -> dict:
             check_output_path(args.output, force=args.force)
         ask = read.sealed or passphrase_given(args.passphrase_file)
         passphrase = read_passphrase(args.passphrase_file) if ask else None
-        with progress_bar(bundle.width * bundle.height) as bar:
+        with TerminalProgress() as bar:
             result = api.reveal(args.model, read, passphrase, device=args.device, threads=args.threads,
-                                progress=bar.update)
+                                progress=bar)
         rendered = time.perf_counter()
         report = {**reveal_report(result), **result.save(args.output, force=args.force)}
     done = time.perf_counter()

@@ -9,7 +9,8 @@ The reveal's order of steps lives here (the CLI parses, calls, prints; web/src/i
 API in JavaScript): the bundle is read and checked, a sealed one's tag checked under the passphrase before
 anything renders, then the model (graph and fingerprint), the bundle against the model, every tile; a
 payload is opened from the revealed pixels. Every refusal is one UserError whose message is the CLI's line.
-Models and bundles are paths or their bytes. Progress, where wanted, is a callback `progress(rays_done)`.
+Models and bundles are paths or their bytes. Progress, where wanted, is a callback taking runtime.progress's
+`ProgressEvent(stage, done, total, unit, detail)`.
 """
 
 from __future__ import annotations
@@ -17,8 +18,6 @@ from __future__ import annotations
 import os
 import time
 from dataclasses import dataclass, field
-from typing import Callable
-
 import numpy as np
 
 from noisenerf.runtime.bundle import Bundle, bundle_bytes, parse_bundle_bytes, secret_digest
@@ -27,10 +26,10 @@ from noisenerf.runtime.files import check_output_path, refuse_lossy, write_bytes
 from noisenerf.runtime.images import WRITE_FORMATS, to_uint8, write_image, written_format
 from noisenerf.runtime.model import Model, check_bundle, load_model
 from noisenerf.runtime.payload import INEXACT, open_payload, seal_of
+from noisenerf.runtime.progress import Counter, ProgressFn
 from noisenerf.runtime.sealing import NOT_SEALED, Keys, unseal_keys
 
 Source = str | os.PathLike | bytes
-Progress = Callable[[int], None]  # called with the rays rendered since its last call
 NO_PASSPHRASE = ("the bundle is sealed: give its passphrase with --passphrase-file F, NOISENERF_PASSPHRASE, "
                  "or at the prompt (stdin a terminal)")
 # how a revealed image's file holds its 8-bit values, by the pixel type written (runtime.images.encoded)
@@ -161,7 +160,7 @@ def open_model(model: Source | Model, device: str, threads: int | None) -> Model
 
 
 def reveal(model: Source | Model, bundle: Source | ReadBundle, passphrase: str | bytes | None = None, *, device: str = "cpu",
-           threads: int | None = None, progress: Progress | None = None) -> RevealResult:
+           threads: int | None = None, progress: ProgressFn | None = None) -> RevealResult:
     """Reveal the secret `bundle` holds in `model` (paths, or their bytes; a loaded Model or read bundle is reused).
     passphrase: a sealed bundle's (refused for one that is not sealed). An image comes back whether exact or
     not (see `exact`); a payload only when every byte checks, else a UserError."""
@@ -174,7 +173,8 @@ def reveal(model: Source | Model, bundle: Source | ReadBundle, passphrase: str |
     model = open_model(model, device, threads)
     check_bundle(model, secret)
     loaded = time.perf_counter()
-    revealed = reveal_tiles(secret, model.render_config, model.fields(), progress=progress)
+    rays = Counter(progress, "render", secret.width * secret.height, "ray")
+    revealed = reveal_tiles(secret, model.render_config, model.fields(), progress=rays)
     counts = {"secret_size": (secret.width, secret.height), "tiles": len(secret.tiles),
               "rays": secret.width * secret.height,
               "samples": sum(t.rect[2] * t.rect[3] * t.sampling.n_samples for t in secret.tiles),
@@ -193,7 +193,7 @@ def reveal(model: Source | Model, bundle: Source | ReadBundle, passphrase: str |
 
 
 def render(model: Source | Model, view: int, *, skip: bool = True, device: str = "cpu", threads: int | None = None,
-           progress: Progress | None = None) -> RenderResult:
+           progress: ProgressFn | None = None) -> RenderResult:
     """An ordinary render of dataset camera `view` of `model`. skip: empty-space skipping and early termination
     (off: every sample inside the scene's box). A model with a fine network renders hierarchically, as
     nerf-pytorch does, and never skips."""
@@ -205,7 +205,8 @@ def render(model: Source | Model, view: int, *, skip: bool = True, device: str =
     loaded = time.perf_counter()
     grid = model.grid if skip else model.grid.box_only()
     image, stats = render_view(camera, model.render_config, model.field, grid, early_stop=None if skip else 0.0,
-                               progress=progress, coarse=model.coarse)
+                               progress=Counter(progress, "render", camera.width * camera.height, "ray"),
+                               coarse=model.coarse)
     hierarchical = model.coarse is not None
     return RenderResult(view, image, skip and not hierarchical, hierarchical, stats.n_rays,
                         stats.n_samples_evaluated, stats.n_samples_dense,

@@ -136,6 +136,11 @@ class Secret(NamedTuple):
     bits: int  # 8, 16 or 32 (float): more than 8 means the hidden secret is the file's 8-bit quantisation
 
 
+def precision_note(bits: int) -> str:
+    """What a hide reports of the precision it kept, for a secret file of `bits` per channel."""
+    return "8-bit" if bits == 8 else f"8-bit (secret had {bits})"
+
+
 def load_secret(path: str | os.PathLike) -> Secret:
     """The secret image as (H, W, 3) uint8, plus human-readable warnings and the file's bits per channel.
 

@@ -74,7 +74,7 @@ def main(out: Path) -> None:
 
     def timed(name: str, secret, config) -> None:
         started = time.perf_counter()
-        hide(scene, secret, out / f"{name}.bundle", config, CPU, show_progress=False, executor="ray")
+        hide(scene, secret, out / f"{name}.bundle", config, CPU, executor="ray")
         report[f"{name}_seconds"] = round(time.perf_counter() - started, 2)
 
     timed("demo", procedural_secret(*SECRET_SIZE), HideConfig(tile_size=TILE_SIZE, view=DEMO_VIEW))

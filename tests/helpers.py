@@ -73,6 +73,13 @@ def assert_refused(result: Result | subprocess.CompletedProcess, output: Path | 
     assert output is None or not os.path.lexists(output), output
 
 
+def readme_python(heading: str) -> list[str]:
+    """The ```python blocks of the README section under `heading`, in order."""
+    text = (Path(__file__).resolve().parents[1] / "README.md").read_text()
+    section = text.split(f"\n## {heading}\n", 1)[1].split("\n## ", 1)[0]
+    return [block.split("```", 1)[0] for block in section.split("```python\n")[1:]]
+
+
 def flip_first_float32(data: bytes) -> bytes:
     """A bundle's bytes with the lowest byte of its first float32 tensor flipped: still a readable bundle
     (a sealed one's tag fails)."""

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 import noisenerf
-from helpers import run_reveal
+from helpers import readme_python, run_reveal
 from noisenerf.cli.main import main as noisenerf_main
 from noisenerf.runtime.bundle import load_bundle
 from noisenerf.runtime.images import read_native, write_image
@@ -38,7 +38,9 @@ def test_reveal_from_paths_or_bytes_is_the_cli_reveal(reveal_inputs, tmp_path):
     assert from_paths.kind == from_bytes.kind == "image" and from_paths.exact and from_bytes.exact
     np.testing.assert_array_equal(from_paths.pixels, from_bytes.pixels)
     assert from_paths.sha256 == load_bundle(bundle).secret_sha256
-    assert sum(told) == from_paths.rays == from_paths.width * from_paths.height
+    rays = from_paths.width * from_paths.height
+    assert told[-1] == noisenerf.ProgressEvent("render", rays, rays, "ray") and from_paths.rays == rays
+    assert [event.done for event in told] == sorted(event.done for event in told)
     assert run_reveal(model, bundle, "-o", tmp_path / "cli.png").returncode == 0
     assert from_paths.save(tmp_path / "api.png") == {"written": "8-bit values"}
     assert (tmp_path / "api.png").read_bytes() == (tmp_path / "cli.png").read_bytes()
@@ -100,3 +102,76 @@ def test_import_noisenerf_loads_nothing_heavy_until_used():
     result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
     assert result.returncode == 0, result.stderr
     assert result.stdout.strip() == "module 'noisenerf' has no attribute 'nothing'"
+
+
+# ---- the sender's half ------------------------------------------------------------------------------
+
+def test_the_readme_sender_snippet_runs_as_written(tmp_path):
+    result = subprocess.run([sys.executable, "-c", readme_python("Python API")[1]], capture_output=True, text=True,
+                            cwd=tmp_path, timeout=300)
+    assert result.returncode == 0, result.stderr
+    assert result.stdout.strip() == "True True True" and result.stderr == ""
+
+
+def test_hide_from_an_array_is_the_cli_hide_of_its_file(reveal_inputs, tmp_path, capfd):
+    """Same secret, same seed: the API from an array and the CLI from a PNG write byte-identical bundles, and the
+    API reports its progress up to every pixel, without printing."""
+    folder, model, _ = reveal_inputs
+    secret = np.random.default_rng(8).integers(0, 256, (12, 20, 3), dtype=np.uint8)
+    write_image(tmp_path / "s.png", secret)
+    events = []
+    report = noisenerf.hide(folder / "scene", secret, tmp_path / "api.bundle", tile_size=16, progress=events.append)
+    assert report["exact"] and "precision" not in report
+    assert events[-1] == noisenerf.ProgressEvent("hide", 240, 240, "px") and capfd.readouterr() == ("", "")
+    code = noisenerf_main([str(a) for a in ("hide", folder / "scene", tmp_path / "s.png", "-o", tmp_path / "cli.bundle",
+                                            "--tile-size", 16, "--quiet")])
+    assert code == 0 and (tmp_path / "api.bundle").read_bytes() == (tmp_path / "cli.bundle").read_bytes()
+    from_path = noisenerf.hide(folder / "scene", tmp_path / "s.png", tmp_path / "path.bundle", tile_size=16)
+    assert (from_path["precision"], from_path["warnings"]) == ("8-bit", [])
+    assert noisenerf.reveal(model, tmp_path / "api.bundle").exact
+
+
+def test_hide_a_file_given_as_bytes_and_sealed(reveal_inputs, tmp_path):
+    folder, model, _ = reveal_inputs
+    report = noisenerf.hide(folder / "scene", output=tmp_path / "b.bundle", file=b"\x00\x01 raw bytes",
+                            file_name="raw.bin", passphrase="pass")
+    assert report["sealed"] and report["payload"]["name"] == "raw.bin"
+    opened = noisenerf.reveal(model, tmp_path / "b.bundle", passphrase="pass")
+    assert (opened.kind, opened.name, opened.bytes) == ("file", "raw.bin", b"\x00\x01 raw bytes")
+
+
+@pytest.mark.parametrize("call, message", [
+    (lambda scene, out: noisenerf.hide(scene, None, out), "give exactly one of SECRET_IMAGE or --file PAYLOAD"),
+    (lambda scene, out: noisenerf.hide(scene, np.zeros((4, 4, 3), np.float32), out), "must be (h, w, 3) or (h, w) uint8"),
+    (lambda scene, out: noisenerf.hide(scene, np.zeros((4, 4), np.uint8), out, method="magic"), "unknown method"),
+    (lambda scene, out: noisenerf.hide(scene, np.zeros((4, 4), np.uint8), out, device="tpu"), "unknown --device"),
+    (lambda scene, out: noisenerf.fit(scene, out), "give exactly one of --minutes M or --iters N"),
+    (lambda scene, out: noisenerf.export_model(scene / "missing", out), "not a scene directory (no scene.json)"),
+])
+def test_the_sender_refuses_with_the_cli_line(reveal_inputs, tmp_path, call, message):
+    folder, _, _ = reveal_inputs
+    with pytest.raises(noisenerf.UserError, match=message.replace("(", r"\(").replace(")", r"\)")):
+        call(folder / "scene", tmp_path / "out")
+    assert not (tmp_path / "out").exists()
+
+
+def test_fit_reports_its_steps_and_writes_a_scene(tmp_path):
+    from noisenerf.train.scene.procedural import write_procedural_dataset
+
+    data = write_procedural_dataset(tmp_path / "data", size=16, n_train=4, n_val=1, n_test=1)
+    events = []
+    report = noisenerf.fit(data, tmp_path / "scene", iters=2, device="cpu", progress=events.append)
+    assert report["steps"] == 2 and (tmp_path / "scene" / "scene.json").is_file()
+    assert [event.done for event in events] == [1, 2] and {event.stage for event in events} == {"fit"}
+    assert events[-1].detail.startswith("loss ")
+    exported = noisenerf.export_model(tmp_path / "scene", tmp_path / "m.onnx")
+    assert exported["fingerprint"] == report["fingerprint"]
+
+
+def test_every_public_name_is_the_api_not_a_subpackage():
+    """A subpackage imported as noisenerf.<name> would shadow a lazy name (noisenerf.export is the package)."""
+    import types
+
+    import noisenerf.cli.main  # noqa: F401  (imports export, runtime, train)
+    for name in noisenerf.API:
+        assert not isinstance(getattr(noisenerf, name), types.ModuleType), name

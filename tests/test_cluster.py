@@ -64,9 +64,9 @@ def ray_hides(tmp_path_factory) -> Path:
 def local_hides(demo_scene, tmp_path_factory) -> Path:
     out = tmp_path_factory.mktemp("local")
     hide(demo_scene, procedural_secret(*SECRET_SIZE), out / "demo.bundle", HideConfig(tile_size=TILE_SIZE, view=DEMO_VIEW),
-         CPU, show_progress=False, workers=2)
+         CPU, workers=2)
     hide(demo_scene, procedural_secret(MULTI_SIZE, MULTI_SIZE, seed=1), out / "multi.bundle",
-         HideConfig(tile_size=MULTI_TILE, view=DEMO_VIEW), CPU, show_progress=False, workers=2)
+         HideConfig(tile_size=MULTI_TILE, view=DEMO_VIEW), CPU, workers=2)
     return out
 
 

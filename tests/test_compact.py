@@ -28,8 +28,7 @@ def demo(demo_scene, demo_model, tmp_path_factory):
     secret = np.clip(smooth + np.random.default_rng(0).integers(-8, 9, smooth.shape), 0, 255).astype(np.uint8)
     write_image(folder / "secret.png", secret)
     reports = {layout: hide(demo_scene, secret, folder / f"{layout}.bundle",
-                            HideConfig(layout=layout, tile_size=24, view=DEMO_VIEW), torch.device("cpu"),
-                            show_progress=False) for layout in ("compact", "ray")}
+                            HideConfig(layout=layout, tile_size=24, view=DEMO_VIEW), torch.device("cpu")) for layout in ("compact", "ray")}
     return folder, secret, reports, demo_model
 
 

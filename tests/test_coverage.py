@@ -50,8 +50,7 @@ def scene_and_model(request, tmp_path_factory):
 
 def hide_and_reveal(scene: Scene, model, secret: np.ndarray, view: int, folder) -> np.ndarray:
     """The secret hidden at `view` (an inexact hide raises) and revealed through onnxruntime."""
-    hide(scene, secret, folder / "s.bundle", HideConfig(view=view), torch.device("cpu"), force=True,
-         show_progress=False, workers=1)
+    hide(scene, secret, folder / "s.bundle", HideConfig(view=view), torch.device("cpu"), force=True, workers=1)
     return reveal(load_bundle(folder / "s.bundle"), model.render_config, model.fields()).pixels
 
 

@@ -32,7 +32,7 @@ def dataset(tmp_path_factory):
 
 
 def quiet_fit(dataset, out, iters, config=TINY):
-    return fit(dataset, out, config, Budget(iters=iters), CPU, curve_seconds=0, progress=False)
+    return fit(dataset, out, config, Budget(iters=iters), CPU, curve_seconds=0)
 
 
 def test_fit_learns_and_skips(dataset, tmp_path):
@@ -56,8 +56,7 @@ def test_resume_after_interruption_gives_identical_weights(dataset, tmp_path, mo
 
     monkeypatch.setattr(Fitter, "train_step", interrupted)
     with pytest.raises(KeyboardInterrupt):
-        fit(dataset, tmp_path / "resumed", TINY, Budget(iters=40), CPU, checkpoint_seconds=0, curve_seconds=0,
-            progress=False)
+        fit(dataset, tmp_path / "resumed", TINY, Budget(iters=40), CPU, checkpoint_seconds=0, curve_seconds=0)
     assert not (tmp_path / "resumed" / "scene.json").exists()
     monkeypatch.setattr(Fitter, "train_step", step)
     resumed = quiet_fit(dataset, tmp_path / "resumed", 40)

@@ -42,8 +42,7 @@ def weights_digest(scene):
 def test_exact_hide_recovers_every_value_and_leaves_weights_unchanged(scene, tmp_path, layout, dtype, stored):
     secret = random_secret(20, 30)
     before = weights_digest(scene)
-    report = hide(scene, secret, tmp_path / "s.bundle", HideConfig(layout=layout, dtype=dtype, tile_size=16), CPU,
-                  show_progress=False)
+    report = hide(scene, secret, tmp_path / "s.bundle", HideConfig(layout=layout, dtype=dtype, tile_size=16), CPU)
     assert weights_digest(scene) == before
     assert report["exact"] and report["exact_fraction"] == 1.0
     assert [t["rect"] for t in report["tiles"]] == [list(r) for r in tile_rects(30, 20, 16)]
@@ -58,7 +57,7 @@ def test_exact_hide_recovers_every_value_and_leaves_weights_unchanged(scene, tmp
 
 def test_bundle_holds_no_secret_and_other_weights_reveal_nothing(scene, tmp_path):
     secret = random_secret(12, 12, seed=1)
-    hide(scene, secret, tmp_path / "s.bundle", HideConfig(), CPU, show_progress=False)
+    hide(scene, secret, tmp_path / "s.bundle", HideConfig(), CPU)
     raw = (tmp_path / "s.bundle").read_bytes()
     assert secret.tobytes() not in raw
     bundle = load_bundle(tmp_path / "s.bundle")
@@ -72,7 +71,7 @@ def test_bundle_holds_no_secret_and_other_weights_reveal_nothing(scene, tmp_path
 def test_same_seed_gives_byte_identical_bundles(scene, tmp_path):
     secret = random_secret(10, 14, seed=2)
     for name in ("a", "b"):
-        hide(scene, secret, tmp_path / f"{name}.bundle", HideConfig(tile_size=16), CPU, show_progress=False)
+        hide(scene, secret, tmp_path / f"{name}.bundle", HideConfig(tile_size=16), CPU)
     assert (tmp_path / "a.bundle").read_bytes() == (tmp_path / "b.bundle").read_bytes()
 
 
@@ -80,7 +79,7 @@ def test_chunks_spread_over_worker_processes_give_the_same_bytes(scene, tmp_path
     secret = random_secret(24, 24, seed=3)
     config = HideConfig(tile_size=16, chunk_pixels=64)  # tiles of 256 px: 4 chunks each, solved 2 at once
     for workers in (1, 2):
-        report = hide(scene, secret, tmp_path / f"{workers}.bundle", config, CPU, show_progress=False, workers=workers)
+        report = hide(scene, secret, tmp_path / f"{workers}.bundle", config, CPU, workers=workers)
         assert report["exact"]
     assert (tmp_path / "1.bundle").read_bytes() == (tmp_path / "2.bundle").read_bytes()
 
@@ -94,7 +93,7 @@ def test_the_driver_holds_one_tile_more_than_its_executor_runs_at_once(scene, tm
     monkeypatch.setattr(run, "tile_work", lambda *args: events.append(1) or tile_work(*args))
     monkeypatch.setattr(solver, "assemble", lambda *args: events.append(-1) or assemble(*args))
     report = hide(scene, random_secret(48, 40, seed=4), tmp_path / "s.bundle", HideConfig(tile_size=16, chunk_pixels=64),
-                  CPU, show_progress=False, workers=1)
+                  CPU, workers=1)
     assert report["exact"] and len(report["tiles"]) == 9
     in_flight = np.cumsum(events)
     assert len(events) == 18 and in_flight.max() == 2 and in_flight[-1] == 0  # one slot: two tiles in flight
@@ -103,27 +102,27 @@ def test_the_driver_holds_one_tile_more_than_its_executor_runs_at_once(scene, tm
 def test_a_hide_interrupted_while_workers_solve_resumes_to_the_same_bytes(scene, tmp_path):
     secret = random_secret(24, 24, seed=3)
     config = HideConfig(tile_size=16, chunk_pixels=64)
-    hide(scene, secret, tmp_path / "whole.bundle", config, CPU, show_progress=False, workers=1)
+    hide(scene, secret, tmp_path / "whole.bundle", config, CPU, workers=1)
     with pytest.raises(KeyboardInterrupt), interrupted_after_saves(3):
-        hide(scene, secret, tmp_path / "resumed.bundle", config, CPU, show_progress=False, workers=2)
+        hide(scene, secret, tmp_path / "resumed.bundle", config, CPU, workers=2)
     assert len(list((tmp_path / "resumed.bundle.partial").glob("*.safetensors"))) == 3
-    hide(scene, secret, tmp_path / "resumed.bundle", config, CPU, show_progress=False, workers=2)
+    hide(scene, secret, tmp_path / "resumed.bundle", config, CPU, workers=2)
     assert (tmp_path / "resumed.bundle").read_bytes() == (tmp_path / "whole.bundle").read_bytes()
 
 
 def test_interrupted_hide_resumes_to_a_byte_identical_bundle(scene, tmp_path, monkeypatch):
     secret = random_secret(24, 24, seed=3)
     config = HideConfig(tile_size=16, chunk_pixels=64)
-    hide(scene, secret, tmp_path / "whole.bundle", config, CPU, show_progress=False, workers=1)
+    hide(scene, secret, tmp_path / "whole.bundle", config, CPU, workers=1)
 
     from noisenerf.train.hide import exact_solver
     with pytest.raises(KeyboardInterrupt), interrupted_after_saves(5):
-        hide(scene, secret, tmp_path / "resumed.bundle", config, CPU, show_progress=False, workers=1)
+        hide(scene, secret, tmp_path / "resumed.bundle", config, CPU, workers=1)
     assert not (tmp_path / "resumed.bundle").exists()
     assert len(list((tmp_path / "resumed.bundle.partial").glob("*.safetensors"))) == 5
     solved, solve_chunk = [], exact_solver.solve_chunk  # counted in this process: workers=1
     monkeypatch.setattr(exact_solver, "solve_chunk", lambda *a, **k: solved.append(1) or solve_chunk(*a, **k))
-    hide(scene, secret, tmp_path / "resumed.bundle", config, CPU, show_progress=False, workers=1)
+    hide(scene, secret, tmp_path / "resumed.bundle", config, CPU, workers=1)
     assert len(solved) == 9 - 5  # tiles of 256, 128, 128 and 64 px make 9 chunks of 64; 5 were saved
     assert (tmp_path / "resumed.bundle").read_bytes() == (tmp_path / "whole.bundle").read_bytes()
     assert not (tmp_path / "resumed.bundle.partial").exists()
@@ -133,7 +132,7 @@ def test_paper_method_runs_with_sample_layout_and_records_table3_points(scene, t
     secret = random_secret(12, 12, seed=4)
     config = HideConfig(method="paper", layout="sample", dtype="float32", n_samples=4,
                         settings=(PaperSettings(iters=6, mu=2, record_at=(2, 6)),))
-    report = hide(scene, secret, tmp_path / "p.bundle", config, CPU, show_progress=False)
+    report = hide(scene, secret, tmp_path / "p.bundle", config, CPU)
     records = report["tiles"][0]["records"]
     assert [r["iteration"] for r in records] == [2, 6]
     assert records[1]["loss"] < records[0]["loss"]
@@ -173,14 +172,14 @@ def test_paper_hides_with_and_without_skipping_agree_within_the_ssim_bound(demo_
 ])
 def test_bad_settings_are_refused_and_write_nothing(scene, tmp_path, kwargs, message):
     with pytest.raises(UserError, match=message):
-        hide(scene, random_secret(8, 8), tmp_path / "x.bundle", HideConfig(**kwargs), CPU, show_progress=False)
+        hide(scene, random_secret(8, 8), tmp_path / "x.bundle", HideConfig(**kwargs), CPU)
     assert not (tmp_path / "x.bundle").exists()
 
 
 def test_existing_output_needs_force(scene, tmp_path):
     (tmp_path / "x.bundle").write_bytes(b"keep")
     with pytest.raises(UserError, match="--force"):
-        hide(scene, random_secret(8, 8), tmp_path / "x.bundle", HideConfig(), CPU, show_progress=False)
+        hide(scene, random_secret(8, 8), tmp_path / "x.bundle", HideConfig(), CPU)
     assert (tmp_path / "x.bundle").read_bytes() == b"keep"
 
 

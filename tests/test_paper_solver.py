@@ -147,12 +147,12 @@ def test_interrupted_paper_hide_resumes_per_block_to_a_byte_identical_bundle(dem
 
     config = HideConfig(method="paper", layout="sample", dtype="float32", n_samples=8,
                         settings=(recipe("authors", iters=4, block_pixels=40, record_at=(2, 4)),))
-    hide(demo_scene, secret, tmp_path / "whole.bundle", config, CPU, show_progress=False)
+    hide(demo_scene, secret, tmp_path / "whole.bundle", config, CPU)
     with pytest.raises(KeyboardInterrupt), interrupted_after_saves(2):
-        hide(demo_scene, secret, tmp_path / "resumed.bundle", config, CPU, show_progress=False)
+        hide(demo_scene, secret, tmp_path / "resumed.bundle", config, CPU)
     solved, solve_block = [], paper_solver.solve_block
     monkeypatch.setattr(paper_solver, "solve_block", lambda *a, **k: solved.append(1) or solve_block(*a, **k))
-    report = hide(demo_scene, secret, tmp_path / "resumed.bundle", config, CPU, show_progress=False)
+    report = hide(demo_scene, secret, tmp_path / "resumed.bundle", config, CPU)
     assert len(solved) == 4 - 2  # 144 pixels in blocks of 40 make 4 blocks; 2 were saved
     assert (tmp_path / "resumed.bundle").read_bytes() == (tmp_path / "whole.bundle").read_bytes()
     assert [r["iteration"] for r in report["tiles"][0]["records"]] == [2, 4]

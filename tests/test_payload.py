@@ -52,7 +52,7 @@ def sealed(demo, tmp_path_factory):
     scene, _ = demo
     path = tmp_path_factory.mktemp("sealed") / "note.bundle"
     hide_payload(scene, Record("file", b"the eagle lands at noon\n", b"note.txt"), path, CONFIG, CPU,
-                 passphrase=PASSPHRASE, seal=fixed_seal(), show_progress=False)
+                 passphrase=PASSPHRASE, seal=fixed_seal())
     return path
 
 
@@ -136,7 +136,7 @@ def test_sealed_image_reveals_as_the_image(demo, tmp_path):
     scene, model = demo
     image = np.random.default_rng(5).integers(0, 256, (6, 8, 3), dtype=np.uint8)
     hide_payload(scene, image_record(image), tmp_path / "i.bundle", CONFIG, CPU, passphrase=PASSPHRASE,
-                 seal=fixed_seal(), show_progress=False)
+                 seal=fixed_seal())
     assert (load_bundle(tmp_path / "i.bundle").width, load_bundle(tmp_path / "i.bundle").height) == (16, 16)
     result = run_reveal(model, tmp_path / "i.bundle", "-o", tmp_path / "out.png", "--json", passphrase=PASSPHRASE)
     assert result.returncode == 0, result.stderr
@@ -148,7 +148,7 @@ def test_sealed_image_reveals_as_the_image(demo, tmp_path):
 def test_sealed_metadata_hides_length_and_name(demo, sealed, tmp_path):
     scene, _ = demo
     hide_payload(scene, Record("file", bytes(150), b"a-much-longer-name.pdf"), tmp_path / "other.bundle", CONFIG,
-                 CPU, passphrase=PASSPHRASE, seal=fixed_seal(), show_progress=False)
+                 CPU, passphrase=PASSPHRASE, seal=fixed_seal())
     for path in (sealed, tmp_path / "other.bundle"):
         bundle = load_bundle(path)
         assert (bundle.width, bundle.height) == (16, 16)
@@ -159,7 +159,7 @@ def test_sealed_metadata_hides_length_and_name(demo, sealed, tmp_path):
 def test_sealed_bundle_is_deterministic_only_with_a_fixed_seal(demo, sealed, tmp_path):
     scene, _ = demo
     hide_payload(scene, Record("file", b"the eagle lands at noon\n", b"note.txt"), tmp_path / "again.bundle", CONFIG,
-                 CPU, passphrase=PASSPHRASE, seal=fixed_seal(), show_progress=False)
+                 CPU, passphrase=PASSPHRASE, seal=fixed_seal())
     assert (tmp_path / "again.bundle").read_bytes() == sealed.read_bytes()
     assert new_seal().salt != new_seal().salt and new_seal().nonce != new_seal().nonce
 
@@ -212,8 +212,7 @@ def test_a_changed_model_weight_is_refused(demo, sealed, tmp_path):
 
 def test_unsealed_payload_whose_pixels_changed_is_refused(demo, tmp_path):
     scene, model = demo
-    hide_payload(scene, Record("file", b"exactly these bytes"), tmp_path / "p.bundle", CONFIG, CPU,
-                 show_progress=False)
+    hide_payload(scene, Record("file", b"exactly these bytes"), tmp_path / "p.bundle", CONFIG, CPU)
     bundle = load_bundle(tmp_path / "p.bundle")
     tiles = tuple(dataclasses.replace(tile, noise=CompactNoise.of(np.zeros_like(tile.noise.coefficients()),
                                                                   tile.noise.basis)) for tile in bundle.tiles)

@@ -30,7 +30,7 @@ def lego(shared_data, tmp_path_factory):
     folder = tmp_path_factory.mktemp("lego")
     dataset = load_dataset(shared_data / "scenes" / "blender" / "lego", resolution=40)
     config = dataclasses.replace(PRESETS["small"], batch_rays=512)
-    fit(dataset, folder / "scene", config, Budget(iters=150), CPU, curve_seconds=0, progress=False)
+    fit(dataset, folder / "scene", config, Budget(iters=150), CPU, curve_seconds=0)
     export_scene(folder / "scene", folder / "model.onnx")
     return load_scene(folder / "scene"), load_model(folder / "model.onnx"), folder
 
@@ -64,7 +64,7 @@ def test_real_photo_hides_exactly_and_reveals_in_onnxruntime(lego, shared_data, 
     scene, model, folder = lego
     secret = small_photo(shared_data)
     report = hide(scene, secret, folder / f"{layout}.bundle", HideConfig(layout=layout, dtype=dtype, view=105),
-                  CPU, force=True, show_progress=False)
+                  CPU, force=True)
     assert report["exact"], report["tiles"]
     bundle = load_bundle(folder / f"{layout}.bundle")
     revealed = reveal(bundle, model.render_config, model.fields(), keep_float=True)

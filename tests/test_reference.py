@@ -83,15 +83,14 @@ def build_artifacts(folder: Path) -> dict[str, Path]:
                                                                 mu=3, record_at=(6,)),)),
         }.items():
             part = secret[:18, :20] if config.method == "paper" else secret
-            hide(scene, part, folder / name, config, CPU, show_progress=False)
+            hide(scene, part, folder / name, config, CPU)
             artifacts[name] = folder / name
         payload_config = HideConfig(tile_size=16)
         hide_payload(scene, Record("file", b"the eagle lands at noon\n", b"note.txt"), folder / "payload.bundle",
-                     payload_config, CPU, show_progress=False)
+                     payload_config, CPU)
         hide_payload(scene, Record("file", b"the eagle lands at noon\n", b"note.txt"), folder / "sealed.bundle",
                      payload_config, CPU, passphrase=b"reference",
-                     seal=new_seal(ScryptParams(log2_n=10, r=8, p=1), salt=bytes(range(16)), nonce=bytes(range(12))),
-                     show_progress=False)
+                     seal=new_seal(ScryptParams(log2_n=10, r=8, p=1), salt=bytes(range(16)), nonce=bytes(range(12))))
         artifacts["payload.bundle"] = folder / "payload.bundle"
         artifacts["sealed.bundle"] = folder / "sealed.bundle"
 
@@ -99,7 +98,7 @@ def build_artifacts(folder: Path) -> dict[str, Path]:
         tiny = dataclasses.replace(PRESETS["small"], batch_rays=128, n_samples=16, warmup_rays=64, warmup_samples=8,
                                    empty_points=64, precrop_steps=4,
                                    occupancy=OccupancyConfig(resolution=16, warmup_steps=8, update_every=4))
-        fit(load_dataset(data), folder / "scene", tiny, Budget(iters=12), CPU, curve_seconds=0, progress=False)
+        fit(load_dataset(data), folder / "scene", tiny, Budget(iters=12), CPU, curve_seconds=0)
         for name in ("weights.safetensors", "scene.json", "occupancy.safetensors"):
             artifacts[f"scene/{name}"] = folder / "scene" / name
 

@@ -267,7 +267,7 @@ def write_fixtures(root: Path) -> dict:
             folder = root / name
             folder.mkdir(parents=True)
             shutil.copyfile(root / "scenes" / f"{scene_name}.onnx", folder / "model.onnx")
-            hide(scenes[scene_name], part, folder / "secret.bundle", config, cpu, show_progress=False, workers=1,
+            hide(scenes[scene_name], part, folder / "secret.bundle", config, cpu, workers=1,
                  allow_inexact=True)
             if name == "compact_tiles":
                 with_escape(folder / "secret.bundle")
@@ -284,8 +284,7 @@ def write_fixtures(root: Path) -> dict:
             shutil.copyfile(root / "scenes" / "wide.onnx", folder / "model.onnx")
             seal = new_seal(ScryptParams(log2_n=10, r=8, p=1), salt=bytes(range(16)), nonce=bytes(range(12)))
             hide_payload(scenes["wide"], record, folder / "secret.bundle", HideConfig(tile_size=16), cpu,
-                         passphrase=None if passphrase is None else passphrase.encode(), seal=seal,
-                         show_progress=False, workers=1)
+                         passphrase=None if passphrase is None else passphrase.encode(), seal=seal, workers=1)
             manifest["payloads"][name] = {**payload_golden(folder, passphrase), "name": "n\u00f6te.txt"}
             assert (folder / "payload.out").read_bytes() == PAYLOAD
         shutil.copytree(root / "payload_sealed", root / "payload_sealed_reformatted",

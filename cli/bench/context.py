@@ -47,8 +47,7 @@ class BenchContext:
         """hide() on the CPU into WORK/<name>.bundle, overwriting it, without progress bars; its report. An
         inexact hide still writes its bundle: the experiments report exactness rather than stop there.
         where: hide()'s workers and executor, when an experiment chooses them."""
-        return hide(self.scene, secret, self.work / f"{name}.bundle", config, torch.device("cpu"), force=True,
-                    show_progress=False, allow_inexact=True, **where)
+        return hide(self.scene, secret, self.work / f"{name}.bundle", config, torch.device("cpu"), force=True, allow_inexact=True, **where)
 
     def hide_and_reveal(self, secret: np.ndarray, name: str, config: HideConfig) -> tuple[dict, Revealed, float]:
         """self.hide, then the bundle revealed with onnxruntime: hide's report, the reveal, its seconds."""

@@ -35,7 +35,7 @@ def measure_payload(context: BenchContext) -> Payload:
         path = context.work / "payload.bundle"
         report, hide_seconds = timed(hide_payload, context.scene, record, path, HideConfig(view=config.view),
                                      torch.device("cpu"), passphrase=BENCH_PASSPHRASE if sealed else None,
-                                     force=True, show_progress=False)
+                                     force=True)
         # what `noisenerf-reveal` does with it, without writing: unseal, reveal, open
         opened, reveal_seconds = timed(reveal, context.model, path, BENCH_PASSPHRASE if sealed else None)
         room = report["capacity"]

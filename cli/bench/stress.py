@@ -138,8 +138,7 @@ def tiny_and_many_tile_secrets_hide_and_reveal_exactly(stressed: Stressed, heigh
     secret = np.random.default_rng(height * width).integers(0, 256, (height, width, 3), dtype=np.uint8)
     with tempfile.TemporaryDirectory(dir=stressed.folder) as tmp:
         path = Path(tmp) / "s.bundle"
-        report = hide(scene, secret, path, HideConfig(tile_size=tile, layout=layout, dtype=dtype), CPU,
-                      show_progress=False)
+        report = hide(scene, secret, path, HideConfig(tile_size=tile, layout=layout, dtype=dtype), CPU)
         assert report["exact"]
         bundle = load_bundle(path)
         assert all(np.isfinite(t.noise.loaded().rows(0, t.rect[2] * t.rect[3])).all() for t in bundle.tiles)
@@ -154,7 +153,7 @@ def same_seed_same_bundle_bytes(stressed: Stressed, method: str, layout: str) ->
                         layout=layout, settings=(PaperSettings(iters=5, record_at=()),))
     with tempfile.TemporaryDirectory(dir=stressed.folder) as tmp:
         for name in ("a", "b"):
-            hide(stressed.scene, secret, Path(tmp) / f"{name}.bundle", config, CPU, show_progress=False)
+            hide(stressed.scene, secret, Path(tmp) / f"{name}.bundle", config, CPU)
         assert (Path(tmp) / "a.bundle").read_bytes() == (Path(tmp) / "b.bundle").read_bytes()
 
 

@@ -9,7 +9,7 @@ from pathlib import Path
 
 import pytest
 
-from helpers import assert_refused, run_reveal
+from helpers import assert_refused, readme_python, run_reveal
 
 DEMO_DIR = os.environ.get("NOISENERF_DEMO_DIR")
 
@@ -99,18 +99,11 @@ def test_base_install_refuses_the_note_without_its_passphrase(demo_dir, tmp_path
                    exact=True)
 
 
-def readme_python(heading: str) -> str:
-    """The ```python blocks of the README section under `heading`, joined."""
-    text = (Path(__file__).resolve().parents[2] / "README.md").read_text()
-    section = text.split(f"\n## {heading}\n", 1)[1].split("\n## ", 1)[0]
-    return "\n".join(block.split("```", 1)[0] for block in section.split("```python\n")[1:])
-
-
 def test_the_readme_python_api_runs_as_written_without_torch(demo_dir, tmp_path):
     """The README's Python API section, run where `noisenerf demo` wrote noisenerf-demo/: it reveals the image
     exactly, opens the sealed note, refuses it without its passphrase and renders a view, loading no torch."""
     (tmp_path / "noisenerf-demo").symlink_to(demo_dir.resolve())
-    code = readme_python("Python API") + "\nimport sys\nassert 'torch' not in sys.modules\n"
+    code = readme_python("Python API")[0] + "\nimport sys\nassert 'torch' not in sys.modules\n"
     result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=tmp_path)
     assert result.returncode == 0, result.stderr
     image, note, refusal, view = result.stdout.splitlines()

@@ -17,6 +17,7 @@ import torch
 from noisenerf.runtime.errors import UserError
 from noisenerf.runtime.files import check_output_path
 from noisenerf.runtime.payload import Record, payload_secret
+from noisenerf.runtime.progress import ProgressFn
 from noisenerf.runtime.sealing import Seal, add_bundle_tag, derive_keys, new_seal
 from noisenerf.train.hide.plan import HideConfig
 from noisenerf.train.hide.run import hide
@@ -38,7 +39,7 @@ def capacity(secret: np.ndarray, tile_size: int) -> dict:
 
 def hide_payload(scene: Scene, record: Record, output: Path, config: HideConfig, device: torch.device,
                  passphrase: bytes | None = None, seal: Seal | None = None, force: bool = False,
-                 show_progress: bool = True, announce: Callable[[dict], None] | None = None,
+                 progress: ProgressFn | None = None, announce: Callable[[dict], None] | None = None,
                  workers: int | None = None, executor: str = "local", ray_address: str | None = None) -> dict:
     """Hide a record; sealed under `passphrase` when one is given, with `seal` (default: a fresh one,
     random salt and nonce; tests pass a fixed one). announce(capacity) is called before the hide starts;
@@ -52,10 +53,10 @@ def hide_payload(scene: Scene, record: Record, output: Path, config: HideConfig,
         seal = seal or new_seal()
         sealing = (seal, derive_keys(passphrase, seal))
     secret, payload = payload_secret(record, config.tile_size, scene.fingerprint(), sealing)
-    room = capacity(secret, config.tile_size)
+    room = {**capacity(secret, config.tile_size), "kind": record.kind, "bytes": len(record.body)}
     if announce is not None:
         announce(room)
-    report = hide(scene, secret, output, config, device, force=force, show_progress=show_progress, payload=payload,
+    report = hide(scene, secret, output, config, device, force=force, progress=progress, payload=payload,
                   workers=workers, executor=executor, ray_address=ray_address)
     if sealing is not None:
         try:

@@ -18,7 +18,6 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from tqdm import tqdm
 
 import noisenerf
 from noisenerf.runtime.bundle import Bundle, Tile, secret_digest
@@ -27,6 +26,7 @@ from noisenerf.runtime.errors import InexactResult, UserError
 from noisenerf.runtime.files import check_output_path
 from noisenerf.runtime.limits import MAX_RAY_LAYOUT_SAMPLES, checked_image_size
 from noisenerf.runtime.metrics import tile_quality
+from noisenerf.runtime.progress import Counter, ProgressFn
 from noisenerf.train.hide.executors import EXECUTORS, open_executor
 from noisenerf.train.hide.jobs import PREPARE, FieldWeights, Job, tile_view
 from noisenerf.train.hide.plan import HideConfig, plan, run_key
@@ -55,11 +55,12 @@ class TileWork:
 
 
 def hide(scene: Scene, secret: np.ndarray, output: Path, config: HideConfig, device: torch.device,
-         force: bool = False, show_progress: bool = True, payload: dict | None = None,
+         force: bool = False, progress: ProgressFn | None = None, payload: dict | None = None,
          workers: int | None = None, allow_inexact: bool = False, executor: str = "local",
          ray_address: str | None = None) -> dict:
     """Hide `secret` (H, W, 3) uint8 in the scene; write the bundle to `output`; return the report.
     payload: the bundle's payload object when the secret carries one (train.payload), else None.
+    progress: told of the pixels solved (runtime.progress; parts solved again are taken back).
     A method that promises exactness (Method.exact) and leaves a tile's pixels off raises InexactResult at
     that tile, writing no bundle and keeping the solved parts for a resume, unless allow_inexact (never for
     a payload, which is revealed whole or not at all).
@@ -81,11 +82,10 @@ def hide(scene: Scene, secret: np.ndarray, output: Path, config: HideConfig, dev
         raise UserError(PAYLOAD_IS_EXACT)
     workers = (available_cores() if workers is None else workers) if device.type == "cpu" and solver.method.spreads else 1
     weights = FieldWeights.of(scene, hide_plan.tiles[0].network)
-    with Progress(output, run_key(scene, secret, config)) as progress, \
+    with Progress(output, run_key(scene, secret, config)) as resume, \
             open_executor(executor, weights, workers, device, ray_address) as jobs:
         started = time.perf_counter()
-        bar = tqdm(total=secret.shape[0] * secret.shape[1], unit="px", desc=f"hide ({config.method})",
-                   disable=not show_progress, dynamic_ncols=True)
+        pixels_done = Counter(progress, "hide", secret.shape[0] * secret.shape[1], "px")
         tiles, reports = [None] * len(hide_plan.tiles), [None] * len(hide_plan.tiles)
         works: dict[int, TileWork] = {}  # the tiles in flight: their pixels, parts and results held till done
         waiting = iter(enumerate(hide_plan.tiles))
@@ -107,9 +107,9 @@ def hide(scene: Scene, secret: np.ndarray, output: Path, config: HideConfig, dev
             quality = tile_quality(colors.cpu().numpy(), pixels.cpu().numpy(), (h, w))
             if solver.method.exact and quality["inexact_pixels"] and work.loaded:
                 for c in sorted(work.loaded):
-                    progress.discard(work.k, c)
+                    resume.discard(work.k, c)
                     del work.solved[c]
-                    bar.update(-len(work.parts[c]))
+                    pixels_done(-len(work.parts[c]))
                     jobs.submit(job(work, c, work.parts[c]), work.prepared)
                 work.loaded.clear()
                 return
@@ -117,7 +117,7 @@ def hide(scene: Scene, secret: np.ndarray, output: Path, config: HideConfig, dev
                 raise InexactResult(
                     f"tile {work.k} (view {work.tile.view}, {w}x{h} px at x={x0}, y={y0}) has "
                     f"{quality['inexact_pixels']} pixels off, by up to {quality['max_error']} levels; no bundle "
-                    f"written (solved parts kept in {progress.directory} for a resume; --allow-inexact writes the "
+                    f"written (solved parts kept in {resume.directory} for a resume; --allow-inexact writes the "
                     f"bundle anyway)")
             tiles[work.k] = dataclasses.replace(work.tile, noise=solved.stored)
             reports[work.k] = {"rect": list(work.tile.rect), "view": work.tile.view, **quality, **solved.report,
@@ -128,13 +128,13 @@ def hide(scene: Scene, secret: np.ndarray, output: Path, config: HideConfig, dev
             """The tile's saved parts taken, the others submitted. -> whether none is left to solve."""
             for c, rows in enumerate(work.parts):
                 layout, sound = solver.part_layout(config, len(rows), noise_dims, work.prepared)
-                saved = progress.load(work.k, c, layout, sound)
+                saved = resume.load(work.k, c, layout, sound)
                 if saved is None:
                     jobs.submit(job(work, c, rows), work.prepared)
                 else:
                     work.solved[c] = saved
                     work.loaded.add(c)
-                    bar.update(len(rows))
+                    pixels_done(len(rows))
             return len(work.solved) == len(work.parts)
 
         def start_tiles() -> None:
@@ -158,13 +158,12 @@ def hide(scene: Scene, secret: np.ndarray, output: Path, config: HideConfig, dev
                 if start_parts(work):
                     finish(work)
             else:
-                progress.save(done.k, done.part, result)
+                resume.save(done.k, done.part, result)
                 work.solved[done.part] = result
-                bar.update(len(done.rows))
+                pixels_done(len(done.rows))
                 if len(work.solved) == len(work.parts):
                     finish(work)
             start_tiles()
-        bar.close()
         bundle = Bundle(model_fingerprint=scene.fingerprint(), width=secret.shape[1], height=secret.shape[0],
                         secret_sha256=secret_digest(secret), layout=config.layout,
                         noise_dims=noise_dims, dtype=config.dtype, tiles=tuple(tiles),
@@ -172,7 +171,7 @@ def hide(scene: Scene, secret: np.ndarray, output: Path, config: HideConfig, dev
                                "config": config.to_dict()}, payload=payload,
                         coefficients=tiles[0].noise.shape[-1] if config.layout == "compact" else None)
         bundle.save(output, replace=force)
-        progress.clear()
+        resume.clear()
     n_pixels = secret.shape[0] * secret.shape[1]
     exact_pixels = sum(r["exact_fraction"] * r["rect"][2] * r["rect"][3] for r in reports)
     return {

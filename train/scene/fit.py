@@ -24,13 +24,13 @@ from typing import TYPE_CHECKING
 import numpy as np
 import torch
 from safetensors.torch import load_file, save
-from tqdm import tqdm
 
 from noisenerf.runtime import render as numpy_render
 from noisenerf.runtime.camera import camera_rays
 from noisenerf.runtime.errors import UserError
 from noisenerf.runtime.field_callbacks import plain
 from noisenerf.runtime.files import check_output_directory, read_json, write_bytes, write_json
+from noisenerf.runtime.progress import Counter, ProgressFn
 from noisenerf.runtime.metrics import psnr, ssim
 from noisenerf.runtime.occupancy import OccupancyGrid
 from noisenerf.runtime.rays import camera_ray_batch, field_space_rays
@@ -312,9 +312,10 @@ def curve_psnr(scene: Scene, dataset: Dataset, views: list[int], rays_per_view: 
 
 def fit(dataset: Dataset, out_dir: Path, config: FitConfig, budget: Budget, device: torch.device,
         checkpoint_seconds: float = 60.0, curve_seconds: float = 120.0, curve_views: int = 3,
-        progress: bool = True) -> dict:
+        progress: ProgressFn | None = None) -> dict:
     """Fit, checkpointing into out_dir, then save the scene there and report test-view quality. The folder
-    is created only once the data has given a fitter, so input the fitter refuses leaves no empty folder."""
+    is created only once the data has given a fitter, so input the fitter refuses leaves no empty folder.
+    progress: told of the steps (an iteration budget) or seconds (a time budget) done, and the loss."""
     out_dir = check_output_directory(out_dir)
     fitter = Fitter(dataset, config, device)
     out_dir.mkdir(exist_ok=True)
@@ -324,8 +325,8 @@ def fit(dataset: Dataset, out_dir: Path, config: FitConfig, budget: Budget, devi
     curve_path = out_dir / "curve.json"
     curve = read_json(curve_path, "fit curve")["curve"] if resumed and curve_path.is_file() else []
     total = budget.iters if budget.iters else int(budget.minutes * 60)
-    bar = tqdm(total=total, initial=fitter.step if budget.iters else int(fitter.seconds), disable=not progress,
-               unit="it" if budget.iters else "s", desc="fit", dynamic_ncols=True)
+    done = Counter(progress, "fit", total, "it" if budget.iters else "s",
+                   done=fitter.step if budget.iters else int(fitter.seconds))
     last_checkpoint = last_curve = wall_start = time.perf_counter()
     start = time.perf_counter() - fitter.seconds
     while budget.progress(fitter.step, fitter.seconds) < 1.0:
@@ -333,8 +334,8 @@ def fit(dataset: Dataset, out_dir: Path, config: FitConfig, budget: Budget, devi
         loss = fitter.train_step(lr)
         now = time.perf_counter()
         previous, fitter.seconds = fitter.seconds, now - start
-        bar.update(1 if budget.iters else int(fitter.seconds) - int(previous))
-        bar.set_postfix(loss=f"{loss:.4f}", psnr=f"{-10 * math.log10(max(loss, 1e-10)):.1f}", refresh=False)
+        done(1 if budget.iters else int(fitter.seconds) - int(previous),
+             f"loss {loss:.4f}, {-10 * math.log10(max(loss, 1e-10)):.1f} dB")
         if curve_seconds and now - last_curve >= curve_seconds:
             quality = curve_psnr(fitter.scene(final=False), dataset, curve_subset, CURVE_RAYS, config.seed)
             curve.append({"seconds": round(fitter.seconds, 1), "step": fitter.step, "psnr": quality})
@@ -344,7 +345,6 @@ def fit(dataset: Dataset, out_dir: Path, config: FitConfig, budget: Budget, devi
         if now - last_checkpoint >= checkpoint_seconds:
             fitter.save_checkpoint(out_dir)
             last_checkpoint = time.perf_counter()
-    bar.close()
     fit_seconds = fitter.seconds
     scene = fitter.scene(final=True)
     for field in scene.fields().values():
