@@ -14,7 +14,7 @@ from pathlib import Path
 from noisenerf.api import resolve_device
 from noisenerf.cli.common import (FAILURES, OneLineParser, TerminalProgress, failure, payload_line, quiet_warnings,
                                   read_passphrase)
-from noisenerf.runtime.bundle import LAYOUT_DTYPES, LAYOUTS
+from noisenerf.runtime.layouts import LAYOUTS
 from noisenerf.runtime.errors import UserError
 from noisenerf.runtime.files import json_text
 from noisenerf.train.hide.methods import METHODS
@@ -197,11 +197,11 @@ def build_parser() -> argparse.ArgumentParser:
     # --help is instant; each method turns these flags into its settings (Method.from_arguments)
     paper = PaperSettings()
     p.add_argument("--method", choices=tuple(METHODS), default=HideConfig.method)
-    p.add_argument("--layout", choices=LAYOUTS, help="; ".join(
+    p.add_argument("--layout", choices=tuple(LAYOUTS), help="; ".join(
         f"{name} method: {' or '.join(method.layouts)} (default {method.layouts[0]})" for name, method in METHODS.items()))
-    p.add_argument("--dtype", choices=tuple(dict.fromkeys(d for dtypes in LAYOUT_DTYPES.values() for d in dtypes)),
-                   help="; ".join(f"{layout}: {' or '.join(dtypes)} (default {dtypes[0]})"
-                                  for layout, dtypes in LAYOUT_DTYPES.items()))
+    p.add_argument("--dtype", choices=tuple(dict.fromkeys(d for layout in LAYOUTS.values() for d in layout.dtypes)),
+                   help="; ".join(f"{name}: {' or '.join(layout.dtypes)} (default {layout.dtypes[0]})"
+                                  for name, layout in LAYOUTS.items()))
     p.add_argument("--samples", type=int, help="samples per ray of the secret view (" + ", ".join(
         f"{name}: {method.default_samples}" for name, method in METHODS.items()) + ")")
     p.add_argument("--recipe", choices=tuple(RECIPES), default=paper.recipe,

@@ -120,7 +120,8 @@ def interrupted_after_saves(n: int):
 def two_tile_bundle(scene, layout: str = "ray", seed: int = 0, network: str | None = None):
     """Random noise in two views side by side, for `network` (None: no network field, as bundles made
     before it existed); the digest is that of torch's render of this very noise."""
-    from noisenerf.runtime.bundle import Bundle, Tile, VectorNoise, secret_digest
+    from noisenerf.runtime.bundle import Bundle, Tile, secret_digest
+    from noisenerf.runtime.layouts import VectorNoise
     from noisenerf.runtime.reveal import reveal
     from noisenerf.train.scene.render import numpy_fields
 

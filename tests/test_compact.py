@@ -11,7 +11,8 @@ import torch
 
 from helpers import assert_refused, rewrite_bundle, run_reveal
 from noisenerf.cli.demo import DEMO_VIEW
-from noisenerf.runtime.bundle import CompactBasis, expand_coefficients, load_bundle, pack_coefficients, unpack_coefficients
+from noisenerf.runtime.bundle import load_bundle
+from noisenerf.runtime.layouts import CompactBasis, expand_coefficients, pack_coefficients, unpack_coefficients
 from noisenerf.runtime.errors import UserError
 from noisenerf.runtime.images import write_image
 from noisenerf.train.hide.plan import HideConfig
@@ -44,14 +45,14 @@ def test_compact_bundle_reveals_exactly_through_onnxruntime(demo):
 
 
 def test_tiles_beyond_the_kept_budget_are_unpacked_again_when_rendered_with_the_same_pixels(demo, monkeypatch):
-    from noisenerf.runtime import bundle as bundle_module
+    from noisenerf.runtime import layouts as layouts_module
     from noisenerf.runtime.model import load_model
     from noisenerf.runtime.reveal import reveal
 
     folder, secret, _, model = demo
     kept = load_bundle(folder / "compact.bundle")
     tile_bytes = kept.tiles[0].noise.unpacked.nbytes  # two 24² tiles of 6 int16 coefficients a pixel
-    monkeypatch.setattr(bundle_module, "KEPT_UNPACKED_BYTES", tile_bytes)
+    monkeypatch.setattr(layouts_module, "KEPT_UNPACKED_BYTES", tile_bytes)
     partly = load_bundle(folder / "compact.bundle")
     assert [t.noise.unpacked is not None for t in kept.tiles] == [True, True]
     assert [t.noise.unpacked is not None for t in partly.tiles] == [True, False]

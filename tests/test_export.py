@@ -9,7 +9,8 @@ import pytest
 from helpers import make_tiny_scene
 from noisenerf.export import onnx_export
 from noisenerf.export.onnx_export import export_scene, probe_parity
-from noisenerf.runtime.bundle import Tile, VectorNoise
+from noisenerf.runtime.bundle import Tile
+from noisenerf.runtime.layouts import VectorNoise
 from noisenerf.runtime.errors import UserError
 from noisenerf.runtime.fingerprint import weights_fingerprint
 from noisenerf.runtime.graph import field_graph

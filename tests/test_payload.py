@@ -18,7 +18,8 @@ import torch
 
 from helpers import assert_refused, run_reveal
 from noisenerf.cli.main import main as noisenerf_main
-from noisenerf.runtime.bundle import CompactNoise, load_bundle
+from noisenerf.runtime.bundle import load_bundle
+from noisenerf.runtime.layouts import CompactNoise
 from noisenerf.runtime.errors import UserError
 from noisenerf.runtime.images import read_native, write_image
 from noisenerf.runtime.payload import (

@@ -110,7 +110,8 @@ def golden(folder: Path) -> dict:
 def with_escape(path: Path) -> None:
     """Rewrite a compact bundle so that tile 0's pixel 5 escapes: its coefficients 0, its noise the float16
     of what they expanded to (the reveal's golden is what Python then reveals, exact or not)."""
-    from noisenerf.runtime.bundle import CompactBasis, CompactNoise, load_bundle
+    from noisenerf.runtime.bundle import load_bundle
+    from noisenerf.runtime.layouts import CompactBasis, CompactNoise
 
     bundle = load_bundle(path)
     tile = bundle.tiles[0]

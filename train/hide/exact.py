@@ -81,7 +81,7 @@ class NoiseSpace:
     Basis space: noise = offset + params Bᵀ with B (dims, k) orthonormal columns. With a float storage
     dtype the params are rounded to it (a compact tile's basis is found in float32); with an integer one
     (a compact tile) the params are q · scale for integers q, so `store` rounds them to the integer lattice.
-    Expanding exactly as the reveal does (runtime.bundle.expand_coefficients: one float32 multiply, then
+    Expanding exactly as the reveal does (runtime.layouts.expand_coefficients: one float32 multiply, then
     the matmul) keeps what the solver judges what the recipient renders, to float32 summation order.
     """
 

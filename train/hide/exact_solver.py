@@ -9,7 +9,7 @@ from typing import TYPE_CHECKING, Callable
 
 import torch
 
-from noisenerf.runtime.bundle import CompactBasis, CompactNoise, TileNoise, VectorNoise, noise_shape
+from noisenerf.runtime.layouts import LAYOUTS, CompactBasis, CompactNoise, TileNoise, VectorNoise
 from noisenerf.train.hide.compact import in_basis, solver_view, tile_space
 from noisenerf.train.hide.exact import (ChunkProblem, NoiseSpace, SolveCounts, is_lifted, rescue,
                                         solve_exact)
@@ -102,7 +102,7 @@ class ExactSolver(Solver):
             torch.set_num_threads(before)
 
     def prepares(self, config: HideConfig) -> bool:
-        return config.layout == "compact"
+        return LAYOUTS[config.layout].shares_basis
 
     def prepare(self, secret_view: SecretView, pixels: torch.Tensor, config: HideConfig, k: int) -> NoiseSpace:
         """A compact tile's basis, from its own seed (chunk_seed's chunk −1)."""
@@ -144,7 +144,7 @@ class ExactSolver(Solver):
             escaped = torch.cat([part["escaped"] for part in parts]).bool().to(device)
             escape_noise = torch.cat([part["escape_noise"] for part in parts]).to(device)
         noise = torch.where(escaped[:, None, None], escape_noise[:, None, :], space.expand(params))
-        stored = stored_noise(space, params, escaped, escape_noise, noise_shape(config.layout, *shape, 1, -1))
+        stored = stored_noise(space, params, escaped, escape_noise, LAYOUTS[config.layout].stored_shape(*shape, 1, -1))
         return TileSolution(noise, {**totals, "escaped": int(escaped.sum())}, stored)
 
 

@@ -7,7 +7,7 @@ from typing import TYPE_CHECKING, Callable
 
 import torch
 
-from noisenerf.runtime.bundle import VectorNoise, noise_shape
+from noisenerf.runtime.layouts import LAYOUTS, VectorNoise
 from noisenerf.runtime.metrics import tile_quality
 from noisenerf.train.hide.methods import METHODS
 from noisenerf.train.hide.paper import ViewSurvey, recorded_points, skip_shares, solved_block, survey
@@ -59,10 +59,10 @@ class PaperSolver(Solver):
         report = {"records": records, "dead_rays": int((~prepared.alive).sum()),
                   "skipping": skip_shares(sum(part["work"] for part in parts), secret_view.n_rays, secret_view.n_samples,
                                           config.get(PaperSettings).iters)}
-        stored_shape = noise_shape(config.layout, *shape, secret_view.n_samples, secret_view.noise_dims)
+        stored_shape = LAYOUTS[config.layout].stored_shape(*shape, secret_view.n_samples, secret_view.noise_dims)
         return TileSolution(noise, report, VectorNoise(noise.reshape(stored_shape).numpy()))
 
 
 def layout_samples(config: HideConfig) -> int:
     """Noise vectors per ray the layout stores: one per sample (the paper's), or one per ray."""
-    return config.n_samples if config.layout == "sample" else 1
+    return LAYOUTS[config.layout].vectors_per_ray(config.n_samples)

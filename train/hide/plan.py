@@ -13,7 +13,8 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from noisenerf import __version__
-from noisenerf.runtime.bundle import LAYOUT_DTYPES, LAYOUTS, Tile, secret_digest
+from noisenerf.runtime.bundle import Tile, secret_digest
+from noisenerf.runtime.layouts import LAYOUTS
 from noisenerf.runtime.errors import UserError
 from noisenerf.runtime.networks import NETWORKS, render_network
 from noisenerf.runtime.sampling import SamplingConfig
@@ -63,11 +64,11 @@ class HideConfig:
         if self.layout not in method.layouts:
             raise UserError(f"the {self.method} method stores its noise as {' or '.join(method.layouts)}, "
                             f"not {self.layout}")
+        dtypes = LAYOUTS[self.layout].dtypes
         if self.dtype is None:
-            object.__setattr__(self, "dtype", LAYOUT_DTYPES[self.layout][0])
-        if self.dtype not in LAYOUT_DTYPES[self.layout]:
-            raise UserError(f"the {self.layout} layout stores {' or '.join(LAYOUT_DTYPES[self.layout])}, "
-                            f"not {self.dtype!r}")
+            object.__setattr__(self, "dtype", dtypes[0])
+        if self.dtype not in dtypes:
+            raise UserError(f"the {self.layout} layout stores {' or '.join(dtypes)}, not {self.dtype!r}")
         if self.n_samples is None:
             object.__setattr__(self, "n_samples", method.default_samples)
         if self.network is None:

@@ -24,7 +24,8 @@ from noisenerf.runtime.bundle import Bundle, Tile, secret_digest
 from noisenerf.runtime.cores import available_cores
 from noisenerf.runtime.errors import InexactResult, UserError
 from noisenerf.runtime.files import check_output_path
-from noisenerf.runtime.limits import MAX_RAY_LAYOUT_SAMPLES, checked_image_size
+from noisenerf.runtime.layouts import LAYOUTS
+from noisenerf.runtime.limits import checked_image_size
 from noisenerf.runtime.metrics import tile_quality
 from noisenerf.runtime.progress import Counter, ProgressFn
 from noisenerf.train.hide.executors import EXECUTORS, open_executor
@@ -70,12 +71,13 @@ def hide(scene: Scene, secret: np.ndarray, output: Path, config: HideConfig, dev
     secret of several jobs guards its top level with `if __name__ == "__main__":`, as multiprocessing requires."""
     output = check_output_path(output, force=force)
     checked_image_size(secret.shape[1], secret.shape[0], "the secret image")  # what a bundle may hold
-    if config.layout == "ray" and config.n_samples > MAX_RAY_LAYOUT_SAMPLES:
-        raise UserError(f"the ray layout serves at most {MAX_RAY_LAYOUT_SAMPLES} samples per ray, "
-                        f"not {config.n_samples}")
     if executor not in EXECUTORS:
         raise UserError(f"unknown executor {executor!r} ({' or '.join(EXECUTORS)})")
-    hide_plan = plan(scene, secret, config)
+    hide_plan = plan(scene, secret, config)  # checks the sampling first
+    noise_layout = LAYOUTS[config.layout]
+    if config.n_samples > noise_layout.max_samples:
+        raise UserError(f"the {noise_layout.name} layout serves at most {noise_layout.max_samples} samples per ray, "
+                        f"not {config.n_samples}")
     noise_dims = scene.render_field.config.noise_dims
     solver = SOLVERS[config.method]
     if allow_inexact and payload is not None:
@@ -169,7 +171,7 @@ def hide(scene: Scene, secret: np.ndarray, output: Path, config: HideConfig, dev
                         noise_dims=noise_dims, dtype=config.dtype, tiles=tuple(tiles),
                         extra={"method": config.method, "noisenerf": noisenerf.__version__,
                                "config": config.to_dict()}, payload=payload,
-                        coefficients=tiles[0].noise.shape[-1] if config.layout == "compact" else None)
+                        coefficients=noise_layout.coefficients_of(tiles[0].noise))
         bundle.save(output, replace=force)
         resume.clear()
     n_pixels = secret.shape[0] * secret.shape[1]

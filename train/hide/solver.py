@@ -17,7 +17,7 @@ from typing import TYPE_CHECKING, Callable, ClassVar
 
 import torch
 
-from noisenerf.runtime.bundle import TileNoise
+from noisenerf.runtime.layouts import TileNoise
 from noisenerf.train.hide.methods import Method
 from noisenerf.train.hide.secret_view import SecretView
 

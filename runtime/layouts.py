@@ -1,0 +1,322 @@
+"""Noise layouts: how a tile's noise is stored in a bundle and expanded into the vectors a render adds. Each
+layout is a class that owns its name, storage dtypes, the stored array's shape, how many samples one stored
+vector serves, its part of the bundle's metadata, and how a tile's tensors are read and checked; the noise
+types (what a tile holds) live here too. runtime/bundle.py keeps the file format and asks the layout.
+
+    ray      (h, w, dims) floats: one vector per ray, added at every one of its samples
+    sample   (h, w, n_samples, dims) floats: one vector per sample (the paper's)
+    compact  per pixel k integer coefficients of a per-tile basis, stored as an xz stream of byte planes
+             (coefficient-major, then byte, then row-major pixels, little-endian: planes of like bytes compress
+             best) with the basis (dims, k), offset (dims,) and scale: noise = offset + (coefficients · scale)
+             basisᵀ in float32; pixels the basis could not reach "escape" with their full float16 noise
+"""
+
+from __future__ import annotations
+
+import lzma
+from dataclasses import dataclass
+from typing import Callable
+
+import numpy as np
+
+from noisenerf.runtime.errors import UserError
+from noisenerf.runtime.limits import (MAX_COMPACT_COEFFICIENTS, MAX_RAY_LAYOUT_SAMPLES, MAX_SAMPLES_PER_RAY,
+                                      MAX_XZ_MEMORY, checked_expansion, checked_float, checked_int)
+
+DTYPES = {"float16": np.float16, "float32": np.float32, "int8": np.int8, "int16": np.int16}
+XZ_PRESET = 6  # xz level of the coefficient planes (9 saved under 1 % more on photos, at twice the time)
+CODEC = "xz-byte-planes"
+# a compact bundle's coefficients, up to this many bytes unpacked, stay unpacked from the load's check to the render
+# (one xz decode for ordinary secrets); beyond, tiles are unpacked again one at a time, so memory stays bounded
+KEPT_UNPACKED_BYTES = 1 << 26
+TensorGetter = Callable[..., np.ndarray]  # (name, dtype=None, ndim=None) -> a tile's tensor, or a UserError
+
+
+@dataclass(frozen=True)
+class CompactBasis:
+    """A compact tile's basis: a pixel's noise is offset + (coefficients · scale) basisᵀ."""
+
+    basis: np.ndarray  # (dims, k) float32
+    offset: np.ndarray  # (dims,) float32
+    scale: float  # one integer step of a coefficient (a float32 value)
+    escapes: np.ndarray  # (e,) int32, strictly increasing row-major pixel indices with full noise
+    escape_noise: np.ndarray  # (e, dims) float16
+
+
+def expand_coefficients(coefficients: np.ndarray, basis: CompactBasis, start: int = 0) -> np.ndarray:
+    """Noise of compact pixels start.. start+m in float32, as the solver computed it
+    (train/hide/exact.NoiseSpace.expand: one float32 multiply by the scale, then the matmul), with the
+    escaped pixels' stored noise. coefficients: (m, k) int -> (m, dims) float32."""
+    params = coefficients.astype(np.float32) * np.float32(basis.scale)
+    noise = basis.offset + params @ basis.basis.T
+    first, last = np.searchsorted(basis.escapes, [start, start + len(coefficients)])
+    noise[basis.escapes[first:last] - start] = basis.escape_noise[first:last]
+    return noise
+
+
+def pack_coefficients(coefficients: np.ndarray) -> np.ndarray:
+    """The xz stream of (h, w, k) integer coefficients as byte planes (see the module docstring). -> (n,) uint8."""
+    planes = np.ascontiguousarray(coefficients.astype(coefficients.dtype.newbyteorder("<")).transpose(2, 0, 1))
+    split = planes.view(np.uint8).reshape(*planes.shape, -1).transpose(0, 3, 1, 2)
+    return np.frombuffer(lzma.compress(np.ascontiguousarray(split).tobytes(), preset=XZ_PRESET), dtype=np.uint8)
+
+
+def unpack_coefficients(packed: np.ndarray, shape: tuple[int, int, int], dtype: str, what: str) -> np.ndarray:
+    """pack_coefficients undone, refusing a stream that is corrupt or does not hold exactly shape's bytes
+    (at most that many are ever decompressed, within MAX_XZ_MEMORY). -> (h, w, k) of dtype."""
+    kind = np.dtype(DTYPES[dtype]).newbyteorder("<")
+    expected = int(np.prod(shape)) * kind.itemsize
+    decompressor = lzma.LZMADecompressor(format=lzma.FORMAT_XZ, memlimit=MAX_XZ_MEMORY)
+    try:
+        data = decompressor.decompress(packed.tobytes(), max_length=expected + 1)
+    except lzma.LZMAError as error:
+        raise UserError(f"{what}: compressed coefficients are corrupt ({error})") from None
+    if len(data) != expected or not decompressor.eof or decompressor.unused_data:
+        raise UserError(f"{what}: compressed coefficients do not hold exactly {shape} {dtype} values")
+    height, width, k = shape
+    split = np.frombuffer(data, dtype=np.uint8).reshape(k, kind.itemsize, height, width)
+    planes = np.ascontiguousarray(split.transpose(0, 2, 3, 1)).view(kind)[..., 0]
+    return planes.transpose(1, 2, 0).astype(DTYPES[dtype])
+
+
+@dataclass(frozen=True)
+class VectorNoise:
+    """The ray and sample layouts' noise, as stored: float vectors, (h, w, dims) one per ray or
+    (h, w, n_samples, dims) one per sample."""
+
+    values: np.ndarray
+
+    @property
+    def shape(self) -> tuple[int, ...]:
+        """The stored array's shape, which the bundle header states."""
+        return self.values.shape
+
+    @property
+    def dtype(self) -> np.dtype:
+        return self.values.dtype
+
+    def loaded(self) -> VectorNoise:
+        """What a render reads rows from: the stored floats themselves."""
+        return self
+
+    def rows(self, start: int, stop: int) -> np.ndarray:
+        """Float32 noise of pixels start..stop (row-major): (m, 1 or n_samples, dims)."""
+        flat = self.values.reshape(-1, *self.values.shape[2:])[start:stop].astype(np.float32)
+        return flat[:, None, :] if flat.ndim == 2 else flat
+
+    def tensors(self, name: str) -> dict[str, np.ndarray]:
+        """What the file stores for this noise under `name`."""
+        return {name: np.ascontiguousarray(self.values)}
+
+
+@dataclass(frozen=True)
+class CompactCoefficients:
+    """A compact tile's coefficients unpacked, (h, w, k) integers, for a render to read rows from."""
+
+    coefficients: np.ndarray
+    basis: CompactBasis
+
+    def rows(self, start: int, stop: int) -> np.ndarray:
+        """Float32 noise of pixels start..stop (row-major), expanded: (m, 1, dims)."""
+        flat = self.coefficients.reshape(-1, self.coefficients.shape[-1])[start:stop]
+        return expand_coefficients(flat, self.basis, start)[:, None, :]
+
+
+@dataclass(frozen=True)
+class CompactNoise:
+    """The compact layout's noise: per pixel k integer coefficients (h, w, k) of the tile's basis, held as
+    the file stores them (pack_coefficients' xz stream). A hide packs a tile once it is solved; a reveal
+    renders the coefficients load_bundle kept (KEPT_UNPACKED_BYTES) and unpacks the others one tile at a time
+    (`loaded`), so neither holds a big secret's coefficients unpacked."""
+
+    packed: np.ndarray  # (n,) uint8
+    shape: tuple[int, int, int]  # (h, w, k)
+    dtype: np.dtype  # int16 or int8
+    basis: CompactBasis
+    unpacked: np.ndarray | None = None  # the coefficients, where load_bundle kept them (KEPT_UNPACKED_BYTES)
+
+    @staticmethod
+    def of(coefficients: np.ndarray, basis: CompactBasis) -> CompactNoise:
+        """Coefficients (h, w, k) int16 or int8, packed."""
+        return CompactNoise(pack_coefficients(coefficients), coefficients.shape, coefficients.dtype, basis)
+
+    def coefficients(self) -> np.ndarray:
+        """The unpacked coefficients (h, w, k)."""
+        return unpack_coefficients(self.packed, self.shape, self.dtype.name, "bundle: compact tile")
+
+    def loaded(self) -> CompactCoefficients:
+        unpacked = self.coefficients() if self.unpacked is None else self.unpacked
+        return CompactCoefficients(unpacked, self.basis)
+
+    def tensors(self, name: str) -> dict[str, np.ndarray]:
+        return {name: self.packed, f"{name}_basis": np.ascontiguousarray(self.basis.basis),
+                f"{name}_offset": np.ascontiguousarray(self.basis.offset),
+                f"{name}_escapes": np.ascontiguousarray(self.basis.escapes),
+                f"{name}_escape_noise": np.ascontiguousarray(self.basis.escape_noise)}
+
+
+TileNoise = VectorNoise | CompactNoise
+
+
+
+
+@dataclass(frozen=True)
+class NoiseLayout:
+    """What every layout answers; the three below are the only ones."""
+
+    name: str
+    dtypes: tuple[str, ...]  # storage dtypes, the default first
+    max_samples: int  # samples per ray a tile of this layout may render
+
+    def vectors_per_ray(self, n_samples: int) -> int:
+        """Stored noise vectors per ray of n_samples samples."""
+        return 1
+
+    def stored_shape(self, height: int, width: int, n_samples: int, per_vector: int) -> tuple[int, ...]:
+        """A tile's stored noise array: (h, w, per_vector), a vector per ray (dims values, or k coefficients)."""
+        return (height, width, per_vector)
+
+    def coefficients_of(self, noise: TileNoise) -> int | None:
+        """What the bundle header states per pixel besides dims: a compact tile's k, else None."""
+        return None
+
+    def header(self, coefficients: int | None) -> dict:
+        """The layout's part of the bundle's noise metadata beyond layout, dims and dtype."""
+        return {}
+
+    def read_header(self, noise: dict, dims: int) -> int | None:
+        """Its part of a bundle's noise metadata, checked -> coefficients per pixel (compact) or None."""
+        if noise.get("coefficients") is not None:
+            raise UserError("bundle: coefficients per pixel are given for, and only for, the compact layout")
+        return None
+
+    def tile_metadata(self, noise: TileNoise) -> dict:
+        return {}
+
+    def check_streams(self, streams: list, secret_size: tuple[int, int], tile_pixels: int, coefficients: int | None,
+                      dtype: str) -> None:
+        """Compressed streams against what they are stated to hold, before any is inflated (compact only: the
+        others store raw noise). streams: each tile's tensor, where it names one."""
+
+    def kept_unpacked(self, areas: np.ndarray, coefficients: int | None, dtype: str) -> np.ndarray:
+        """Which tiles of these areas (pixels) load_bundle keeps unpacked. (tiles,) bool."""
+        return np.zeros(len(areas), dtype=bool)
+
+    def read_tile(self, name: str, data: dict, tensor: TensorGetter, shape: tuple[int, ...], dtype: str, what: str,
+                  keep_unpacked: bool) -> TileNoise:
+        """A tile's noise from its tensors (`tensor` refuses a missing one)."""
+        return VectorNoise(tensor(name))
+
+    def check_noise(self, what: str, noise: TileNoise, pixels: int, dims: int, coefficients: int | None) -> None:
+        """A tile's noise beyond its shape and dtype: finite floats."""
+        if not np.isfinite(noise.values).all():
+            raise UserError(f"{what} noise holds NaN or Inf")
+
+    @property
+    def noise_type(self) -> type:
+        return VectorNoise
+
+    @property
+    def shares_basis(self) -> bool:
+        """Whether a tile's pixels share a solved basis (a shared job before its parts)."""
+        return False
+
+
+class RayLayout(NoiseLayout):
+    pass
+
+
+class SampleLayout(NoiseLayout):
+    def vectors_per_ray(self, n_samples: int) -> int:
+        return n_samples
+
+    def stored_shape(self, height: int, width: int, n_samples: int, per_vector: int) -> tuple[int, ...]:
+        return (height, width, n_samples, per_vector)
+
+
+class CompactLayout(NoiseLayout):
+    def coefficients_of(self, noise: TileNoise) -> int:
+        return noise.shape[-1]
+
+    def header(self, coefficients: int | None) -> dict:
+        return {"coefficients": coefficients, "codec": CODEC}
+
+    def read_header(self, noise: dict, dims: int) -> int:
+        coefficients = checked_int(noise.get("coefficients"), "bundle: coefficients per pixel", 1,
+                                   MAX_COMPACT_COEFFICIENTS)
+        if noise.get("codec") != CODEC:
+            raise UserError(f"bundle: unknown coefficient codec {noise.get('codec')!r:.40} (expected {CODEC!r})")
+        if coefficients > min(dims, MAX_COMPACT_COEFFICIENTS):
+            raise UserError(f"bundle: {coefficients} coefficients per pixel, expected 1 to "
+                            f"{min(dims, MAX_COMPACT_COEFFICIENTS)}")
+        return coefficients
+
+    def tile_metadata(self, noise: TileNoise) -> dict:
+        return {"scale": noise.basis.scale}
+
+    def check_streams(self, streams: list, secret_size: tuple[int, int], tile_pixels: int, coefficients: int | None,
+                      dtype: str) -> None:
+        width, height = secret_size
+        if tile_pixels != width * height:
+            raise UserError(f"bundle: the tiles' areas do not add up to the {width}x{height} secret")
+        checked_expansion(sum(stream.nbytes for stream in streams if stream is not None),
+                          tile_pixels * coefficients * np.dtype(DTYPES[dtype]).itemsize, "bundle")
+
+    def kept_unpacked(self, areas: np.ndarray, coefficients: int | None, dtype: str) -> np.ndarray:
+        per_pixel = coefficients * np.dtype(DTYPES[dtype]).itemsize
+        return np.cumsum(areas) * per_pixel <= KEPT_UNPACKED_BYTES
+
+    def read_tile(self, name: str, data: dict, tensor: TensorGetter, shape: tuple[int, ...], dtype: str, what: str,
+                  keep_unpacked: bool) -> CompactNoise:
+        """The coefficients (h, w, k) and the basis. The stream is decompressed here to check it holds exactly
+        that (only once the header and rect are known good, so at most h·w·k values); the coefficients are
+        kept if keep_unpacked, else dropped (a reveal unpacks the tile again when it renders)."""
+        basis = CompactBasis(basis=tensor(f"{name}_basis"), offset=tensor(f"{name}_offset"),
+                             scale=checked_float(data.get("scale"), f"{what} scale",
+                                                 low=float(np.finfo(np.float32).tiny),
+                                                 high=float(np.finfo(np.float32).max)),
+                             escapes=tensor(f"{name}_escapes"), escape_noise=tensor(f"{name}_escape_noise"))
+        packed = tensor(name, dtype=np.uint8, ndim=1)
+        unpacked = unpack_coefficients(packed, shape, dtype, what)
+        return CompactNoise(packed, shape, np.dtype(DTYPES[dtype]), basis, unpacked if keep_unpacked else None)
+
+    def check_noise(self, what: str, noise: TileNoise, pixels: int, dims: int, coefficients: int | None) -> None:
+        """The basis (dims, k), offset (dims,) float32 and escape noise (e, dims) float16, all finite; the scale
+        > 0; the escapes (e,) int32 strictly increasing inside the tile (integers are finite by type)."""
+        basis = noise.basis
+        escapes = basis.escapes
+        if escapes.ndim != 1 or escapes.dtype != np.int32:
+            raise UserError(f"{what} escapes are {escapes.dtype} {escapes.shape}, expected int32 (e,)")
+        if len(escapes) and (escapes[0] < 0 or escapes[-1] >= pixels or (np.diff(escapes) <= 0).any()):
+            raise UserError(f"{what} escapes must be strictly increasing pixel indices inside the tile")
+        for name, value, shape, dtype in (("basis", basis.basis, (dims, coefficients), np.float32),
+                                          ("offset", basis.offset, (dims,), np.float32),
+                                          ("escape noise", basis.escape_noise, (len(escapes), dims), np.float16)):
+            if value.shape != shape or value.dtype != dtype:
+                raise UserError(f"{what} {name} is {value.dtype} {value.shape}, expected {np.dtype(dtype)} {shape}")
+            if not np.isfinite(value).all():
+                raise UserError(f"{what} {name} holds NaN or Inf")
+        checked_float(basis.scale, f"{what} scale", low=np.finfo(np.float32).tiny,
+                      high=float(np.finfo(np.float32).max))
+
+    @property
+    def noise_type(self) -> type:
+        return CompactNoise
+
+    @property
+    def shares_basis(self) -> bool:
+        return True
+
+
+LAYOUTS = {layout.name: layout for layout in (
+    RayLayout("ray", ("float16", "float32"), MAX_RAY_LAYOUT_SAMPLES),
+    SampleLayout("sample", ("float32", "float16"), MAX_SAMPLES_PER_RAY),
+    CompactLayout("compact", ("int16", "int8"), MAX_RAY_LAYOUT_SAMPLES),
+)}
+
+
+def layout_named(name: str, among: tuple[str, ...] = tuple(LAYOUTS)) -> NoiseLayout:
+    """The layout of this name, refusing one not `among` those allowed (a bundle format's)."""
+    if name not in among:
+        raise UserError(f"bundle: unknown noise layout {name!r:.40} (expected one of {among})")
+    return LAYOUTS[name]
