@@ -237,10 +237,9 @@ def noise_header(noise: dict, layouts: tuple[str, ...]) -> dict:
     layout = layout_named(checked_text(noise.get("layout"), "bundle: noise layout"), layouts)
     dims = checked_int(noise.get("dims"), "bundle: noise dims", 1, MAX_NOISE_DIMS)
     dtype = checked_text(noise.get("dtype"), "bundle: noise dtype")
-    if dtype not in layout.dtypes:
-        raise UserError(f"bundle: unknown noise dtype {dtype!r:.40} for the {layout.name} layout (expected one of "
-                        f"{layout.dtypes})")
-    return {"layout": layout.name, "dims": dims, "dtype": dtype, "coefficients": layout.read_header(noise, dims)}
+    coefficients = layout.read_header(noise, dims)
+    validate_noise_header(layout.name, dtype, dims, coefficients, layouts)
+    return {"layout": layout.name, "dims": dims, "dtype": dtype, "coefficients": coefficients}
 
 
 def parse_bundle(meta, tensors: dict[str, np.ndarray], path: Path) -> Bundle:

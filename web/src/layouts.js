@@ -1,0 +1,236 @@
+// Mirrors runtime/layouts.py: one object per noise layout (ray, sample, compact), owning its storage dtypes, the
+// stored array's shape, the noise vectors a ray holds, the samples one vector may serve, its part of the bundle's
+// noise header, how a tile's tensors are read and checked, how its compressed streams are checked, and how a chunk
+// of its noise is cut out (`chunk`, a plain record a worker can be sent) and expanded (`rows`). bundle.js keeps the
+// file format and asks the layout; no other module branches on a layout's name.
+
+import xz from "xz-decompress";
+import { UserError, repr, tuple, reprCut } from "./errors.js";
+import { fmaf32 } from "./float32.js";
+import {
+  MAX_COMPACT_COEFFICIENTS, MAX_RAY_LAYOUT_SAMPLES, MAX_SAMPLES_PER_RAY, checkedExpansion, checkedFloat, checkedInt,
+} from "./limits.js";
+
+const { XzReadableStream } = xz;
+const f32 = Math.fround;
+const FLOAT32_TINY = 1.1754943508222875e-38, FLOAT32_MAX = 3.4028234663852886e38;
+const CODEC = "xz-byte-planes";
+
+/** IEEE half -> float. */
+const HALF = new Float32Array(65536);
+for (let h = 0; h < 65536; h++) {
+  const sign = h & 0x8000 ? -1 : 1, exp = (h >> 10) & 0x1f, frac = h & 0x3ff;
+  HALF[h] = exp === 0 ? sign * frac * 2 ** -24 : exp === 31 ? (frac ? NaN : sign * Infinity) : sign * (1 + frac / 1024) * 2 ** (exp - 15);
+}
+
+/** float16 values (their bits) -> Float32Array. */
+export function widened(halves) {
+  const values = new Float32Array(halves.length);
+  for (let i = 0; i < halves.length; i++) values[i] = HALF[halves[i]];
+  return values;
+}
+
+// xz-embedded's error codes (enum xz_ret) in liblzma's words, as Python's lzma gives them. Its dictionaries stop at
+// 64 MiB; the next size a stream can state, 96 MiB, is over runtime's MAX_XZ_MEMORY too.
+const XZ_ERRORS = { 2: "Unsupported integrity check", 3: "Cannot allocate memory", 4: "Memory usage limit exceeded",
+  5: "Input format not supported by decoder", 6: "Invalid or unsupported options", 7: "Corrupt input data" };
+const XZ_BUF_ERROR = 8; // the stream ended early, or more followed it: Python reads on and finds the length wrong
+
+/** unpack_coefficients: the xz stream of byte planes -> Int8Array/Int16Array (h·w·k, row-major (h, w, k)). */
+export async function unpackCoefficients(packed, shape, dtype, what) {
+  const [height, width, k] = shape;
+  const item = dtype === "int16" ? 2 : 1;
+  const expected = height * width * k * item;
+  let data;
+  try {
+    const stream = new XzReadableStream(new Blob([packed]).stream());
+    const reader = stream.getReader();
+    const parts = [];
+    let total = 0;
+    for (;;) {
+      const { done, value } = await reader.read();
+      if (done) break;
+      parts.push(value);
+      total += value.length;
+      if (total > expected) { await reader.cancel(); break; }
+    }
+    data = new Uint8Array(total);
+    let at = 0;
+    for (const part of parts) { data.set(part, at); at += part.length; }
+  } catch (error) {
+    const code = Number(/error code (\d+)/.exec(String(error?.message ?? error))?.[1]);
+    if (code !== XZ_BUF_ERROR) {
+      throw new UserError(`${what}: compressed coefficients are corrupt (${XZ_ERRORS[code] ?? "Corrupt input data"})`);
+    }
+    data = null;
+  }
+  if (data === null || data.length !== expected) {
+    throw new UserError(`${what}: compressed coefficients do not hold exactly ${repr(tuple(height, width, k))} ${dtype} values`);
+  }
+  const n = height * width;
+  const out = dtype === "int16" ? new Int16Array(n * k) : new Int8Array(n * k);
+  for (let c = 0; c < k; c++) {
+    for (let p = 0; p < n; p++) {
+      if (item === 1) out[p * k + c] = (data[c * n + p] << 24) >> 24;
+      else out[p * k + c] = ((data[(c * 2) * n + p] | (data[(c * 2 + 1) * n + p] << 8)) << 16) >> 16;
+    }
+  }
+  return out;
+}
+
+/** expand_coefficients: noise of m compact pixels (coefficients m·k), float32 (one multiply by the scale, then the
+ * matmul offset + params @ basisᵀ), escaped pixels' stored noise in place. -> Float32Array (m·dims).
+ * numpy's float32 matmul is OpenBLAS's sgemm, which on FMA hardware (Haswell and later) accumulates
+ * k = 0..K-1 with one fused multiply-add each: the order reproduced here (web/test checks it bit for bit). */
+export function expandCoefficients(coefficients, k, basis) {
+  const dims = basis.offset.length, m = coefficients.length / k;
+  const out = new Float32Array(m * dims);
+  const scale = f32(basis.scale), matrix = basis.basis, offset = basis.offset;
+  // A zero basis entry adds +0 to a sum that is never −0, so leaving it out changes no bit; a compact tile's
+  // basis is zero on every γ(x) row (its noise moves the view direction only): those rows are the offset for
+  // every pixel (`fixed`). The others are `live`: terms[first[i] .. first[i + 1]) are live row i's nonzero
+  // columns and values, in the order numpy sums them.
+  const fixed = new Float32Array(dims), liveRows = [], first = [0], columns = [], values = [];
+  for (let d = 0; d < dims; d++) {
+    fixed[d] = f32(offset[d] + 0);
+    const before = columns.length;
+    for (let c = 0; c < k; c++) if (matrix[d * k + c] !== 0) { columns.push(c); values.push(matrix[d * k + c]); }
+    if (columns.length > before) { liveRows.push(d); first.push(columns.length); }
+  }
+  const live = Int32Array.from(liveRows), from = Int32Array.from(first), column = Int32Array.from(columns);
+  const value = Float64Array.from(values), params = new Float64Array(k);
+  for (let p = 0; p < m; p++) {
+    const row = p * k, at = p * dims;
+    for (let c = 0; c < k; c++) params[c] = f32(coefficients[row + c] * scale);
+    out.set(fixed, at);
+    for (let i = 0; i < live.length; i++) {
+      let t = from[i];
+      let dot = f32(params[column[t]] * value[t]) + 0; // fmaf(a, b, +0): the product rounded once, −0 made +0
+      for (t++; t < from[i + 1]; t++) dot = fmaf32(params[column[t]], value[t], dot);
+      out[at + live[i]] = f32(offset[live[i]] + dot);
+    }
+  }
+  const escapes = basis.escapes;
+  for (let e = 0; e < escapes.length; e++) out.set(basis.escapeNoise.subarray(e * dims, (e + 1) * dims), escapes[e] * dims);
+  return out;
+}
+
+
+function allFinite(values) {
+  if (values instanceof Uint16Array) return values.every((half) => (half & 0x7c00) !== 0x7c00); // float16's bits
+  for (let i = 0; i < values.length; i++) if (!Number.isFinite(values[i])) return false;
+  return true;
+}
+
+function sameShape(a, b) { return a.length === b.length && a.every((v, i) => v === b[i]); }
+
+/** What every layout answers (runtime/layouts.py NoiseLayout); ray is exactly this. */
+const VECTOR = {
+  maxSamples: MAX_RAY_LAYOUT_SAMPLES,
+  vectorsPerRay: () => 1,
+  storedShape: (h, w, nSamples, perVector) => [h, w, perVector],
+  readHeader(noise) {
+    if (noise.coefficients !== undefined && noise.coefficients !== null) {
+      throw new UserError("bundle: coefficients per pixel are given for, and only for, the compact layout");
+    }
+    return null;
+  },
+  checkStreams() {},
+  async readTile(name, data, tensor) { return { tensor: tensor(name) }; },
+  /** A tile's noise against its stated shape and dtype, finite. */
+  checkNoise(what, noise, pixels, dims, k, shape, dtype) {
+    const stored = noise.tensor;
+    if (!sameShape(stored.shape, shape) || stored.dtype !== dtype) {
+      throw new UserError(`${what} noise is ${stored.dtype} ${repr(tuple(...stored.shape))}, expected ${dtype} ${repr(tuple(...shape))}`);
+    }
+    if (!allFinite(stored.values)) throw new UserError(`${what} noise holds NaN or Inf`);
+  },
+  /** The checked noise as a render reads it. */
+  loaded(noise) { noise.values = noise.tensor.values; },
+  /** A tile's noise for its pixels start..stop, on its own: only those pixels' stored values (copies, so that a
+   * worker is sent them alone). -> a record `rows` expands. */
+  chunk(tile, bundle, start, stop) {
+    const dims = bundle.noiseDims, per = this.vectorsPerRay(tile.sampling.nSamples);
+    const stored = tile.noise.values.subarray(start * per * dims, stop * per * dims);
+    return { layout: this.name, values: stored instanceof Uint16Array ? widened(stored) : stored.slice(), perSample: per, dims };
+  },
+  /** A chunk's float32 noise: {values, perSample (1 or n_samples), dims}. */
+  rows(chunk) { return { values: chunk.values, perSample: chunk.perSample, dims: chunk.dims }; },
+};
+
+const COMPACT = {
+  ...VECTOR,
+  readHeader(noise, dims) {
+    const k = checkedInt(noise.coefficients ?? null, "bundle: coefficients per pixel", 1, MAX_COMPACT_COEFFICIENTS);
+    if (noise.codec !== CODEC) throw new UserError(`bundle: unknown coefficient codec ${reprCut(noise.codec ?? null, 40)} (expected '${CODEC}')`);
+    const most = Math.min(dims, MAX_COMPACT_COEFFICIENTS);
+    if (k > most) throw new UserError(`bundle: ${k} coefficients per pixel, expected 1 to ${most}`);
+    return k;
+  },
+  /** The tiles' areas against the secret, then their streams against what they state (before any is inflated). */
+  checkStreams(streams, [width, height], tilePixels, k, dtype) {
+    if (tilePixels !== width * height) throw new UserError(`bundle: the tiles' areas do not add up to the ${width}x${height} secret`);
+    const packed = streams.reduce((n, stream) => n + (stream === undefined ? 0 : stream.values.byteLength), 0);
+    checkedExpansion(packed, tilePixels * k * (dtype === "int16" ? 2 : 1), "bundle");
+  },
+  async readTile(name, data, tensor, shape, dtype, what) {
+    const basis = tensor(`${name}_basis`), offset = tensor(`${name}_offset`);
+    const scale = checkedFloat(data.scale ?? null, `${what} scale`, FLOAT32_TINY, FLOAT32_MAX);
+    const escapes = tensor(`${name}_escapes`), escapeNoise = tensor(`${name}_escape_noise`);
+    const packed = tensor(name, "uint8", 1);
+    const coefficients = await unpackCoefficients(packed.values, shape, dtype, what);
+    return { coefficients, shape, dtype, basis: { basis, offset, scale, escapes, escapeNoise } };
+  },
+  /** The basis (dims, k), offset (dims,) float32 and escape noise (e, dims) float16, all finite; the escapes (e,)
+   * int32 strictly increasing inside the tile (the coefficients were decoded to their stated shape). */
+  checkNoise(what, noise, pixels, dims, k) {
+    const basis = noise.basis, escapes = basis.escapes;
+    if (escapes.shape.length !== 1 || escapes.dtype !== "int32") {
+      throw new UserError(`${what} escapes are ${escapes.dtype} ${repr(tuple(...escapes.shape))}, expected int32 (e,)`);
+    }
+    const e = escapes.values;
+    if (e.length && (e[0] < 0 || e[e.length - 1] >= pixels || e.some((v, j) => j > 0 && v <= e[j - 1]))) {
+      throw new UserError(`${what} escapes must be strictly increasing pixel indices inside the tile`);
+    }
+    for (const [name, value, want, dtype] of [["basis", basis.basis, [dims, k], "float32"], ["offset", basis.offset, [dims], "float32"],
+      ["escape noise", basis.escapeNoise, [e.length, dims], "float16"]]) {
+      if (!sameShape(value.shape, want) || value.dtype !== dtype) {
+        throw new UserError(`${what} ${name} is ${value.dtype} ${repr(tuple(...value.shape))}, expected ${dtype} ${repr(tuple(...want))}`);
+      }
+      if (!allFinite(value.values)) throw new UserError(`${what} ${name} holds NaN or Inf`);
+    }
+  },
+  loaded(noise) {
+    const b = noise.basis;
+    noise.basis = { basis: b.basis.values, offset: b.offset.values, scale: b.scale, escapes: b.escapes.values,
+      escapeNoise: widened(b.escapeNoise.values) };
+  },
+  /** Escaped pixels renumbered from the chunk's first. */
+  chunk(tile, bundle, start, stop) {
+    const dims = bundle.noiseDims, k = bundle.coefficients, { basis, offset, scale, escapes, escapeNoise } = tile.noise.basis;
+    const inside = [];
+    for (let e = 0; e < escapes.length; e++) if (escapes[e] >= start && escapes[e] < stop) inside.push(e);
+    const chunkEscapes = Int32Array.from(inside, (e) => escapes[e] - start);
+    const chunkEscapeNoise = new Float32Array(inside.length * dims);
+    inside.forEach((e, i) => chunkEscapeNoise.set(escapeNoise.subarray(e * dims, (e + 1) * dims), i * dims));
+    return { layout: this.name, coefficients: tile.noise.coefficients.slice(start * k, stop * k), k, dims,
+      basis: { basis, offset, scale, escapes: chunkEscapes, escapeNoise: chunkEscapeNoise } };
+  },
+  rows(chunk) { return { values: expandCoefficients(chunk.coefficients, chunk.k, chunk.basis), perSample: 1, dims: chunk.dims }; },
+};
+
+export const LAYOUTS = {
+  ray: { ...VECTOR, name: "ray", dtypes: ["float16", "float32"] },
+  sample: { ...VECTOR, name: "sample", dtypes: ["float32", "float16"], maxSamples: MAX_SAMPLES_PER_RAY,
+    vectorsPerRay: (nSamples) => nSamples, storedShape: (h, w, nSamples, perVector) => [h, w, nSamples, perVector] },
+  compact: { ...COMPACT, name: "compact", dtypes: ["int16", "int8"] },
+};
+
+/** layout_named: the layout of this name, refusing one not among those allowed (a bundle format's). */
+export function layoutNamed(name, among = Object.keys(LAYOUTS)) {
+  if (!among.includes(name)) throw new UserError(`bundle: unknown noise layout ${reprCut(name, 40)} (expected one of ${repr(tuple(...among))})`);
+  return LAYOUTS[name];
+}
+
+/** A chunk record's float32 noise (its layout's `rows`). */
+export function chunkRows(chunk) { return LAYOUTS[chunk.layout].rows(chunk); }
