@@ -376,7 +376,6 @@ class BlockResult:
     noise: torch.Tensor  # (m, k, dims), on the CPU in the storage dtype
     colors: torch.Tensor  # (len(points), m, 3): the block's colours at each recorded iteration, on the CPU
     work: torch.Tensor  # (3,) int64, BlockProblem.work
-    solved: bool  # False where the result came from `cached`
 
 
 def skip_shares(work: torch.Tensor, n_rays: int, n_samples: int, iters: int) -> dict[str, float]:
@@ -396,16 +395,10 @@ def recorded_points(settings: PaperSettings) -> list[int]:
 
 
 def solve_blocks(secret_view: SecretView, pixels: torch.Tensor, layout_samples: int, settings: PaperSettings,
-                 clean: ViewSurvey, dtype: torch.dtype,
-                 cached: Callable[[int], dict | None] = lambda b: None) -> Iterator[BlockResult]:
-    """The view's blocks one after another, each solved (or taken from cached(b), a dict with "noise",
-    "colors" and "work" as BlockResult has them). pixels: (n_rays, 3) uint8."""
-    for b, start in enumerate(range(0, secret_view.n_rays, settings.block_pixels)):
+                 clean: ViewSurvey, dtype: torch.dtype) -> Iterator[BlockResult]:
+    """The view's blocks one after another, each solved. pixels: (n_rays, 3) uint8."""
+    for start in range(0, secret_view.n_rays, settings.block_pixels):
         index = torch.arange(start, min(start + settings.block_pixels, secret_view.n_rays), device=pixels.device)
-        saved = cached(b)
-        if saved is not None:
-            yield BlockResult(index, saved["noise"], saved["colors"], saved["work"], solved=False)
-            continue
         yield solved_block(secret_view, index, pixels[index], layout_samples, settings, clean, dtype)
 
 
@@ -416,7 +409,7 @@ def solved_block(secret_view: SecretView, index: torch.Tensor, pixels: torch.Ten
     noise, work = solve_block(secret_view, index, pixels, start_noise(secret_view, index, pixels, layout_samples, clean, settings),
                         clean.colors[index], settings, lambda t, colors, loss: recorded.append(colors.cpu()))
     colors = torch.stack(recorded) if recorded else torch.zeros(len(recorded_points(settings)), index.numel(), 3)
-    return BlockResult(index, noise.to(dtype).cpu(), colors, work.cpu(), solved=True)
+    return BlockResult(index, noise.to(dtype).cpu(), colors, work.cpu())
 
 
 def start_noise(secret_view: SecretView, index: torch.Tensor, pixels: torch.Tensor, layout_samples: int,

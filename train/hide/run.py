@@ -2,11 +2,11 @@
 
 The secret is planned into tiles (plan.py), one viewpoint each; the chosen method (methods.py) cuts each
 tile into parts, solved as pure jobs (jobs.py) wherever the executor runs them (executors.py), several
-tiles at once (one more than the executor runs jobs at once). This driver alone saves each finished part
-beside the output (OUT.partial/, progress.py), so an interrupted hide run again with the same arguments resumes where it stopped and writes a byte-identical
-bundle, and assembles the tiles and the bundle. It holds the secret's 8-bit pixels, the finished tiles'
-noise as the bundle stores it, and the tiles in flight, so its memory grows with the tile size, not the
-secret's, beyond what the bundle itself will hold.
+tiles at once (one more than the executor runs jobs at once). The Driver alone saves each finished part
+beside the output (OUT.partial/, progress.py), so an interrupted hide run again with the same arguments
+resumes where it stopped and writes a byte-identical bundle, and assembles the tiles; hide writes the bundle.
+It holds the secret's 8-bit pixels, the finished tiles' noise as the bundle stores it, and the tiles in
+flight, so its memory grows with the tile size, not the secret's, beyond what the bundle itself will hold.
 """
 
 from __future__ import annotations
@@ -87,85 +87,10 @@ def hide(scene: Scene, secret: np.ndarray, output: Path, config: HideConfig, dev
     with Progress(output, run_key(scene, secret, config)) as resume, \
             open_executor(executor, weights, workers, device, ray_address) as jobs:
         started = time.perf_counter()
-        pixels_done = Counter(progress, "hide", secret.shape[0] * secret.shape[1], "px")
-        tiles, reports = [None] * len(hide_plan.tiles), [None] * len(hide_plan.tiles)
-        works: dict[int, TileWork] = {}  # the tiles in flight: their pixels, parts and results held till done
-        waiting = iter(enumerate(hide_plan.tiles))
-
-        def job(work: TileWork, part: int, rows: range) -> Job:
-            # a copy: a slice would pickle (pool, Ray) the whole tile's pixels with every part
-            return Job(work.k, part, work.tile, rows, work.pixels[rows.start:rows.stop].clone(), config, str(device))
-
-        def finish(work: TileWork) -> None:
-            """The tile assembled from its parts, checked by rendering it whole, and let go of. A tile left
-            inexact by parts a resume loaded (another run's, or edited, and stamped anew) has those parts
-            deleted and solved again: a saved part is never trusted over a fresh solve."""
-            x0, y0, w, h = work.tile.rect
-            secret_view = tile_view(weights, work.tile, device)  # the jobs' own where they ran in this process
-            pixels = work.pixels.to(device)
-            solved = solver.assemble(secret_view, pixels, (h, w), config, work.prepared,
-                                     [work.solved[c] for c in range(len(work.parts))])
-            colors = secret_view.render_all(solved.noise, pass_samples_for(device.type))
-            quality = tile_quality(colors.cpu().numpy(), pixels.cpu().numpy(), (h, w))
-            if solver.method.exact and quality["inexact_pixels"] and work.loaded:
-                for c in sorted(work.loaded):
-                    resume.discard(work.k, c)
-                    del work.solved[c]
-                    pixels_done(-len(work.parts[c]))
-                    jobs.submit(job(work, c, work.parts[c]), work.prepared)
-                work.loaded.clear()
-                return
-            if solver.method.exact and quality["inexact_pixels"] and not allow_inexact:
-                raise InexactResult(
-                    f"tile {work.k} (view {work.tile.view}, {w}x{h} px at x={x0}, y={y0}) has "
-                    f"{quality['inexact_pixels']} pixels off, by up to {quality['max_error']} levels; no bundle "
-                    f"written (solved parts kept in {resume.directory} for a resume; --allow-inexact writes the "
-                    f"bundle anyway)")
-            tiles[work.k] = dataclasses.replace(work.tile, noise=solved.stored)
-            reports[work.k] = {"rect": list(work.tile.rect), "view": work.tile.view, **quality, **solved.report,
-                               "seconds": round(time.perf_counter() - work.started, 2)}
-            del works[work.k]
-
-        def start_parts(work: TileWork) -> bool:
-            """The tile's saved parts taken, the others submitted. -> whether none is left to solve."""
-            for c, rows in enumerate(work.parts):
-                layout, sound = solver.part_layout(config, len(rows), noise_dims, work.prepared)
-                saved = resume.load(work.k, c, layout, sound)
-                if saved is None:
-                    jobs.submit(job(work, c, rows), work.prepared)
-                else:
-                    work.solved[c] = saved
-                    work.loaded.add(c)
-                    pixels_done(len(rows))
-            return len(work.solved) == len(work.parts)
-
-        def start_tiles() -> None:
-            """Tiles started in order while fewer than the executor's slots, plus one, are in flight: enough
-            to keep every slot busy, and the driver's memory grows with the tile size, not the secret's."""
-            while len(works) <= jobs.slots:
-                k, tile = next(waiting, (None, None))
-                if tile is None:
-                    return
-                works[k] = work = tile_work(k, tile, secret, solver.part_pixels(config))
-                if solver.prepares(config):
-                    jobs.submit(job(work, PREPARE, range(len(work.pixels))))
-                elif start_parts(work):
-                    finish(work)
-
-        start_tiles()
-        for done, result in jobs.results():
-            work = works[done.k]
-            if done.part == PREPARE:
-                work.prepared = result
-                if start_parts(work):
-                    finish(work)
-            else:
-                resume.save(done.k, done.part, result)
-                work.solved[done.part] = result
-                pixels_done(len(done.rows))
-                if len(work.solved) == len(work.parts):
-                    finish(work)
-            start_tiles()
+        driver = Driver(secret, config, device, weights, solver, noise_dims, resume, jobs, allow_inexact,
+                        Counter(progress, "hide", secret.shape[0] * secret.shape[1], "px"), hide_plan.tiles)
+        driver.run()
+        tiles, reports = driver.tiles, driver.reports
         bundle = Bundle(model_fingerprint=scene.fingerprint(), width=secret.shape[1], height=secret.shape[0],
                         secret_sha256=secret_digest(secret), layout=config.layout,
                         noise_dims=noise_dims, dtype=config.dtype, tiles=tuple(tiles),
@@ -183,6 +108,100 @@ def hide(scene: Scene, secret: np.ndarray, output: Path, config: HideConfig, dev
         "bundle_bytes": output.stat().st_size, "bytes_per_pixel": output.stat().st_size / n_pixels,
         "seconds": round(time.perf_counter() - started, 2),
     }
+
+
+class Driver:
+    """A hide's scheduler: tiles started in order while the executor's slots, plus one, are in flight (enough to
+    keep every slot busy, while the driver's memory grows with the tile size, not the secret's); each tile's
+    shared job first where its method has one, then its parts, taken from the resume folder where saved and
+    sound, else submitted; each finished part saved; each tile assembled and checked once its parts are in.
+    A tile left inexact by parts a resume loaded (another run's, or edited and stamped anew) has those parts
+    deleted and solved again: a saved part is never trusted over a fresh solve."""
+
+    def __init__(self, secret: np.ndarray, config: HideConfig, device: torch.device, weights: FieldWeights,
+                 solver, noise_dims: int, resume: Progress, jobs, allow_inexact: bool, pixels_done: Counter,
+                 planned: tuple[Tile, ...]):
+        self.secret, self.config, self.device, self.weights = secret, config, device, weights
+        self.solver, self.noise_dims, self.resume, self.jobs = solver, noise_dims, resume, jobs
+        self.allow_inexact, self.pixels_done = allow_inexact, pixels_done
+        self.tiles: list[Tile | None] = [None] * len(planned)  # as stored, once finished
+        self.reports: list[dict | None] = [None] * len(planned)
+        self.works: dict[int, TileWork] = {}  # the tiles in flight: their pixels, parts and results held till done
+        self.waiting = iter(enumerate(planned))
+
+    def run(self) -> None:
+        self.start_tiles()
+        for done, result in self.jobs.results():
+            work = self.works[done.k]
+            if done.part == PREPARE:
+                work.prepared = result
+                if self.start_parts(work):
+                    self.finish(work)
+            else:
+                self.resume.save(done.k, done.part, result)
+                work.solved[done.part] = result
+                self.pixels_done(len(done.rows))
+                if len(work.solved) == len(work.parts):
+                    self.finish(work)
+            self.start_tiles()
+
+    def job(self, work: TileWork, part: int, rows: range) -> Job:
+        # a copy: a slice would pickle (pool, Ray) the whole tile's pixels with every part
+        return Job(work.k, part, work.tile, rows, work.pixels[rows.start:rows.stop].clone(), self.config,
+                   str(self.device))
+
+    def start_tiles(self) -> None:
+        while len(self.works) <= self.jobs.slots:
+            k, tile = next(self.waiting, (None, None))
+            if tile is None:
+                return
+            self.works[k] = work = tile_work(k, tile, self.secret, self.solver.part_pixels(self.config))
+            if self.solver.prepares(self.config):
+                self.jobs.submit(self.job(work, PREPARE, range(len(work.pixels))))
+            elif self.start_parts(work):
+                self.finish(work)
+
+    def start_parts(self, work: TileWork) -> bool:
+        """The tile's saved parts taken, the others submitted. -> whether none is left to solve."""
+        for c, rows in enumerate(work.parts):
+            layout, sound = self.solver.part_layout(self.config, len(rows), self.noise_dims, work.prepared)
+            saved = self.resume.load(work.k, c, layout, sound)
+            if saved is None:
+                self.jobs.submit(self.job(work, c, rows), work.prepared)
+            else:
+                work.solved[c] = saved
+                work.loaded.add(c)
+                self.pixels_done(len(rows))
+        return len(work.solved) == len(work.parts)
+
+    def finish(self, work: TileWork) -> None:
+        """The tile assembled from its parts, checked by rendering it whole, and let go of."""
+        x0, y0, w, h = work.tile.rect
+        secret_view = tile_view(self.weights, work.tile, self.device)  # the jobs' own where they ran here
+        pixels = work.pixels.to(self.device)
+        solved = self.solver.assemble(secret_view, pixels, (h, w), self.config, work.prepared,
+                                      [work.solved[c] for c in range(len(work.parts))])
+        colors = secret_view.render_all(solved.noise, pass_samples_for(self.device.type))
+        quality = tile_quality(colors.cpu().numpy(), pixels.cpu().numpy(), (h, w))
+        inexact = self.solver.method.exact and quality["inexact_pixels"]
+        if inexact and work.loaded:
+            for c in sorted(work.loaded):
+                self.resume.discard(work.k, c)
+                del work.solved[c]
+                self.pixels_done(-len(work.parts[c]))
+                self.jobs.submit(self.job(work, c, work.parts[c]), work.prepared)
+            work.loaded.clear()
+            return
+        if inexact and not self.allow_inexact:
+            raise InexactResult(
+                f"tile {work.k} (view {work.tile.view}, {w}x{h} px at x={x0}, y={y0}) has "
+                f"{quality['inexact_pixels']} pixels off, by up to {quality['max_error']} levels; no bundle "
+                f"written (solved parts kept in {self.resume.directory} for a resume; --allow-inexact writes the "
+                f"bundle anyway)")
+        self.tiles[work.k] = dataclasses.replace(work.tile, noise=solved.stored)
+        self.reports[work.k] = {"rect": list(work.tile.rect), "view": work.tile.view, **quality, **solved.report,
+                                "seconds": round(time.perf_counter() - work.started, 2)}
+        del self.works[work.k]
 
 
 def tile_work(k: int, tile: Tile, secret: np.ndarray, part_pixels: int) -> TileWork:
