@@ -19,7 +19,6 @@ from noisenerf.runtime.errors import UserError
 from noisenerf.runtime.files import json_text
 from noisenerf.train.hide.methods import METHODS
 from noisenerf.train.hide.plan import HideConfig
-from noisenerf.train.hide.settings import RECIPES, REVIVALS, PaperSettings
 from noisenerf.train.hide.tiling import DEFAULT_TILE_SIZE
 
 PROG = "noisenerf"
@@ -195,7 +194,6 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--tile-size", type=int, default=DEFAULT_TILE_SIZE, help="secrets larger than this are cut into tiles")
     # choices and defaults from the torch-free methods and settings (train/hide/methods.py, settings.py), so that
     # --help is instant; each method turns these flags into its settings (Method.from_arguments)
-    paper = PaperSettings()
     p.add_argument("--method", choices=tuple(METHODS), default=HideConfig.method)
     p.add_argument("--layout", choices=tuple(LAYOUTS), help="; ".join(
         f"{name} method: {' or '.join(method.layouts)} (default {method.layouts[0]})" for name, method in METHODS.items()))
@@ -204,14 +202,8 @@ def build_parser() -> argparse.ArgumentParser:
                                   for name, layout in LAYOUTS.items()))
     p.add_argument("--samples", type=int, help="samples per ray of the secret view (" + ", ".join(
         f"{name}: {method.default_samples}" for name, method in METHODS.items()) + ")")
-    p.add_argument("--recipe", choices=tuple(RECIPES), default=paper.recipe,
-                   help=f"paper method: the authors' public code or the paper's text (default {paper.recipe})")
-    p.add_argument("--iters", type=int, help=f"paper method: optimisation iterations (default {paper.iters})")
-    p.add_argument("--revival", choices=REVIVALS,
-                   help=f"paper method: which rays start from a colour donor (default {paper.revival})")
-    p.add_argument("--no-skip", action="store_true",
-                   help="paper method: every sample of every ray through every iteration, the method as written "
-                   f"(by default dead samples are skipped, and checked again every {paper.recheck_every} iterations)")
+    for method in METHODS.values():  # each method's own flags
+        method.add_arguments(p)
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--workers", type=int, help="exact method on a CPU: processes its chunks are spread over "
                    "(default: every core this process may use; the bundle is the same for any number)")

@@ -10,8 +10,8 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING, Callable
 
 from noisenerf.runtime.errors import UserError
-from noisenerf.train.hide.settings import (NO_SKIP, CompactSettings, ExactSettings, PaperSettings, pass_samples_for,
-                                           recipe)
+from noisenerf.train.hide.settings import (NO_SKIP, RECIPES, REVIVALS, CompactSettings, ExactSettings, PaperSettings,
+                                           pass_samples_for, recipe)
 
 if TYPE_CHECKING:
     from noisenerf.train.hide.plan import HideConfig
@@ -25,8 +25,9 @@ class Method:
     settings_types: tuple[type, ...]  # frozen dataclasses with a `key` (settings.py), their defaults in every config
     layouts: tuple[str, ...]  # noise layouts it can write, the default first
     default_samples: int  # samples per ray of its secret view
-    # its settings as `noisenerf hide`'s flags ask (cli/main.py declares them), for a device type (cpu, cuda)
+    # its settings as `noisenerf hide`'s flags ask (add_arguments declares them), for a device type (cpu, cuda)
     from_arguments: Callable[[argparse.Namespace, str], tuple]
+    add_arguments: Callable[[argparse.ArgumentParser], None] = lambda parser: None  # its own flags
     fixed_samples: bool = False  # whether its secret view takes default_samples per ray and no other
     default_network: str | None = None  # None: the scene's render network
     exact: bool = False  # whether it promises every 8-bit value: run.hide then refuses to write less
@@ -38,6 +39,20 @@ class Method:
             n = self.default_samples
             count = "one sample" if n == 1 else f"{n} samples"
             raise UserError(f"--method {self.name} renders its secret view with {count} per ray (--samples {n})")
+
+
+def paper_flags(parser: argparse.ArgumentParser) -> None:
+    """The paper method's flags on `noisenerf hide`: its recipe and the recipe's overrides."""
+    paper = PaperSettings()
+    parser.add_argument("--recipe", choices=tuple(RECIPES), default=paper.recipe,
+                        help=f"paper method: the authors' public code or the paper's text (default {paper.recipe})")
+    parser.add_argument("--iters", type=int, help=f"paper method: optimisation iterations (default {paper.iters})")
+    parser.add_argument("--revival", choices=REVIVALS,
+                        help=f"paper method: which rays start from a colour donor (default {paper.revival})")
+    parser.add_argument("--no-skip", action="store_true",
+                        help="paper method: every sample of every ray through every iteration, the method as written "
+                        f"(by default dead samples are skipped, and checked again every {paper.recheck_every} "
+                        "iterations)")
 
 
 def paper_arguments(args: argparse.Namespace, device_type: str) -> tuple:
@@ -53,5 +68,5 @@ METHODS: dict[str, Method] = {method.name: method for method in (
            from_arguments=lambda args, device_type: (), fixed_samples=True, exact=True, spreads=True),
     # nerf-pytorch's N_samples, the coarse sampling (and network) the paper's authors render with
     Method("paper", (PaperSettings,), ("sample", "ray"), default_samples=64, from_arguments=paper_arguments,
-           default_network="coarse"),
+           add_arguments=paper_flags, default_network="coarse"),
 )}
