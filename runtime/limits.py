@@ -20,8 +20,8 @@ MAX_RAY_LAYOUT_SAMPLES = 256  # ray layout: one stored vector serves this many s
 MAX_COMPACT_COEFFICIENTS = 8  # compact layout: coefficients per pixel (int16: 16 bytes a pixel decompressed)
 MAX_XZ_MEMORY = 80 << 20  # bytes an xz decoder may use: a preset-9 stream's 64 MiB dictionary, not the next size a
 #   stream can state (96 MiB), which the browser's decoder (64 MiB at most) refuses too
-MAX_XZ_RATIO = 64  # bytes an xz coefficient stream may state per byte it is: noise coefficients are nearly random
-#   (a flat-colour secret's compress 2.4-2.7x), while a crafted stream of zeros holds ~7000x its size
+MAX_XZ_RATIO = 64  # bytes an xz coefficient stream may state per byte it is: solved noise coefficients are nearly
+#   random and compress a few times at most, a crafted stream of zeros thousands of times (README: the measured ratios)
 FREE_XZ_BYTES = 1 << 20  # bytes any bundle may decompress, whatever its streams' size
 MAX_TILES = MAX_IMAGE_PIXELS // 16 ** 2  # tiles in one bundle: the largest secret in the smallest (16 px) tiles
 MAX_NOISE_DIMS = 4096  # width of the noise input (positional encodings use 90)
