@@ -75,13 +75,15 @@ def hide(scene, secret: PathLike | np.ndarray | None = None, output: PathLike | 
          tile_size: int | None = None, view: int = 0, seed: int = 0, settings: tuple = (),
          workers: int | None = None, executor: str = "local", ray_address: str | None = None, device: str = "auto",
          force: bool = False, allow_inexact: bool = False, progress: ProgressFn | None = None,
-         announce: Callable[[dict], None] | None = None, warn: Callable[[str], None] | None = None) -> dict:
+         announce: Callable[[dict], None] | None = None, warn: Callable[[str], None] | None = None,
+         verbose: bool = False) -> dict:
     """Hide a secret image (a path, or an (h, w, 3) uint8 array) or a file (`file`: a path, or bytes named
     `file_name`) in `scene` (a scene folder or a loaded Scene), writing the bundle to `output`; sealed when a
     passphrase is given. settings: the method's settings dataclasses (train/hide/settings.py; its defaults
     where none); tile_size: HideConfig's default where None. announce(capacity) is told a payload's size and
     expected time, warn(line) each warning about the secret read from a path (what it kept of it), both before
-    the hide starts. -> hide's report; an image read from a path adds `precision` and `warnings`."""
+    the hide starts; verbose lets Ray's own log lines through to stderr. -> hide's report; an image read from a
+    path adds `precision` and `warnings`."""
     from noisenerf.runtime.images import load_secret, precision_note
     from noisenerf.runtime.payload import Record, image_record, read_payload_file
     from noisenerf.train.hide.methods import METHODS
@@ -130,12 +132,12 @@ def hide(scene, secret: PathLike | np.ndarray | None = None, output: PathLike | 
             record = read_payload_file(file) if file is not None else image_record(secret)
         return {**hide_payload(scene, record, Path(output), config, torch_device, passphrase=passphrase,
                                force=force, progress=progress, announce=announce, workers=workers,
-                               executor=executor, ray_address=ray_address), **notes}
+                               executor=executor, ray_address=ray_address, verbose=verbose), **notes}
     from noisenerf.train.hide.run import hide as hide_secret
 
     return {**hide_secret(scene, secret, Path(output), config, torch_device, force=force, progress=progress,
                           workers=workers, allow_inexact=allow_inexact, executor=executor,
-                          ray_address=ray_address), **notes}
+                          ray_address=ray_address, verbose=verbose), **notes}
 
 
 def checked_pixels(secret) -> np.ndarray:

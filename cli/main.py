@@ -75,7 +75,8 @@ def cmd_hide(args) -> None:
                           workers=args.workers, executor=args.executor, ray_address=args.ray_address,
                           device=args.device, force=args.force, allow_inexact=args.allow_inexact, progress=bar,
                           announce=None if args.quiet else announce_capacity(args.tile_size),
-                          warn=lambda line: print(f"{PROG}: warning: {line}", file=sys.stderr))
+                          warn=lambda line: print(f"{PROG}: warning: {line}", file=sys.stderr),
+                          verbose=args.verbose)
     report.pop("warnings", None)  # said on stderr
     if METHODS[args.method].exact and not report["exact"]:
         off = [f"tile {k}: {t['inexact_pixels']} px off by up to {t['max_error']}"
@@ -217,6 +218,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="exact method: write the bundle even if some pixels are off (says so on stderr); by "
                         "default such a hide exits 3 and writes none")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.add_argument("--verbose", action="store_true", help="--executor ray: let Ray's own log lines through to stderr "
+                                                          "(off: our lines are the only ones)")
     add_device(p)
 
     p = add("export", cmd_export, "export a scene's frozen field as one ONNX file with a noise input")

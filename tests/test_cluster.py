@@ -12,10 +12,12 @@ from __future__ import annotations
 import csv
 import importlib.util
 import json
+import logging
 import os
 import shutil
 import subprocess
 import sys
+import types
 from pathlib import Path
 
 import pytest
@@ -112,3 +114,19 @@ def test_the_bench_measures_ray_against_local_with_identical_bundles(tmp_path):
     assert all(row["exact"] == "True" for row in rows)
     assert [row["identical"] for row in rows[:4]] == ["True"] * 4
     assert rows[4]["pixels"] == str(40 * 30)
+
+
+@pytest.mark.parametrize("flags, level, to_driver", [([], logging.ERROR, False), (["--verbose"], logging.INFO, True)])
+def test_rays_own_log_lines_reach_stderr_only_when_verbose(tmp_path, monkeypatch, capfd, flags, level, to_driver):
+    """What ray.init is asked for (a stand-in ray module records it, then refuses the connection)."""
+    asked = {}
+
+    def init(**options):
+        asked.update(options)
+        raise ConnectionError("no cluster here")
+    monkeypatch.setitem(sys.modules, "ray", types.SimpleNamespace(is_initialized=lambda: False, init=init))
+    write_image(tmp_path / "s.png", procedural_secret(8, 8, seed=1))
+    result = run_main(main, ["hide", str(DEMO_SCENE), str(tmp_path / "s.png"), "-o", str(tmp_path / "s.bundle"),
+                             "--executor", "ray", "--quiet", *flags], capfd)
+    assert_refused(result, tmp_path / "s.bundle", "cannot connect to the Ray cluster at RAY_ADDRESS: no cluster here")
+    assert (asked["logging_level"], asked["log_to_driver"]) == (level, to_driver)

@@ -107,11 +107,11 @@ class LocalExecutor(Executor):
 
 
 def open_executor(name: str, weights: FieldWeights, workers: int, device: torch.device,
-                  address: str | None = None) -> Executor:
+                  address: str | None = None, verbose: bool = False) -> Executor:
     """The executor `--executor` names: local with `workers` processes, or ray at `address` (None:
-    RAY_ADDRESS, else a local cluster started for the hide)."""
+    RAY_ADDRESS, else a local cluster started for the hide; its logs on stderr only when verbose)."""
     if name == "ray":
         from noisenerf.train.hide.ray_executor import RayExecutor
 
-        return RayExecutor(weights, device, address)
+        return RayExecutor(weights, device, address, verbose)
     return LocalExecutor(weights, workers)

@@ -40,7 +40,8 @@ def capacity(secret: np.ndarray, tile_size: int) -> dict:
 def hide_payload(scene: Scene, record: Record, output: Path, config: HideConfig, device: torch.device,
                  passphrase: bytes | None = None, seal: Seal | None = None, force: bool = False,
                  progress: ProgressFn | None = None, announce: Callable[[dict], None] | None = None,
-                 workers: int | None = None, executor: str = "local", ray_address: str | None = None) -> dict:
+                 workers: int | None = None, executor: str = "local", ray_address: str | None = None,
+                 verbose: bool = False) -> dict:
     """Hide a record; sealed under `passphrase` when one is given, with `seal` (default: a fresh one,
     random salt and nonce; tests pass a fixed one). announce(capacity) is called before the hide starts;
     workers, executor and ray_address as run.hide takes them."""
@@ -57,7 +58,7 @@ def hide_payload(scene: Scene, record: Record, output: Path, config: HideConfig,
     if announce is not None:
         announce(room)
     report = hide(scene, secret, output, config, device, force=force, progress=progress, payload=payload,
-                  workers=workers, executor=executor, ray_address=ray_address)
+                  workers=workers, executor=executor, ray_address=ray_address, verbose=verbose)
     if sealing is not None:
         try:
             add_bundle_tag(output, sealing[1])

@@ -36,16 +36,17 @@ def import_ray():
 
 class RayExecutor(Executor):
     """Jobs as Ray tasks. Connects to `address` (None: RAY_ADDRESS, else a local cluster it starts and
-    stops), unless this process is connected already (then it leaves the connection as it found it)."""
+    stops), unless this process is connected already (then it leaves the connection as it found it). Ray's
+    own log lines (and its workers') reach stderr only when verbose."""
 
-    def __init__(self, weights: FieldWeights, device: torch.device, address: str | None):
+    def __init__(self, weights: FieldWeights, device: torch.device, address: str | None, verbose: bool = False):
         self.ray = import_ray()
         self.started = not self.ray.is_initialized()
         if self.started:
             check_reachable(address)
             try:
-                self.ray.init(address=address, include_dashboard=False, log_to_driver=False,
-                              logging_level=logging.ERROR)
+                self.ray.init(address=address, include_dashboard=False, log_to_driver=verbose,
+                              logging_level=logging.INFO if verbose else logging.ERROR)
             except ConnectionError as error:
                 raise UserError(f"cannot connect to the Ray cluster at {address or 'RAY_ADDRESS'}: {error}") from None
         resources = {"num_gpus": 1} if device.type == "cuda" else {"num_cpus": 1}

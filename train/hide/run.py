@@ -58,7 +58,7 @@ class TileWork:
 def hide(scene: Scene, secret: np.ndarray, output: Path, config: HideConfig, device: torch.device,
          force: bool = False, progress: ProgressFn | None = None, payload: dict | None = None,
          workers: int | None = None, allow_inexact: bool = False, executor: str = "local",
-         ray_address: str | None = None) -> dict:
+         ray_address: str | None = None, verbose: bool = False) -> dict:
     """Hide `secret` (H, W, 3) uint8 in the scene; write the bundle to `output`; return the report.
     payload: the bundle's payload object when the secret carries one (train.payload), else None.
     progress: told of the pixels solved (runtime.progress; parts solved again are taken back).
@@ -67,7 +67,7 @@ def hide(scene: Scene, secret: np.ndarray, output: Path, config: HideConfig, dev
     a payload, which is revealed whole or not at all).
     executor: where the jobs run (executors.py): "local", over `workers` processes on a CPU (None: every
     core this process may use), or "ray", at ray_address (None: RAY_ADDRESS, else a local cluster); the
-    bundle's bytes never depend on either. Local workers are spawned, so a script that calls hide on a
+    bundle's bytes never depend on either; verbose lets Ray's own log lines through. Local workers are spawned, so a script that calls hide on a
     secret of several jobs guards its top level with `if __name__ == "__main__":`, as multiprocessing requires."""
     output = check_output_path(output, force=force)
     checked_image_size(secret.shape[1], secret.shape[0], "the secret image")  # what a bundle may hold
@@ -85,7 +85,7 @@ def hide(scene: Scene, secret: np.ndarray, output: Path, config: HideConfig, dev
     workers = (available_cores() if workers is None else workers) if device.type == "cpu" and solver.method.spreads else 1
     weights = FieldWeights.of(scene, hide_plan.tiles[0].network)
     with Progress(output, run_key(scene, secret, config)) as resume, \
-            open_executor(executor, weights, workers, device, ray_address) as jobs:
+            open_executor(executor, weights, workers, device, ray_address, verbose) as jobs:
         started = time.perf_counter()
         driver = Driver(secret, config, device, weights, solver, noise_dims, resume, jobs, allow_inexact,
                         Counter(progress, "hide", secret.shape[0] * secret.shape[1], "px"), hide_plan.tiles)
