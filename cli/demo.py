@@ -16,7 +16,7 @@ import numpy as np
 import torch
 
 from noisenerf.runtime.bundle import load_bundle
-from noisenerf.runtime.files import check_output_directory
+from noisenerf.runtime.files import check_output_directory, write_bytes
 from noisenerf.runtime.images import to_uint8, write_image
 from noisenerf.runtime.metrics import exact_fraction, psnr, ssim
 from noisenerf.runtime.model import load_model
@@ -63,7 +63,7 @@ def run_demo(out_dir: Path, device: torch.device, progress: ProgressFn | None = 
     timings["hide"] = time.perf_counter() - started
 
     started = time.perf_counter()
-    (out_dir / "note.txt").write_text(NOTE)
+    write_bytes(out_dir / "note.txt", NOTE.encode(), replace=True)
     hide_payload(scene, read_payload_file(out_dir / "note.txt"), out_dir / "note.bundle",
                  HideConfig(tile_size=TILE_SIZE, view=DEMO_VIEW), device, passphrase=DEMO_PASSPHRASE.encode(),
                  force=True, progress=progress)
