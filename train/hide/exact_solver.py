@@ -104,20 +104,20 @@ class ExactSolver(Solver):
     def prepares(self, config: HideConfig) -> bool:
         return LAYOUTS[config.layout].shares_basis
 
-    def prepare(self, secret_view: SecretView, pixels: torch.Tensor, config: HideConfig, k: int) -> NoiseSpace:
+    def prepare(self, secret_view: SecretView, pixels: torch.Tensor, config: HideConfig, tile_index: int) -> NoiseSpace:
         """A compact tile's basis, from its own seed (chunk_seed's chunk −1)."""
         return tile_space(secret_view, pixels, config.get(CompactSettings), config.get(ExactSettings),
-                          storage_dtype(config.dtype), chunk_seed(config, k, -1))
+                          storage_dtype(config.dtype), chunk_seed(config, tile_index, -1))
 
     def part_pixels(self, config: HideConfig) -> int:
         return config.chunk_pixels
 
-    def solve_part(self, secret_view: SecretView, rows: range, pixels: torch.Tensor, config: HideConfig, k: int,
+    def solve_part(self, secret_view: SecretView, rows: range, pixels: torch.Tensor, config: HideConfig, tile_index: int,
                    part: int, prepared: NoiseSpace | None) -> dict[str, torch.Tensor]:
         """Chunk `part`: solved in a view of its rays alone (ray i being ray rows[i] of the tile)."""
         index = torch.arange(rows.start, rows.stop, device=pixels.device)
         return solve_chunk(secret_view.subset(index), torch.arange(len(rows), device=pixels.device), pixels,
-                           chunk_space(config, prepared), config, chunk_seed(config, k, part))
+                           chunk_space(config, prepared), config, chunk_seed(config, tile_index, part))
 
     def part_layout(self, config: HideConfig, rows: int, dims: int, prepared: NoiseSpace | None
                     ) -> tuple[dict, Callable]:

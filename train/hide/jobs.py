@@ -46,10 +46,10 @@ class FieldWeights:
 
 @dataclass(frozen=True, eq=False)  # tensors have no truth value
 class Job:
-    """Tile k's shared job (part PREPARE) or one of its parts: rows [start, stop) of the tile's rays, with
+    """Tile `tile_index`'s shared job (part PREPARE) or one of its parts: rows [start, stop) of the tile's rays, with
     their pixels (m, 3) uint8 (the whole tile's for the shared job)."""
 
-    k: int
+    tile_index: int
     part: int
     tile: Tile  # noise still empty
     rows: range
@@ -99,5 +99,5 @@ def run_job(weights: FieldWeights, job: Job, prepared: object = None) -> object:
     with torch.no_grad(), solver.threads(device):
         view, pixels = tile_view(weights, job.tile, device), job.pixels.to(device)
         if job.part == PREPARE:
-            return solver.prepare(view, pixels, job.config, job.k)
-        return solver.solve_part(view, job.rows, pixels, job.config, job.k, job.part, prepared)
+            return solver.prepare(view, pixels, job.config, job.tile_index)
+        return solver.solve_part(view, job.rows, pixels, job.config, job.tile_index, job.part, prepared)

@@ -25,14 +25,14 @@ class PaperSolver(Solver):
     def prepares(self, config: HideConfig) -> bool:
         return True
 
-    def prepare(self, secret_view: SecretView, pixels: torch.Tensor, config: HideConfig, k: int) -> ViewSurvey:
+    def prepare(self, secret_view: SecretView, pixels: torch.Tensor, config: HideConfig, tile_index: int) -> ViewSurvey:
         """The clean view: revival's donors and the report's dead rays."""
         return survey(secret_view, config.get(PaperSettings).pass_samples)
 
     def part_pixels(self, config: HideConfig) -> int:
         return config.get(PaperSettings).block_pixels
 
-    def solve_part(self, secret_view: SecretView, rows: range, pixels: torch.Tensor, config: HideConfig, k: int,
+    def solve_part(self, secret_view: SecretView, rows: range, pixels: torch.Tensor, config: HideConfig, tile_index: int,
                    part: int, prepared: ViewSurvey) -> dict[str, torch.Tensor]:
         """Block `part`, its noise on the CPU in the storage dtype (so device memory holds one block), and
         its colours at each recorded iteration."""

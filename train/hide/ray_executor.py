@@ -57,9 +57,9 @@ class RayExecutor(Executor):
         self.pending: dict = {}  # object ref -> job
 
     def submit(self, job: Job, prepared: object = None) -> None:
-        if prepared is not None and self.prepared.get(job.k, (None,))[0] is not prepared:
-            self.prepared[job.k] = (prepared, self.ray.put(prepared))
-        reference = self.prepared[job.k][1] if prepared is not None else None
+        if prepared is not None and self.prepared.get(job.tile_index, (None,))[0] is not prepared:
+            self.prepared[job.tile_index] = (prepared, self.ray.put(prepared))
+        reference = self.prepared[job.tile_index][1] if prepared is not None else None
         self.pending[self.task.remote(self.weights, job, reference)] = job
 
     def results(self) -> Iterator[tuple[Job, object]]:
@@ -70,8 +70,8 @@ class RayExecutor(Executor):
                 result = self.ray.get(ready)
             except self.ray.exceptions.RayError as error:
                 raise UserError(f"{describe(job)} failed on the Ray cluster: {cause(error)}") from None
-            if all(other.k != job.k for other in self.pending.values()):  # the tile's last job for now
-                self.prepared.pop(job.k, None)
+            if all(other.tile_index != job.tile_index for other in self.pending.values()):  # the tile's last job for now
+                self.prepared.pop(job.tile_index, None)
             yield job, result
 
     def __exit__(self, *exc) -> None:
@@ -97,7 +97,7 @@ def check_reachable(address: str | None, timeout: float = CONNECT_SECONDS) -> No
 
 
 def describe(job: Job) -> str:
-    return f"tile {job.k}'s {'shared job' if job.part == PREPARE else f'part {job.part}'}"
+    return f"tile {job.tile_index}'s {'shared job' if job.part == PREPARE else f'part {job.part}'}"
 
 
 def cause(error: Exception) -> str:

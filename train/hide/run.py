@@ -45,7 +45,7 @@ class TileWork:
     """A tile on its way through the hide: its pixels (n, 3) uint8 on the CPU, its parts' rows, its shared
     result once known, its parts' results as they come, and which of those a resume loaded from disk."""
 
-    k: int
+    tile_index: int
     tile: Tile
     pixels: torch.Tensor
     parts: list[range]
@@ -132,13 +132,13 @@ class Driver:
     def run(self) -> None:
         self.start_tiles()
         for done, result in self.jobs.results():
-            work = self.works[done.k]
+            work = self.works[done.tile_index]
             if done.part == PREPARE:
                 work.prepared = result
                 if self.start_parts(work):
                     self.finish(work)
             else:
-                self.resume.save(done.k, done.part, result)
+                self.resume.save(done.tile_index, done.part, result)
                 work.solved[done.part] = result
                 self.pixels_done(len(done.rows))
                 if len(work.solved) == len(work.parts):
@@ -147,15 +147,15 @@ class Driver:
 
     def job(self, work: TileWork, part: int, rows: range) -> Job:
         # a copy: a slice would pickle (pool, Ray) the whole tile's pixels with every part
-        return Job(work.k, part, work.tile, rows, work.pixels[rows.start:rows.stop].clone(), self.config,
+        return Job(work.tile_index, part, work.tile, rows, work.pixels[rows.start:rows.stop].clone(), self.config,
                    str(self.device))
 
     def start_tiles(self) -> None:
         while len(self.works) <= self.jobs.slots:
-            k, tile = next(self.waiting, (None, None))
+            index, tile = next(self.waiting, (None, None))
             if tile is None:
                 return
-            self.works[k] = work = tile_work(k, tile, self.secret, self.solver.part_pixels(self.config))
+            self.works[index] = work = tile_work(index, tile, self.secret, self.solver.part_pixels(self.config))
             if self.solver.prepares(self.config):
                 self.jobs.submit(self.job(work, PREPARE, range(len(work.pixels))))
             elif self.start_parts(work):
@@ -165,7 +165,7 @@ class Driver:
         """The tile's saved parts taken, the others submitted. -> whether none is left to solve."""
         for c, rows in enumerate(work.parts):
             layout, sound = self.solver.part_layout(self.config, len(rows), self.noise_dims, work.prepared)
-            saved = self.resume.load(work.k, c, layout, sound)
+            saved = self.resume.load(work.tile_index, c, layout, sound)
             if saved is None:
                 self.jobs.submit(self.job(work, c, rows), work.prepared)
             else:
@@ -186,7 +186,7 @@ class Driver:
         inexact = self.solver.method.exact and quality["inexact_pixels"]
         if inexact and work.loaded:
             for c in sorted(work.loaded):
-                self.resume.discard(work.k, c)
+                self.resume.discard(work.tile_index, c)
                 del work.solved[c]
                 self.pixels_done(-len(work.parts[c]))
                 self.jobs.submit(self.job(work, c, work.parts[c]), work.prepared)
@@ -194,20 +194,20 @@ class Driver:
             return
         if inexact and not self.allow_inexact:
             raise InexactResult(
-                f"tile {work.k} (view {work.tile.view}, {w}x{h} px at x={x0}, y={y0}) has "
+                f"tile {work.tile_index} (view {work.tile.view}, {w}x{h} px at x={x0}, y={y0}) has "
                 f"{quality['inexact_pixels']} pixels off, by up to {quality['max_error']} levels; no bundle "
                 f"written (solved parts kept in {self.resume.directory} for a resume; --allow-inexact writes the "
                 f"bundle anyway)")
-        self.tiles[work.k] = dataclasses.replace(work.tile, noise=solved.stored)
-        self.reports[work.k] = {"rect": list(work.tile.rect), "view": work.tile.view, **quality, **solved.report,
+        self.tiles[work.tile_index] = dataclasses.replace(work.tile, noise=solved.stored)
+        self.reports[work.tile_index] = {"rect": list(work.tile.rect), "view": work.tile.view, **quality, **solved.report,
                                 "seconds": round(time.perf_counter() - work.started, 2)}
-        del self.works[work.k]
+        del self.works[work.tile_index]
 
 
-def tile_work(k: int, tile: Tile, secret: np.ndarray, part_pixels: int) -> TileWork:
-    """Tile k's pixels and its parts of `part_pixels` rays each."""
+def tile_work(index: int, tile: Tile, secret: np.ndarray, part_pixels: int) -> TileWork:
+    """Tile `index`'s pixels and its parts of `part_pixels` rays each."""
     x0, y0, w, h = tile.rect
     n = w * h
-    return TileWork(k, tile, torch.tensor(secret[y0:y0 + h, x0:x0 + w].reshape(-1, 3)),
+    return TileWork(index, tile, torch.tensor(secret[y0:y0 + h, x0:x0 + w].reshape(-1, 3)),
                     [range(start, min(start + part_pixels, n)) for start in range(0, n, part_pixels)],
                     time.perf_counter())

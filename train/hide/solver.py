@@ -60,17 +60,17 @@ class Solver:
         """Whether a tile's parts need a shared result (`prepare`) first."""
         return False
 
-    def prepare(self, secret_view: SecretView, pixels: torch.Tensor, config: HideConfig, k: int) -> object:
-        """Tile k's shared result from its view and pixels (n, 3) uint8: pure, run as a job."""
+    def prepare(self, secret_view: SecretView, pixels: torch.Tensor, config: HideConfig, tile_index: int) -> object:
+        """The shared result of tile `tile_index` from its view and pixels (n, 3) uint8: pure, run as a job."""
         raise NotImplementedError
 
     def part_pixels(self, config: HideConfig) -> int:
         """Rays per part: solved, saved and resumed together."""
         raise NotImplementedError
 
-    def solve_part(self, secret_view: SecretView, rows: range, pixels: torch.Tensor, config: HideConfig, k: int,
+    def solve_part(self, secret_view: SecretView, rows: range, pixels: torch.Tensor, config: HideConfig, tile_index: int,
                    part: int, prepared: object) -> dict[str, torch.Tensor]:
-        """Part `part` of tile k, the tile's rays `rows` with their pixels (m, 3) uint8: its tensors as
+        """Part `part` of tile `tile_index`, the tile's rays `rows` with their pixels (m, 3) uint8: its tensors as
         saved for a resume. Pure, run as a job; `prepared` is the tile's shared result (None without one)."""
         raise NotImplementedError
 
