@@ -67,9 +67,9 @@ class TerminalProgress:
         self.stage = None
 
     def __call__(self, event) -> None:
-        from tqdm import tqdm
-
         if self.bar is None or self.stage != event.stage:
+            from tqdm import tqdm
+
             self.close()
             self.stage = event.stage
             self.bar = tqdm(total=event.total, desc=event.stage, unit=event.unit, unit_scale=True, file=sys.stderr,

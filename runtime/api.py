@@ -23,7 +23,7 @@ import numpy as np
 from noisenerf.runtime.bundle import Bundle, bundle_bytes, parse_bundle_bytes, secret_digest
 from noisenerf.runtime.errors import UserError
 from noisenerf.runtime.files import check_output_path, refuse_lossy, write_bytes
-from noisenerf.runtime.images import WRITE_FORMATS, to_uint8, write_image, written_format
+from noisenerf.runtime.images import to_uint8, write_image, written_format
 from noisenerf.runtime.model import Model, check_bundle, load_model
 from noisenerf.runtime.payload import INEXACT, open_payload, seal_of
 from noisenerf.runtime.progress import Counter, ProgressFn
@@ -127,9 +127,7 @@ def checked_image_output(path: str | os.PathLike, force: bool):
     without force (or anything not a regular file), an unknown format, a lossy one (`exact` is judged on the
     8-bit pixels, so they must be the pixels written)."""
     output = check_output_path(path, force=force)
-    if (output.suffix.lower() or ".png") not in WRITE_FORMATS:
-        raise UserError(f"unknown image extension {output.suffix!r} for {output}; use one of "
-                        f"{', '.join(WRITE_FORMATS)}")
+    written_format(output)  # refuses an unknown extension
     refuse_lossy(output)
     return output
 

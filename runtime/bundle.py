@@ -141,14 +141,11 @@ def validate_tile(i: int, tile: Tile, bundle: Bundle) -> None:
     layout.check_noise(f"bundle: tile {i}", noise, w * h, bundle.noise_dims, bundle.coefficients)
 
 
-def validate_noise_header(layout: str, dtype: str, dims: int, coefficients: int | None,
-                          layouts: tuple[str, ...] = tuple(LAYOUTS)) -> None:
-    """The noise description alone (checked before any tile's coefficients are decompressed)."""
-    layout = layout_named(layout, layouts)
-    if dtype not in layout.dtypes:
-        raise UserError(f"bundle: unknown noise dtype {dtype!r:.40} for the {layout.name} layout (expected one of "
-                        f"{layout.dtypes})")
-    if coefficients != layout.read_header(layout.header(coefficients), dims):
+def validate_noise_header(layout: str, dtype: str, dims: int, coefficients: int | None) -> None:
+    """A bundle's noise description as it would be written must read back (noise_header) as itself."""
+    written = {"layout": layout, "dims": dims, "dtype": dtype,
+               **(LAYOUTS[layout].header(coefficients) if layout in LAYOUTS else {})}
+    if noise_header(written, tuple(LAYOUTS))["coefficients"] != coefficients:
         raise UserError("bundle: coefficients per pixel are given for, and only for, the compact layout")
 
 
@@ -238,7 +235,9 @@ def noise_header(noise: dict, layouts: tuple[str, ...]) -> dict:
     dims = checked_int(noise.get("dims"), "bundle: noise dims", 1, MAX_NOISE_DIMS)
     dtype = checked_text(noise.get("dtype"), "bundle: noise dtype")
     coefficients = layout.read_header(noise, dims)
-    validate_noise_header(layout.name, dtype, dims, coefficients, layouts)
+    if dtype not in layout.dtypes:
+        raise UserError(f"bundle: unknown noise dtype {dtype!r:.40} for the {layout.name} layout (expected one of "
+                        f"{layout.dtypes})")
     return {"layout": layout.name, "dims": dims, "dtype": dtype, "coefficients": coefficients}
 
 
