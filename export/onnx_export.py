@@ -34,7 +34,8 @@ from noisenerf.runtime.files import check_output_path, write_bytes
 from noisenerf.runtime.fingerprint import weights_fingerprint
 from noisenerf.runtime.model import ModelMetadata
 from noisenerf.runtime.onnx_file import ModelFile, parse_model
-from noisenerf.runtime.graph import IR_VERSION, OPSET, Port, check_graph, field_graph
+from noisenerf.runtime.fields import field_graph
+from noisenerf.runtime.graph import IR_VERSION, Port, check_graph
 from noisenerf.runtime.session import OnnxField
 from noisenerf.train.scene.field import NeRFField
 from noisenerf.train.scene.render import numpy_field
@@ -65,7 +66,7 @@ def fields_to_onnx(scene: Scene, metadata: ModelMetadata) -> onnx.ModelProto:
     model = onnx.helper.make_model(
         onnx.helper.make_graph(nodes, "noisenerf", [port(p) for p in graph.inputs], [port(p) for p in graph.outputs],
                                initializers),
-        opset_imports=[onnx.helper.make_opsetid("", OPSET)], producer_name="noisenerf")
+        opset_imports=[onnx.helper.make_opsetid("", graph.opset)], producer_name="noisenerf")
     model.ir_version = IR_VERSION
     return model
 
@@ -183,5 +184,5 @@ def export_scene(scene_dir: str | os.PathLike, out_path: str | os.PathLike, prob
     check_as_runtime(file, metadata)
     write_bytes(out_path, data, replace=force)
     return {"model": str(out_path), "fingerprint": scene.fingerprint(), "bytes": len(data),
-            "seconds": round(time.perf_counter() - start, 3), "opset": OPSET, "networks": list(scene.fields()),
+            "seconds": round(time.perf_counter() - start, 3), "opset": model.opset_import[0].version, "networks": list(scene.fields()),
             "max_abs_diff": max(case.max_abs_diff for case in probe), "probe": [case.to_dict() for case in probe]}

@@ -1,26 +1,21 @@
-"""The graph a noisenerf model file holds, as a pure function of its architecture.
+"""The graph a noisenerf model file holds, and the rule that binds a model file to it.
 
 A model is trusted only as far as its fingerprint reaches. The fingerprint covers the weights and the
-architecture (runtime.fingerprint); this module extends it to the graph: `field_graph` derives, from the
+architecture (runtime.fingerprint); the graph extends it: `runtime.fields.field_graph` derives, from the
 architecture in the model's metadata, every node, attribute, constant, port and opset the export writes
-(export.onnx_export builds the ONNX graph from this same description), and `check_graph` compares a
-model file's graph with it, field by field. Any extra, missing or changed node, attribute, constant,
-opset, initializer or port shape is refused before a session exists, so a model whose weights and
-metadata are genuine cannot compute anything but the scene's fields.
+(export.onnx_export builds the ONNX graph from this same description; each network's part is written by
+its field kind, runtime.fields), and `check_graph` here compares a model file's graph with it, field by
+field. Any extra, missing or changed node, attribute, constant, opset, initializer or port shape is
+refused before a session exists, so a model whose weights and metadata are genuine cannot compute
+anything but the scene's fields.
 
 The rule, for any implementation (the browser reveal implements the same): read the architecture from
-the metadata (it is in the fingerprint), rebuild this node list, and require the file's graph to be
+the metadata (it is in the fingerprint), rebuild the node list, and require the file's graph to be
 exactly it — nodes in order with their op types, default domain, input and output names and integer
 attributes; initializers exactly the weights (name, shape; values checked by the fingerprint) and the
 constants (name, dtype, shape, values); inputs and outputs with their element types and shapes, the
-batch axis symbolic; one opset import, the default domain at OPSET. Node names and doc strings are not
-compared (they compute nothing).
-
-Layout, per distinct encoding (shared by coarse and fine networks when their frequencies agree):
-γ(v) = [v, sin(2⁰v), cos(2⁰v), …] by Unsqueeze → Mul → Sin, Cos → Unsqueeze → Concat → Reshape → Concat
-(paper eq. 4, nerf-pytorch's order); noise is added to [γ(x) ‖ γ(d)] and split again (eq. 4–5); each
-network is nn.Linear's layers as Gemm(transB=1) with ReLU and its skip Concat, then sigmoid colour and
-ReLU density (σ squeezed to (n,)).
+batch axis symbolic; one opset import, the default domain at the graph's opset (the highest its field
+kinds need). Node names and doc strings are not compared (they compute nothing).
 """
 
 from __future__ import annotations
@@ -30,15 +25,12 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from noisenerf.runtime.encoding import encoding_dims
 from noisenerf.runtime.errors import UserError
-from noisenerf.runtime.limits import MAX_FIELD_DEPTH, MAX_FIELD_WIDTH, MAX_FREQUENCIES, checked_int, checked_list
 
 if TYPE_CHECKING:
     from noisenerf.runtime.onnx_file import ModelFile
 
-OPSET = 17
-IR_VERSION = 8  # the ONNX IR of opset 17, readable by every onnxruntime this package supports
+IR_VERSION = 8  # the ONNX IR of opsets 17 and 18, readable by every onnxruntime this package supports
 FLOAT, INT64 = 1, 7  # TensorProto.DataType
 INPUT_NAMES = ("points", "viewdirs", "noise")
 OUTPUT_NAMES = ("rgb", "sigma")  # the render network: the fine one where the model has both
@@ -68,17 +60,19 @@ class Port:
 @dataclass(frozen=True, eq=False)
 class FieldGraph:
     """Everything a model's graph must be: nodes in order, constants (name -> array), weights (name ->
-    shape, nn.Linear's (out, in) and (out,)), ports."""
+    shape, nn.Linear's (out, in) and (out,), tables), ports, the default domain's opset."""
 
     nodes: tuple[Node, ...]
     constants: dict[str, np.ndarray]
     weights: dict[str, tuple[int, ...]]
     inputs: tuple[Port, ...]
     outputs: tuple[Port, ...]
+    opset: int
 
 
 class GraphBuilder:
-    """Collects nodes and constants; a value computed once (an encoding) is reused by name."""
+    """Collects nodes, constants and weights; a value computed once (an encoding) is reused by name. The
+    field kinds (runtime.fields) write their networks with it."""
 
     def __init__(self):
         self.nodes: list[Node] = []
@@ -99,102 +93,24 @@ class GraphBuilder:
         self.weights[weight], self.weights[bias] = (fan_out, fan_in), (fan_out,)
         return self.add("Gemm", (x, weight, bias), f"{prefix}.{layer}", transB=1)
 
+    def split(self, x: str, sizes: str, outputs: tuple[str, ...], axis: int = 1) -> tuple[str, ...]:
+        """Split x along `axis` into `outputs` of the sizes held by the constant `sizes`."""
+        self.nodes.append(Node("Split", (x, sizes), outputs, (("axis", axis),)))
+        return outputs
+
     def computed(self, name: str) -> bool:
         return any(name in node.outputs for node in self.nodes)
 
-    def encoding(self, x: str, n_freqs: int) -> str:
-        """γ(x) of an (n, 3) value -> (n, 3 + 6·n_freqs), computed once per (input, frequencies)."""
-        name = f"gamma.{x}.{n_freqs}"
-        if self.computed(name):
-            return name
-        axis1 = self.constant("axes.1", np.array([1], np.int64))
-        axis2 = self.constant("axes.2", np.array([2], np.int64))
-        freqs = self.constant(f"freqs.{n_freqs}", (2.0 ** np.arange(n_freqs, dtype=np.float32))[:, None])
-        scaled = self.add("Mul", (self.add("Unsqueeze", (x, axis1), f"{name}.x"), freqs), f"{name}.scaled")
-        sin = self.add("Unsqueeze", (self.add("Sin", (scaled,), f"{name}.sin"), axis2), f"{name}.sin4")
-        cos = self.add("Unsqueeze", (self.add("Cos", (scaled,), f"{name}.cos"), axis2), f"{name}.cos4")
-        bands = self.add("Concat", (sin, cos), f"{name}.bands4", axis=2)
-        flat = self.add("Reshape", (bands, self.constant("shape.flat", np.array([0, -1], np.int64))), f"{name}.bands")
-        return self.add("Concat", (x, flat), name, axis=1)
-
-    def noisy_inputs(self, config: dict) -> tuple[str, str | None]:
-        """γ(x) + noise, or [γ(x) ‖ γ(d)] + noise split back into its γ(x) and γ(d) parts (the latter None
-        without view directions), computed once per frequencies."""
-        xyz = self.encoding("points", config["xyz_freqs"])
-        if not config["use_viewdirs"]:
-            name = f"{xyz}+noise"
-            return (name if self.computed(name) else self.add("Add", (xyz, "noise"), name)), None
-        dirs = self.encoding("viewdirs", config["dir_freqs"])
-        name = f"{xyz}|{dirs}+noise"
+    def noisy_pair(self, position: str, direction: str, add_sizes) -> tuple[str, str]:
+        """[position ‖ direction] + noise split back into its two segments, computed once per pair of
+        encodings (paper eq. 4–5); `add_sizes()` adds the constant holding their widths, after the Add
+        (the constants' order is the file's), and returns its name."""
+        name = f"{position}|{direction}+noise"
         if not self.computed(name):
-            self.add("Add", (self.add("Concat", (xyz, dirs), f"{xyz}|{dirs}", axis=1), "noise"), name)
-            sizes = self.constant(f"split.{config['xyz_freqs']}.{config['dir_freqs']}", np.array(
-                [encoding_dims(config["xyz_freqs"]), encoding_dims(config["dir_freqs"])], np.int64))
-            self.nodes.append(Node("Split", (name, sizes), (f"{name}.xyz", f"{name}.dirs"), (("axis", 1),)))
+            self.add("Add", (self.add("Concat", (position, direction), f"{position}|{direction}", axis=1), "noise"),
+                     name)
+            self.split(name, add_sizes(), (f"{name}.xyz", f"{name}.dirs"))
         return f"{name}.xyz", f"{name}.dirs"
-
-    def network(self, prefix: str, config: dict, rgb: str, sigma: str) -> None:
-        """One NeRF MLP (train.scene.field.NeRFField, layer for layer) -> outputs rgb (n, 3), sigma (n,)."""
-        xyz, dirs = self.noisy_inputs(config)
-        xyz_dims, width = encoding_dims(config["xyz_freqs"]), config["width"]
-        h, fan_in = xyz, xyz_dims
-        for i in range(config["depth"]):
-            h = self.add("Relu", (self.linear(prefix, f"pts_linears.{i}", h, fan_in, width),), f"{prefix}.h{i}")
-            fan_in = width
-            if i in config["skips"]:
-                h, fan_in = self.add("Concat", (xyz, h), f"{prefix}.skip{i}", axis=1), width + xyz_dims
-        if config["use_viewdirs"]:
-            density = self.linear(prefix, "alpha_linear", h, width, 1)
-            feature = self.linear(prefix, "feature_linear", h, width, width)
-            branch = self.add("Concat", (feature, dirs), f"{prefix}.branch", axis=1)
-            hidden = self.linear(prefix, "views_linears.0", branch, width + encoding_dims(config["dir_freqs"]),
-                                 width // 2)
-            raw_rgb = self.linear(prefix, "rgb_linear", self.add("Relu", (hidden,), f"{prefix}.views"), width // 2, 3)
-        else:
-            raw = self.linear(prefix, "output_linear", h, width, 4)
-            sizes = self.constant("split.rgb_density", np.array([3, 1], np.int64))
-            raw_rgb, density = f"{prefix}.raw_rgb", f"{prefix}.raw_density"
-            self.nodes.append(Node("Split", (raw, sizes), (raw_rgb, density), (("axis", 1),)))
-        self.add("Sigmoid", (raw_rgb,), rgb)
-        self.add("Squeeze", (self.add("Relu", (density,), f"{prefix}.sigma"), self.constant("axes.1", np.array(
-            [1], np.int64))), sigma)
-
-
-def checked_network(config, what: str) -> dict:
-    """A network's architecture as metadata states it (train.scene.field.FieldConfig's fields), every number
-    within the caps before a graph is derived from it."""
-    if not isinstance(config, dict) or set(config) != {"depth", "width", "skips", "xyz_freqs", "dir_freqs",
-                                                       "use_viewdirs"}:
-        raise UserError(f"the {what} network's architecture must have exactly depth, width, skips, xyz_freqs, "
-                        "dir_freqs and use_viewdirs")
-    depth = checked_int(config["depth"], f"{what} depth", 1, MAX_FIELD_DEPTH)
-    skips = [checked_int(skip, f"{what} skip", 0, depth - 1) for skip in checked_list(
-        list(config["skips"]) if isinstance(config["skips"], tuple) else config["skips"], "skips", most=depth)]
-    if not isinstance(config["use_viewdirs"], bool):
-        raise UserError(f"the {what} network's use_viewdirs must be true or false")
-    return {"depth": depth, "width": checked_int(config["width"], f"{what} width", 2, MAX_FIELD_WIDTH),
-            "skips": sorted(set(skips)), "use_viewdirs": config["use_viewdirs"],
-            **{key: checked_int(config[key], f"{what} {key}", 0, MAX_FREQUENCIES) for key in ("xyz_freqs", "dir_freqs")}}
-
-
-def field_graph(architecture: dict, noise_dims: int) -> FieldGraph:
-    """The graph of a model with this architecture ({"coarse": FieldConfig dict, "fine": … | None}) and
-    noise width: outputs rgb, sigma of the render network (the fine one where there is one), then
-    rgb_coarse, sigma_coarse beside a fine network. Refuses an architecture out of the caps (UserError)."""
-    builder = GraphBuilder()
-    architecture = {name: None if config is None else checked_network(config, name)
-                    for name, config in architecture.items()}
-    fine = architecture.get("fine")
-    outputs = [Port("rgb", (BATCH, 3)), Port("sigma", (BATCH,))]
-    if fine is None:
-        builder.network("coarse", architecture["coarse"], *OUTPUT_NAMES)
-    else:
-        builder.network("fine", fine, *OUTPUT_NAMES)
-        builder.network("coarse", architecture["coarse"], *COARSE_OUTPUT_NAMES)
-        outputs += [Port("rgb_coarse", (BATCH, 3)), Port("sigma_coarse", (BATCH,))]
-    inputs = (Port("points", (BATCH, 3)), Port("viewdirs", (BATCH, 3)), Port("noise", (BATCH, noise_dims)))
-    return FieldGraph(tuple(builder.nodes), builder.constants, builder.weights, inputs, tuple(outputs))
-
 
 def refuse(source: str, what: str) -> UserError:
     return UserError(f"{source}: the model's graph is not the one its scene exports: {what}; export the scene again")
@@ -214,8 +130,8 @@ def check_graph(file: ModelFile, expected: FieldGraph, source: str) -> dict[str,
         if got != want:
             raise refuse(source, f"its {kind} are {[port and (port.name, port.shape) for port in got]}, expected "
                                  f"{[(port.name, port.shape) for port in want]}")
-    if file.opsets != (("", OPSET),):
-        raise refuse(source, f"it imports opsets {list(file.opsets)}, not [('', {OPSET})]")
+    if file.opsets != (("", expected.opset),):
+        raise refuse(source, f"it imports opsets {list(file.opsets)}, not [('', {expected.opset})]")
     for i, (got, want) in enumerate(zip(file.nodes, expected.nodes)):
         if got != want:
             raise refuse(source, f"node {i} is {describe(got)}, expected {describe(want)}")

@@ -39,7 +39,8 @@ from noisenerf.runtime.camera import Camera
 from noisenerf.runtime.errors import UserError
 from noisenerf.runtime.files import parse_json
 from noisenerf.runtime.fingerprint import weights_fingerprint
-from noisenerf.runtime.graph import FieldGraph, check_graph, field_graph
+from noisenerf.runtime.fields import field_graph
+from noisenerf.runtime.graph import FieldGraph, check_graph
 from noisenerf.runtime.limits import (
     MAX_CAMERAS, MAX_GRID_RESOLUTION, MAX_NOISE_DIMS, checked_float, checked_int, checked_list,
 )

@@ -19,7 +19,7 @@ from helpers import assert_refused, make_tiny_scene, run_reveal
 from noisenerf.export.onnx_export import export_scene
 from noisenerf.runtime import session as session_module
 from noisenerf.runtime.errors import UserError
-from noisenerf.runtime.graph import field_graph
+from noisenerf.runtime.fields import field_graph
 from noisenerf.runtime.model import load_model
 
 REFUSAL = "the model's graph is not the one its scene exports"

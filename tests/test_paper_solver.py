@@ -100,9 +100,10 @@ def test_gradient_samples_are_the_live_ones_and_a_dead_rays_densest():
     raw_density = torch.tensor([[-1.0, 0.5, 0.0, 2.0],    # live: two samples
                                 [-3.0, -0.5, -2.0, -0.5],  # dead: its densest (a tie) takes the floor term
                                 [0.2, -1.0, 0.1, -4.0]])  # live but below the floor: the densest is live anyway
-    assert gradient_samples(raw_density, None).tolist() == [[False, True, False, True], [False] * 4,
+    dead = raw_density <= 0  # the mlp kind's zero slope
+    assert gradient_samples(raw_density, dead, None).tolist() == [[False, True, False, True], [False] * 4,
                                                             [True, False, True, False]]
-    assert gradient_samples(raw_density, 1.0).tolist() == [[False, True, False, True], [False, True, False, True],
+    assert gradient_samples(raw_density, dead, 1.0).tolist() == [[False, True, False, True], [False, True, False, True],
                                                            [True, False, True, False]]
 
 

@@ -18,14 +18,14 @@ from noisenerf.train.hide.settings import ExactSettings, PaperSettings
 from noisenerf.train.hide.plan import HideConfig, plan
 from noisenerf.train.hide.secret_view import SecretView
 from noisenerf.train.hide.tiling import MIN_TILE_SIZE
-from noisenerf.train.scene.field import NeRFField
+from noisenerf.train.scene.field_kinds import Field
 from noisenerf.train.scene.scene import Scene
 
 from noisenerf.cli.bench.context import Stopwatch, synchronized_time
 
 
 def secret_view(scene: Scene, secret: np.ndarray, view: int, n_samples: int, device: torch.device = torch.device("cpu"),
-                field: NeRFField | None = None) -> SecretView:
+                field: Field | None = None) -> SecretView:
     """The single-tile secret view of `secret` at scene camera `view` with n_samples per ray, on `field`
     (default: the tile's network, the coarse one for paper mode as the authors render, else the render field)."""
     config = HideConfig(method="exact" if n_samples == 1 else "paper", n_samples=n_samples, view=view,

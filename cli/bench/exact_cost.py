@@ -20,7 +20,7 @@ from noisenerf.runtime.session import OnnxField, read_model_file
 from noisenerf.train.hide.settings import recipe
 from noisenerf.train.hide.plan import HideConfig
 from noisenerf.train.scene.datasets import load_dataset
-from noisenerf.train.scene.field import NeRFField
+from noisenerf.train.scene.field_kinds import Field
 from noisenerf.train.scene.render import numpy_field
 
 from noisenerf.cli.bench.context import BenchContext, Measured, size_of, small_secret, timed
@@ -34,7 +34,7 @@ SKIPPED_WORK_GOAL = 5  # samples the dense render evaluates ÷ samples evaluated
 SKIPPED_PSNR_GOAL_DB = 0.1  # how far skipping may move the test views' PSNR either way
 
 
-def field_flops(field: NeRFField) -> int:
+def field_flops(field: Field) -> int:
     """Multiply-adds × 2 of one field evaluation (the linear layers; activations are noise)."""
     return linear_flops(field.modules())
 

@@ -12,7 +12,7 @@ import numpy as np
 
 from noisenerf.runtime.images import load_secret, resize_image, to_uint8
 from noisenerf.train.hide.settings import NO_SKIP, PaperSettings, pass_samples_for, recipe
-from noisenerf.train.scene.field import NeRFField
+from noisenerf.train.scene.field_kinds import Field
 
 from noisenerf.cli.bench.context import BenchContext, Measured, peak_rss_gib, size_of, small_secret
 from noisenerf.cli.bench.curves import PaperNoise, PaperRun, exact_curve, paper_curve
@@ -138,11 +138,10 @@ def plot_paper_quality(rows: list[dict], path: Path) -> None:
     save_figure(figure, path)
 
 
-def pass_flops(field: NeRFField) -> tuple[int, int]:
+def pass_flops(field: Field) -> tuple[int, int]:
     """Floating-point operations per sample: of a forward and backward pass (the backward to the input only,
     the weights being frozen: one more product per layer), and of a density check (trunk and density layer)."""
-    density = field.alpha_linear if field.config.use_viewdirs else field.output_linear
-    return 2 * field_flops(field), linear_flops([*field.pts_linears, density])
+    return 2 * field_flops(field), linear_flops(field.density_layers())
 
 
 def measure_paper_speed(context: BenchContext) -> PaperCurves:

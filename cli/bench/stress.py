@@ -36,7 +36,7 @@ from noisenerf.train.hide.settings import PaperSettings
 from noisenerf.train.hide.plan import HideConfig
 from noisenerf.train.hide.run import hide
 from noisenerf.train.scene import render as rendering
-from noisenerf.train.scene.field import NeRFField
+from noisenerf.train.scene.field_kinds import Field
 from noisenerf.train.scene.render import numpy_field
 from noisenerf.train.scene.random_scene import random_scene
 from noisenerf.train.scene.scene import Scene
@@ -50,7 +50,7 @@ class Stressed:
     """The scene under stress, its render field in float64 (the reference), and its onnxruntime model."""
 
     scene: Scene
-    reference: NeRFField
+    reference: Field
     model: Model
     folder: Path  # its scene directory and model.onnx; the hides' bundles go in folders below
 

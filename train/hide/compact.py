@@ -31,7 +31,7 @@ import numpy as np
 import torch
 
 from noisenerf.train.hide.secret_view import BranchView, SecretView
-from noisenerf.train.hide.exact import INTEGER_LIMITS, ChunkProblem, NoiseSpace, is_lifted, solve_exact
+from noisenerf.train.hide.exact import INTEGER_LIMITS, ChunkProblem, NoiseSpace, is_lifted, raw_floors, solve_exact
 from noisenerf.train.hide.settings import CompactSettings, ExactSettings
 
 def in_basis(exact: ExactSettings, settings: CompactSettings) -> ExactSettings:
@@ -61,13 +61,13 @@ MIN_LIFTED = 0.99
 
 
 def lift_density(secret_view: SecretView, floor: float) -> torch.Tensor:
-    """One γ(x) noise vector (xyz_dims,) shared by a single-sample view's rays that lifts their raw
-    densities towards LIFT_MARGIN · floor: from zero, steps along the mean density gradient of the rays
+    """One position-segment noise vector (position_dims,) shared by a single-sample view's rays that lifts
+    their densities towards LIFT_MARGIN · floor (as raw densities, through the kind's activation): from zero, steps along the mean density gradient of the rays
     still below, each of the LIFT_STEPS length that most raises Σ min(density, goal) over every ray, until
     all are there or no step helps; on a trained scene one step usually lifts every ray."""
-    field, xyz_dims = secret_view.field, secret_view.field.config.xyz_dims
+    field, xyz_dims = secret_view.field, secret_view.field.config.position_dims
     encoded = secret_view.encodings(torch.arange(secret_view.n_rays, device=secret_view.device))[:, 0, :xyz_dims]
-    goal = LIFT_MARGIN * floor
+    goal = field.raw_density_at(LIFT_MARGIN * floor)
 
     def density(noise: torch.Tensor) -> torch.Tensor:
         return field.trunk_outputs(encoded + noise)[0]
@@ -106,11 +106,12 @@ def tile_space(secret_view: SecretView, pixels: torch.Tensor, settings: CompactS
     generator = torch.Generator().manual_seed(seed)
     sample = torch.randperm(secret_view.n_rays, generator=generator)[:settings.basis_pixels].to(pixels.device)
     scale = float(np.float32(settings.coefficient_range / INTEGER_LIMITS[storage]))
-    if secret_view.field.config.use_viewdirs:
+    if secret_view.field.config.has_view_branch:
         part = secret_view.subset(sample)
         xyz_noise = lift_density(part, exact.density_floor)
         branch = BranchView(part, xyz_noise)
-        if float(is_lifted(branch.density, exact.density_floor).float().mean()) >= MIN_LIFTED:
+        lifted_floor = raw_floors(branch.field, exact.density_floor)[1]
+        if float(is_lifted(branch.density, lifted_floor).float().mean()) >= MIN_LIFTED:
             return direction_basis(branch, pixels[sample], xyz_noise, settings, exact, storage, scale, generator)
     solved = solve_exact(ChunkProblem(secret_view, sample, pixels[sample], NoiseSpace(torch.float32), exact, generator))
     offset, basis = principal_basis(solved.params, settings.coefficients)
@@ -146,7 +147,7 @@ def direction_space(storage: torch.dtype, xyz_noise: torch.Tensor, dir_offset: t
 def solver_view(secret_view: SecretView, space: NoiseSpace) -> SecretView | BranchView:
     """What the exact solver renders for a chunk in `space`: the view branch alone where the space's noise
     leaves γ(x) at its offset (tile_space, fields with a view branch), else the whole field."""
-    xyz_dims = secret_view.field.config.xyz_dims
-    if space.basis is not None and secret_view.field.config.use_viewdirs and not space.basis[:xyz_dims].any():
+    xyz_dims = secret_view.field.config.position_dims
+    if space.basis is not None and secret_view.field.config.has_view_branch and not space.basis[:xyz_dims].any():
         return BranchView(secret_view, space.offset[:xyz_dims])
     return secret_view

@@ -2,9 +2,11 @@
 
 `solve_exact` (the default) renders its secret view with a single sample per ray. That sample's interval
 is the 1e10 last one, so once its density is positive its opacity is exactly 1 and the pixel's colour is
-the sigmoid of the field's raw colour. Each pixel is then four equations in its 90 noise values —
-raw colour = logit(target colour), raw density ≥ density_floor — and all four are piecewise linear in
-the noise (a ReLU MLP), so a Gauss–Newton step lands exactly unless it crosses a ReLU boundary. The step
+the sigmoid of the field's raw colour. Each pixel is then four equations in its noise values (90 for
+the standard NeRF) — raw colour = logit(target colour), raw density ≥ the raw floor (raw_floors: the
+field kind's inverse density activation at density_floor) — and all four are piecewise linear in the
+noise (every kind's networks are ReLU nets), so a Gauss–Newton step lands exactly unless it crosses a
+ReLU boundary. The step
 is the minimum-norm Levenberg–Marquardt one, δ += Jᵀ(JJᵀ + λI)⁻¹r, with a short backtracking line search;
 J is exact (the field's hand-written four-row reverse pass), and a pixel retires as soon as it is
 finished, so later iterations only pay for the few left. Every 16th pixel is solved first; the others
@@ -138,10 +140,10 @@ def sample_outputs(secret_view: SolverView, index: torch.Tensor, noise: torch.Te
 SINGULAR_DAMPING = 1e-4  # λ for a system singular in float32: well above float32's ε, as small as the start λ
 
 
-def residuals(outputs: torch.Tensor, goal: torch.Tensor, density_floor: float) -> torch.Tensor:
+def residuals(outputs: torch.Tensor, goal: torch.Tensor, floor: float) -> torch.Tensor:
     """What each equation still lacks: logit targets − raw colour, and the density shortfall (0 once the
     density is above the floor). outputs: (m, 4), goal: (m, 3) -> (m, 4)."""
-    return torch.cat([goal - outputs[:, :3], torch.clamp_min(density_floor - outputs[:, 3:], 0.0)], dim=-1)
+    return torch.cat([goal - outputs[:, :3], torch.clamp_min(floor - outputs[:, 3:], 0.0)], dim=-1)
 
 
 def damped_step(jac: torch.Tensor, residual: torch.Tensor, damping: torch.Tensor) -> torch.Tensor:
@@ -228,10 +230,17 @@ class SolveCounts:
     restarts: int = 0
 
 
-def is_lifted(raw_density: torch.Tensor, floor: float) -> torch.Tensor:
-    """Whether a single sample's density counts as lifted (opacity exactly 1, with room to spare): at least
-    half the floor the solver aims at. (...) -> (...) bool."""
-    return raw_density >= floor / 2
+def raw_floors(field, density_floor: float) -> tuple[float, float]:
+    """The raw densities the solver aims a single sample at (σ = density_floor: opacity exactly 1 over
+    the last interval) and accepts as lifted (σ = half of it, room to spare), through the field kind's
+    inverse density activation."""
+    return field.raw_density_at(density_floor), field.raw_density_at(density_floor / 2)
+
+
+def is_lifted(raw_density: torch.Tensor, lifted_floor: float) -> torch.Tensor:
+    """Whether a single sample's raw density counts as lifted: at least `lifted_floor` (raw_floors).
+    (...) -> (...) bool."""
+    return raw_density >= lifted_floor
 
 
 @dataclass
@@ -283,8 +292,13 @@ class ChunkProblem:
     target: torch.Tensor = dataclasses.field(init=False)
     goal: torch.Tensor = dataclasses.field(init=False)
     values: torch.Tensor = dataclasses.field(init=False)
+    floor: float = dataclasses.field(init=False)  # raw density aimed at, and accepted (raw_floors)
+    lifted_floor: float = dataclasses.field(init=False)
 
     def __post_init__(self):
+        floors = raw_floors(self.secret_view.field, self.settings.density_floor)
+        object.__setattr__(self, "floor", floors[0])
+        object.__setattr__(self, "lifted_floor", floors[1])
         object.__setattr__(self, "target", bin_targets(self.pixels))
         object.__setattr__(self, "goal", logit(self.target))
         object.__setattr__(self, "values", self.pixels.float() / 255.0)
@@ -312,7 +326,7 @@ class ChunkProblem:
         return self.space.store(params) if storage_phase else params
 
     def lifted(self, outputs: torch.Tensor) -> torch.Tensor:
-        return is_lifted(outputs[:, 3], self.settings.density_floor)
+        return is_lifted(outputs[:, 3], self.lifted_floor)
 
     def converged(self, outputs: torch.Tensor, which: torch.Tensor) -> torch.Tensor:
         """Float32 phase: pixels `which` (a,) with outputs (a, 4) near their bins' centres. -> (a,) bool."""
@@ -341,7 +355,7 @@ class ChunkProblem:
             restart(self, state, stuck)
         _, jac = self.outputs_and_jacobian(active, state.params[active])
         state.age[active[jac.flatten(1).abs().amax(-1) < 1e-12]] = settings.restart_after + 1  # restart next
-        step = damped_step(jac, residuals(state.outputs[active], self.goal[active], settings.density_floor),
+        step = damped_step(jac, residuals(state.outputs[active], self.goal[active], self.floor),
                            state.damping[active])
         improved = line_search(self, state, step)
         state.damping[active] = torch.where(improved, torch.clamp(state.damping[active] / DAMPING_DOWN,
@@ -377,7 +391,7 @@ def line_search(problem: ChunkProblem, state: Refinement, step: torch.Tensor) ->
     -> improved (a,) bool."""
     settings, active = problem.settings, state.active
     params, outputs, goal = state.params[active], state.outputs[active], problem.goal[active]
-    before = (residuals(outputs, goal, settings.density_floor) ** 2).sum(-1)
+    before = (residuals(outputs, goal, problem.floor) ** 2).sum(-1)
     improved = torch.zeros(active.numel(), dtype=torch.bool, device=params.device)
     for scale in settings.step_scales:
         trying = (~improved).nonzero()[:, 0]
@@ -385,7 +399,7 @@ def line_search(problem: ChunkProblem, state: Refinement, step: torch.Tensor) ->
             break
         candidate = problem.judged(params[trying] + scale * step[trying], state.storage_phase)
         after = problem.outputs(active[trying], candidate)
-        better = (residuals(after, goal[trying], settings.density_floor) ** 2).sum(-1) < before[trying]
+        better = (residuals(after, goal[trying], problem.floor) ** 2).sum(-1) < before[trying]
         chosen = trying[better]
         params[chosen], outputs[chosen], improved[chosen] = candidate[better], after[better], True
     state.params[active], state.outputs[active] = params, outputs
@@ -422,12 +436,12 @@ def chord_start(problem: ChunkProblem, which: torch.Tensor, params: torch.Tensor
     settings, goal = problem.settings, problem.goal[which]
     best = params
     outputs = problem.outputs(which, params)
-    best_error = (residuals(outputs, goal, settings.density_floor) ** 2).sum(-1)
+    best_error = (residuals(outputs, goal, problem.floor) ** 2).sum(-1)
     damping = torch.full((which.numel(),), settings.damping, device=params.device)
     for _ in range(settings.chord_steps):
-        params = params + damped_step(jac, residuals(outputs, goal, settings.density_floor), damping)
+        params = params + damped_step(jac, residuals(outputs, goal, problem.floor), damping)
         outputs = problem.outputs(which, params)
-        error = (residuals(outputs, goal, settings.density_floor) ** 2).sum(-1)
+        error = (residuals(outputs, goal, problem.floor) ** 2).sum(-1)
         better = error < best_error
         best, best_error = torch.where(better[:, None], params, best), torch.where(better, error, best_error)
     return best
@@ -458,7 +472,7 @@ def round_to_lattice(problem: ChunkProblem, params: torch.Tensor) -> torch.Tenso
         predicted = outputs[:, None, :] + (candidates - coords[:, None, :]) @ jac.transpose(1, 2)  # (p, c, 4)
         distance = colour_distance_bins(predicted.flatten(0, 1), problem.values[part].repeat_interleave(
             candidates.shape[1], 0)).reshape(candidates.shape[:2])
-        distance = distance + 255.0 * (predicted[..., 3] < settings.density_floor / 2)  # unlifted: last
+        distance = distance + 255.0 * (predicted[..., 3] < problem.lifted_floor)  # unlifted: last
         ranked = space.params_of(candidates.gather(1, distance.argsort(1)[:, :settings.lattice_tries, None].expand(
             -1, -1, k)))
         chosen, left = ranked[:, 0].clone(), torch.arange(part.numel(), device=params.device)

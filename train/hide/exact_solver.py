@@ -11,7 +11,7 @@ import torch
 
 from noisenerf.runtime.layouts import LAYOUTS, CompactBasis, CompactNoise, TileNoise, VectorNoise
 from noisenerf.train.hide.compact import in_basis, solver_view, tile_space
-from noisenerf.train.hide.exact import (ChunkProblem, NoiseSpace, SolveCounts, is_lifted, rescue,
+from noisenerf.train.hide.exact import (ChunkProblem, NoiseSpace, SolveCounts, is_lifted, raw_floors, rescue,
                                         solve_exact)
 from noisenerf.train.hide.methods import METHODS
 from noisenerf.train.hide.secret_view import BranchView, SecretView
@@ -55,8 +55,9 @@ def solve_chunk(secret_view: SecretView, index: torch.Tensor, pixels: torch.Tens
         params, _ = rescue(problem, result.params, result.done)
         return {"noise": params, "counts": torch.tensor(dataclasses.astuple(counts))}
     solving = solver_view(secret_view, space)
-    # a ray the tile's shared γ(x) leaves unlifted can only escape: no basis solve for it
-    tried = (is_lifted(solving.density[index], settings.density_floor) if isinstance(solving, BranchView)
+    # a ray the tile's shared position noise leaves unlifted can only escape: no basis solve for it
+    tried = (is_lifted(solving.density[index], raw_floors(solving.field, settings.density_floor)[1])
+             if isinstance(solving, BranchView)
              else torch.ones_like(index, dtype=torch.bool)).nonzero()[:, 0]
     result = solve_exact(ChunkProblem(solving, index[tried], pixels[tried], space,
                                       in_basis(settings, config.get(CompactSettings)), generator, counts))

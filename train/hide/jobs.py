@@ -20,7 +20,7 @@ from noisenerf.runtime.render import RenderConfig
 from noisenerf.train.hide.plan import HideConfig
 from noisenerf.train.hide.secret_view import SecretView
 from noisenerf.train.hide.solvers import SOLVERS
-from noisenerf.train.scene.field import FieldConfig, NeRFField
+from noisenerf.train.scene.field_kinds import Field, FieldConfigs, build_field
 from noisenerf.train.scene.scene import Scene
 
 PREPARE = -1  # the part number of a tile's shared job (also its seed's chunk number, solver.chunk_seed)
@@ -33,7 +33,7 @@ class FieldWeights:
     Ray's object store), never with each job. `key` names it in a worker's caches."""
 
     key: str
-    config: FieldConfig
+    config: FieldConfigs
     arrays: dict[str, np.ndarray]
     render: RenderConfig
 
@@ -58,7 +58,7 @@ class Job:
     device: str
 
 
-FIELDS: OrderedDict = OrderedDict()  # (weights key, device) -> NeRFField, one kept
+FIELDS: OrderedDict = OrderedDict()  # (weights key, device) -> Field, one kept
 VIEWS: OrderedDict = OrderedDict()  # (weights key, device, tile) -> SecretView, VIEWS_KEPT kept
 
 
@@ -78,8 +78,8 @@ def forget() -> None:
     VIEWS.clear()
 
 
-def build_field(weights: FieldWeights, device: torch.device) -> NeRFField:
-    field = NeRFField(weights.config)
+def loaded_field(weights: FieldWeights, device: torch.device) -> Field:
+    field = build_field(weights.config)
     field.load_state_dict({name: torch.from_numpy(value.copy()) for name, value in weights.arrays.items()})
     return field.to(device).eval().requires_grad_(False)
 
@@ -87,7 +87,7 @@ def build_field(weights: FieldWeights, device: torch.device) -> NeRFField:
 def tile_view(weights: FieldWeights, tile: Tile, device: torch.device) -> SecretView:
     """The whole tile's secret view, as the driver builds it: a part's rays are a subset of it (never a
     view of those rays alone, whose encodings could round differently in torch's vectorised loops)."""
-    field = kept(FIELDS, (weights.key, str(device)), 1, lambda: build_field(weights, device))
+    field = kept(FIELDS, (weights.key, str(device)), 1, lambda: loaded_field(weights, device))
     return kept(VIEWS, (weights.key, str(device), tile), VIEWS_KEPT,
                 lambda: SecretView(field, tile, weights.render, device))
 

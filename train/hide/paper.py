@@ -94,11 +94,12 @@ def density_shortfall(raw_density: torch.Tensor, floor: float) -> torch.Tensor:
     return torch.relu(floor - raw_density.amax(-1))
 
 
-def gradient_samples(raw_density: torch.Tensor, floor: float | None) -> torch.Tensor:
-    """The samples whose gradient can be nonzero: live ones (raw σ > 0; a dead sample has weight 0 in
-    eq. 2 and ReLU's zero slope), and with the density floor term (floor not None) the densest samples of
-    each ray below the floor (density_shortfall's gradient). raw_density: (m, n_samples) -> bool, same shape."""
-    active = raw_density > 0
+def gradient_samples(raw_density: torch.Tensor, dead: torch.Tensor, floor: float | None) -> torch.Tensor:
+    """The samples whose gradient can be nonzero: live ones (not `dead`: the field kind's zero slope, e.g.
+    raw σ ≤ 0 under ReLU, where a sample has weight 0 in eq. 2 and no slope), and with the density floor
+    term (floor not None, raw) the densest samples of each ray below the floor (density_shortfall's
+    gradient). raw_density, dead: (m, n_samples) -> bool, same shape."""
+    active = ~dead
     if floor is not None:
         densest = raw_density.amax(-1, keepdim=True)
         active |= (raw_density == densest) & (densest < floor)
@@ -142,7 +143,8 @@ class ViewSurvey:
 
 
 def survey(secret_view: SecretView, pass_samples: int) -> ViewSurvey:
-    """Render the view without noise, pass by pass, noting dead rays (all raw densities ≤ 0)."""
+    """Render the view without noise, pass by pass, noting dead rays (every sample at the field kind's
+    zero slope: raw density ≤ 0 under ReLU)."""
     colors, alive = [], []
     device = secret_view.device
     zero = torch.zeros(1, 1, secret_view.noise_dims, device=device)
@@ -150,7 +152,7 @@ def survey(secret_view: SecretView, pass_samples: int) -> ViewSurvey:
         for part in pass_slices(secret_view.n_rays, secret_view.n_samples, pass_samples):
             index = torch.arange(part.start, part.stop, device=device)
             raw_rgb, raw_density = secret_view.raw(index, zero)
-            alive.append(raw_density.amax(-1) > 0)
+            alive.append(~secret_view.field.zero_slope(raw_density).all(-1))
             colors.append(secret_view.shade(index, raw_rgb, raw_density))
     return ViewSurvey(torch.cat(colors), torch.cat(alive))
 
@@ -214,7 +216,8 @@ class BlockProblem:
     def __init__(self, secret_view: SecretView, index: torch.Tensor, settings: PaperSettings):
         self.secret_view, self.index, self.settings = secret_view, index, settings
         self.parts = pass_slices(index.numel(), secret_view.n_samples, settings.pass_samples)
-        self.floor = settings.density_floor if floor_weight(settings) else None
+        self.raw_floor = secret_view.field.raw_density_at(settings.density_floor)
+        self.floor = self.raw_floor if floor_weight(settings) else None
         self.checked_density: torch.Tensor | None = None  # (m, n_samples) at the last check
         self.active: torch.Tensor | None = None  # (m, n_samples) bool: gradient_samples at the last check
         self.work = torch.zeros(3, dtype=torch.int64, device=index.device)  # counted where it runs: no host sync
@@ -236,7 +239,8 @@ class BlockProblem:
         """Every sample's raw density with noise (m, k, dims): which samples the next passes evaluate."""
         with torch.no_grad():
             self.checked_density = torch.cat([self.secret_view.raw_density(self.index[p], noise[p]) for p in self.parts])
-        self.active = gradient_samples(self.checked_density, self.floor)
+        self.active = gradient_samples(self.checked_density, self.secret_view.field.zero_slope(self.checked_density),
+                                       self.floor)
         self.work[1] += self.checked_density.numel()
 
     def losses_and_grad(self, noise: torch.Tensor, loss: Loss, t: int) -> tuple[torch.Tensor, torch.Tensor]:
@@ -343,7 +347,7 @@ def optimise(problem: BlockProblem, target: torch.Tensor, noise: torch.Tensor, c
         lr = learning_rate(settings, t)
         colors, grad = problem.losses_and_grad(
             noise, lambda rendered, raw_density, part: total_losses(rendered, target[part], clean[part], t, settings)
-            + weight * density_shortfall(raw_density, settings.density_floor), t)
+            + weight * density_shortfall(raw_density, problem.raw_floor), t)
         if decay is not None:
             torch.add(encoded, noise, out=decay).mul_(lr * decay_rate(settings, t))
         # a row no gradient has reached has zero moments and so a zero Adam direction (exactly): skip it

@@ -1,7 +1,8 @@
 """A secret view in torch: one tile's rays, sampled densely, rendered with per-pixel noise.
 
-The encodings γ(x), γ(d) of its samples never change while noise is trained, so they are computed once;
-each evaluation then runs only the MLP on γ + δ. Noise has shape (n_rays, 1, dims) for the "ray" layout
+The encodings of its samples (the field kind's segments: γ(x), γ(d) for the MLP; grid features and SH
+for the hash grid) never change while noise is trained, so they are computed once; each evaluation then
+runs only the networks on encoding + δ. Noise has shape (n_rays, 1, dims) for the "ray" layout
 (one vector shared by a ray's samples) or (n_rays, n_samples, dims) for the paper's "sample" layout.
 """
 
@@ -16,7 +17,7 @@ from noisenerf.runtime.bundle import Tile
 from noisenerf.runtime.rays import camera_ray_batch
 from noisenerf.runtime.render import RenderConfig
 from noisenerf.runtime.sampling import sample_along, sample_positions
-from noisenerf.train.scene.field import NeRFField
+from noisenerf.train.scene.field_kinds import Field
 from noisenerf.train.scene.render import composite, render_weights
 
 
@@ -37,7 +38,7 @@ class SecretView:
     samples at 800²: 14.7 GB) each batch of rays is encoded as it is rendered, so device memory follows
     the batch, not the view."""
 
-    def __init__(self, field: NeRFField, tile: Tile, render: RenderConfig, device: torch.device):
+    def __init__(self, field: Field, tile: Tile, render: RenderConfig, device: torch.device):
         rays = camera_ray_batch(tile.camera, render)
         points, deltas = sample_along(rays.origins, rays.directions, sample_positions(tile.sampling))
         self.field, self.device = field, device
@@ -95,7 +96,7 @@ class SecretView:
     def raw_density(self, index: torch.Tensor, noise: torch.Tensor) -> torch.Tensor:
         """Pre-activation density (m, n_samples) of rays `index` (m,) with noise (m, 1 or n_samples, dims),
         without the colour branch."""
-        encoded = self.noisy_encodings(index, noise)[..., :self.field.config.xyz_dims]
+        encoded = self.noisy_encodings(index, noise)[..., :self.field.config.position_dims]
         rows = encoded.reshape(-1, encoded.shape[-1])
         return torch.cat([self.field.raw_density(rows[start:start + CACHE_ROWS])
                           for start in range(0, len(rows), CACHE_ROWS)]).reshape(encoded.shape[:2])
@@ -127,7 +128,7 @@ class SecretView:
 
     def shade(self, index: torch.Tensor, raw_rgb: torch.Tensor, raw_density: torch.Tensor) -> torch.Tensor:
         """Colours (m, 3) of rays `index` (m,) from their raw outputs (m, n_samples, 3), (m, n_samples)."""
-        weights = render_weights(torch.relu(raw_density), self.deltas[index])
+        weights = render_weights(self.field.density_of(raw_density), self.deltas[index])
         return composite(weights, torch.sigmoid(raw_rgb), self.background)
 
     def render(self, index: torch.Tensor, noise: torch.Tensor) -> torch.Tensor:
@@ -144,12 +145,13 @@ class SecretView:
 
 
 class BranchView:
-    """A single-sample secret view whose noise moves only the view-direction encoding γ(d), its γ(x) part
+    """A single-sample secret view whose noise moves only the direction segment, its position segment
     being one vector shared by every ray (a compact tile's offset, compact.tile_space): each ray's trunk,
     and with it its density and feature, is evaluated once, and what the exact solver evaluates again and
-    again is the view branch alone, one ReLU layer of width/2 (~1/12 of the standard NeRF's multiply-adds).
+    again is the colour head alone (the MLP's view branch, one ReLU layer of width/2, ~1/12 of the standard
+    NeRF's multiply-adds; the hash grid's colour MLP).
 
-    Evaluates what SecretView would for noise whose γ(x) part equals `xyz_noise` (the part passed in is
+    Evaluates what SecretView would for noise whose position part equals `xyz_noise` (the part passed in is
     not read): the same ops on the same values, to float32 rounding (the trunk runs over every ray at
     once, not per call), far inside the solver's margin.
     """
@@ -159,7 +161,7 @@ class BranchView:
     def __init__(self, secret_view: SecretView, xyz_noise: torch.Tensor):
         if secret_view.n_samples != 1:
             raise ValueError("a BranchView needs a secret view with one sample per ray")
-        self.field, self.xyz_dims = secret_view.field, secret_view.field.config.xyz_dims
+        self.field, self.xyz_dims = secret_view.field, secret_view.field.config.position_dims
         encoded = secret_view.encodings(torch.arange(secret_view.n_rays, device=secret_view.device))[:, 0]
         with torch.no_grad():
             self.density, self.feature = self.field.trunk_outputs(encoded[:, :self.xyz_dims] + xyz_noise)
@@ -174,7 +176,7 @@ class BranchView:
         return self.field.config.noise_dims
 
     def branch(self, index: torch.Tensor, noise: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """NeRFField.view_branch of rays `index` (m,) with noise (m, 1, dims): raw colour (m, 3), pre-activation."""
+        """The field's view_branch of rays `index` (m,) with noise (m, 1, dims): raw colour (m, 3), its state."""
         return self.field.view_branch(self.feature[index], self.encoded_dirs[index] + noise[:, 0, self.xyz_dims:])
 
     def raw(self, index: torch.Tensor, noise: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -182,8 +184,8 @@ class BranchView:
         return self.branch(index, noise)[0][:, None], self.density[index, None]
 
     def outputs_and_jacobian(self, index: torch.Tensor, noise: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """As SecretView.outputs_and_jacobian; only the colour rows' γ(d) columns are nonzero."""
-        raw_rgb, pre = self.branch(index, noise)
+        """As SecretView.outputs_and_jacobian; only the colour rows' direction columns are nonzero."""
+        raw_rgb, state = self.branch(index, noise)
         jacobian = raw_rgb.new_zeros(len(index), 4, self.noise_dims)
-        jacobian[:, :3, self.xyz_dims:] = self.field.view_branch_rows(pre, slice(self.field.config.width, None))
+        jacobian[:, :3, self.xyz_dims:] = self.field.direction_jacobian(state)
         return torch.cat([raw_rgb, self.density[index, None]], dim=-1), jacobian

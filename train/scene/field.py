@@ -9,17 +9,22 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass
+from typing import ClassVar
 
 import torch
 from torch import nn
 
 from noisenerf.runtime.encoding import encoding_dims
+from noisenerf.runtime.fields import Segment
+from noisenerf.runtime.fields.mlp import MLP
 
 
 @dataclass(frozen=True)
 class FieldConfig:
-    """Architecture of one NeRF MLP (nerf-pytorch's netdepth, netwidth, multires, multires_views)."""
+    """Architecture of one NeRF MLP (nerf-pytorch's netdepth, netwidth, multires, multires_views), the
+    `mlp` field kind (runtime.fields.mlp), whose architecture names no kind."""
 
+    kind: ClassVar[str] = "mlp"
     depth: int = 8
     width: int = 256
     skips: tuple[int, ...] = (4,)
@@ -39,6 +44,24 @@ class FieldConfig:
     def noise_dims(self) -> int:
         """Width of the noise vector at one sample: the whole encoded input, 90 for the standard NeRF."""
         return self.xyz_dims + self.dir_dims
+
+    @property
+    def segments(self) -> tuple[Segment, ...]:
+        return MLP.segments(MLP.checked(self.to_dict(), "scene"))
+
+    @property
+    def position_dims(self) -> int:
+        """The noise the trunk reads: γ(x)."""
+        return self.xyz_dims
+
+    @property
+    def direction_dims(self) -> int:
+        return self.dir_dims
+
+    @property
+    def has_view_branch(self) -> bool:
+        """Whether colour has a head of its own that reads the direction segment (and the trunk's feature)."""
+        return self.use_viewdirs
 
     def to_dict(self) -> dict:
         return dataclasses.asdict(self)
@@ -113,6 +136,10 @@ class NeRFField(nn.Module):
         pre = self.views_linears[0](torch.cat([feature, encoded_dirs], dim=-1))
         return self.rgb_linear(torch.relu(pre)), pre
 
+    def direction_jacobian(self, pre: torch.Tensor) -> torch.Tensor:
+        """∂raw colour/∂γ(d) (n, 3, dir_dims) at the view branch's pre-activation pre."""
+        return self.view_branch_rows(pre, slice(self.config.width, None))
+
     def view_branch_rows(self, pre: torch.Tensor, inputs: slice = slice(None)) -> torch.Tensor:
         """∂raw colour/∂(the branch's input [feature ‖ encoded dirs])[inputs] at its pre-activation pre
         (n, width/2) -> (n, 3, len(inputs)): one ReLU layer, so its weight times the mask."""
@@ -157,6 +184,31 @@ class NeRFField(nn.Module):
         jacobian = xyz_part if direction_part is None else torch.cat([xyz_part, direction_part], dim=-1)
         return raw, jacobian
 
+    def density_layers(self) -> list[nn.Linear]:
+        """The layers a density alone runs through (the bench's cost model): the trunk and the density layer."""
+        return [*self.pts_linears, self.alpha_linear if self.config.use_viewdirs else self.output_linear]
+
+    def parameter_groups(self) -> list[dict]:
+        """The optimizer's groups: one, nerf-pytorch's plain Adam."""
+        return [{"params": list(self.parameters())}]
+
+    adam: ClassVar[dict] = {}  # torch's Adam defaults, as nerf-pytorch
+
+    @staticmethod
+    def density_of(raw: torch.Tensor) -> torch.Tensor:
+        """σ = ReLU(raw)."""
+        return torch.relu(raw)
+
+    @staticmethod
+    def raw_density_at(density: float) -> float:
+        """The raw value whose σ is `density` (> 0): itself."""
+        return density
+
+    @staticmethod
+    def zero_slope(raw: torch.Tensor) -> torch.Tensor:
+        """Samples whose σ cannot move with their raw density: ReLU's off side."""
+        return raw <= 0
+
     def forward(self, points: torch.Tensor, viewdirs: torch.Tensor, noise: torch.Tensor | None = None
                 ) -> tuple[torch.Tensor, torch.Tensor]:
         """rgb (n, 3) in [0, 1] and σ (n,) ≥ 0 at points (n, 3) seen along viewdirs (n, 3), with optional
@@ -165,7 +217,7 @@ class NeRFField(nn.Module):
         if noise is not None:
             encoded = encoded + noise
         raw_rgb, raw_density = self.raw_outputs(encoded)
-        return torch.sigmoid(raw_rgb), torch.relu(raw_density)
+        return torch.sigmoid(raw_rgb), self.density_of(raw_density)
 
     def raw_density(self, encoded_xyz: torch.Tensor) -> torch.Tensor:
         """Pre-activation density alone, without the view branch. encoded_xyz: (n, xyz_dims) -> (n,)."""
@@ -174,4 +226,4 @@ class NeRFField(nn.Module):
 
     def density(self, points: torch.Tensor) -> torch.Tensor:
         """σ (n,) alone, without the view branch (for occupancy-grid updates). points: (n, 3)."""
-        return torch.relu(self.raw_density(positional_encoding(points, self.config.xyz_freqs)))
+        return self.density_of(self.raw_density(positional_encoding(points, self.config.xyz_freqs)))

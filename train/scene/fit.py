@@ -150,8 +150,8 @@ class Fitter:
                                 early_stop=config.early_stop),
             aabb=dataset.aabb, grid_resolution=config.occupancy.resolution, cameras=dataset.cameras)
         self.coarse, self.fine = (f.to(device) if f is not None else None for f in build_fields(self.scene_config))
-        params = list(self.coarse.parameters()) + (list(self.fine.parameters()) if self.fine else [])
-        self.optimizer = torch.optim.Adam(params, lr=config.lr)
+        groups = self.coarse.parameter_groups() + (self.fine.parameter_groups() if self.fine else [])
+        self.optimizer = torch.optim.Adam(groups, lr=config.lr, **self.coarse.adam)
         self.step, self.seconds = 0, 0.0
         self.generator = torch.Generator().manual_seed(config.seed)
         self.rng = np.random.default_rng(config.seed)

@@ -16,7 +16,7 @@ import numpy as np
 import torch
 
 from noisenerf.runtime.occupancy import OccupancyGrid
-from noisenerf.train.scene.field import NeRFField
+from noisenerf.train.scene.field_kinds import Field
 
 
 @dataclass(frozen=True)
@@ -49,7 +49,7 @@ def occupied_cells(opacity: np.ndarray, threshold: float) -> np.ndarray:
 
 
 @torch.no_grad()
-def cell_densities(field: NeRFField, aabb: np.ndarray, resolution: int, cells: np.ndarray,
+def cell_densities(field: Field, aabb: np.ndarray, resolution: int, cells: np.ndarray,
                    rng: np.random.Generator, chunk: int = 65536) -> np.ndarray:
     """σ at one jittered point per cell. -> (m,) float32."""
     device = next(field.parameters()).device
@@ -57,7 +57,7 @@ def cell_densities(field: NeRFField, aabb: np.ndarray, resolution: int, cells: n
     return torch.cat([field.density(points[i:i + chunk]) for i in range(0, len(points), chunk)]).cpu().numpy()
 
 
-def build_occupancy_grid(field: NeRFField, aabb, resolution: int, step_size: float,
+def build_occupancy_grid(field: Field, aabb, resolution: int, step_size: float,
                          config: OccupancyConfig = OccupancyConfig(), seed: int = 0) -> OccupancyGrid:
     """A grid from scratch: the max density over several jittered points per cell, thresholded."""
     aabb = np.asarray(aabb, dtype=np.float32)
@@ -84,7 +84,7 @@ class OccupancyTracker:
         occupied = occupied_cells(self.density * self.step_size, self.config.opacity_threshold)
         return OccupancyGrid(self.aabb, occupied.reshape(self.hull.shape) & self.hull)
 
-    def maybe_update(self, field: NeRFField, step: int) -> bool:
+    def maybe_update(self, field: Field, step: int) -> bool:
         """Refresh part of the grid on schedule (all of it at the end of warm-up). Returns True if updated."""
         if step < self.config.warmup_steps or step % self.config.update_every:
             return False

@@ -21,7 +21,7 @@ from noisenerf.runtime.pdf import Hierarchy
 from noisenerf.runtime.rays import RayBatch
 from noisenerf.runtime.render import CoarseNetwork
 from noisenerf.runtime.sampling import LAST_DELTA
-from noisenerf.train.scene.field import NeRFField
+from noisenerf.train.scene.field_kinds import Field
 
 
 def optical_depths(sigmas: torch.Tensor, deltas: torch.Tensor) -> torch.Tensor:
@@ -98,7 +98,7 @@ def sample_points(rays: TorchRays, t_vals: torch.Tensor) -> torch.Tensor:
     return rays.origins[:, None, :] + t_vals[..., None] * rays.directions[:, None, :]
 
 
-def skip_mask(field: NeRFField, rays: TorchRays, t_vals: torch.Tensor, grid: OccupancyGrid,
+def skip_mask(field: Field, rays: TorchRays, t_vals: torch.Tensor, grid: OccupancyGrid,
               early_stop: float) -> torch.Tensor:
     """The skipping sampler: samples worth evaluating are in occupied cells (runtime.marching's
     grid_candidates) and, by a density-only pass without gradients, before the ray's transmittance drops
@@ -115,7 +115,7 @@ def skip_mask(field: NeRFField, rays: TorchRays, t_vals: torch.Tensor, grid: Occ
     return mask & (1.0 - opacity_before > early_stop)
 
 
-def render_rays(field: NeRFField, rays: TorchRays, t_vals: torch.Tensor, background: torch.Tensor,
+def render_rays(field: Field, rays: TorchRays, t_vals: torch.Tensor, background: torch.Tensor,
                 mask: torch.Tensor | None = None, noise: torch.Tensor | None = None
                 ) -> tuple[torch.Tensor, torch.Tensor]:
     """The torch render pipeline: samples at t_vals (uniform, jittered or importance positions) and an
@@ -147,7 +147,7 @@ def render_rays(field: NeRFField, rays: TorchRays, t_vals: torch.Tensor, backgro
     return composite(weights, rgbs, background), weights
 
 
-def render_hierarchical(coarse: NeRFField, fine: NeRFField, rays: TorchRays, t_vals: torch.Tensor,
+def render_hierarchical(coarse: Field, fine: Field, rays: TorchRays, t_vals: torch.Tensor,
                         n_importance: int, background: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """nerf-pytorch's two-pass render: coarse samples, then n_importance samples drawn from the coarse
     weights, the fine field evaluated on the sorted union. -> coarse colors, fine colors (n_rays, 3)."""
@@ -159,7 +159,7 @@ def render_hierarchical(coarse: NeRFField, fine: NeRFField, rays: TorchRays, t_v
     return coarse_colors, fine_colors
 
 
-def numpy_field(field: NeRFField) -> NoisyFieldFn:
+def numpy_field(field: Field) -> NoisyFieldFn:
     """The torch field behind the runtime's numpy callbacks (FieldFn, and NoisyFieldFn with noise), without
     gradients, computing in the field's own dtype (float32, or float64 for a reference copy).
 
@@ -176,12 +176,12 @@ def numpy_field(field: NeRFField) -> NoisyFieldFn:
     return evaluate
 
 
-def numpy_fields(fields: dict[str, NeRFField]) -> dict[str, NoisyFieldFn]:
+def numpy_fields(fields: dict[str, Field]) -> dict[str, NoisyFieldFn]:
     """numpy_field of each network of a scene (Scene.fields()), as runtime.reveal.reveal takes them."""
     return {name: numpy_field(field) for name, field in fields.items()}
 
 
-def numpy_coarse(coarse: NeRFField, hierarchy: Hierarchy | None) -> CoarseNetwork | None:
+def numpy_coarse(coarse: Field, hierarchy: Hierarchy | None) -> CoarseNetwork | None:
     """The coarse pass of runtime.render's hierarchical render on the torch coarse field (None where the
     scene has no fine network: its renders are uniform)."""
     return CoarseNetwork(numpy_field(coarse), hierarchy) if hierarchy is not None else None

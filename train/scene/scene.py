@@ -26,7 +26,7 @@ from noisenerf.runtime.networks import render_network
 from noisenerf.runtime.occupancy import OccupancyGrid
 from noisenerf.runtime.pdf import Hierarchy
 from noisenerf.runtime.render import RenderConfig
-from noisenerf.train.scene.field import FieldConfig, NeRFField
+from noisenerf.train.scene.field_kinds import Field, FieldConfigs, build_field, config_from_dict
 
 SCENE_FORMAT_VERSION = 1
 
@@ -40,8 +40,8 @@ class SceneConfig:
     with empty-space skipping use (torch or onnxruntime), on the render field alone.
     """
 
-    coarse: FieldConfig
-    fine: FieldConfig | None
+    coarse: FieldConfigs
+    fine: FieldConfigs | None
     n_coarse: int
     n_importance: int
     render: RenderConfig
@@ -72,8 +72,8 @@ class SceneConfig:
             raise UserError(f"unsupported scene format version {data.get('format_version')!r}")
         try:
             return SceneConfig(
-                coarse=FieldConfig.from_dict(data["coarse"]),
-                fine=FieldConfig.from_dict(data["fine"]) if data.get("fine") else None,
+                coarse=config_from_dict(data["coarse"]),
+                fine=config_from_dict(data["fine"]) if data.get("fine") else None,
                 n_coarse=int(data["n_coarse"]),
                 n_importance=int(data["n_importance"]),
                 render=RenderConfig.from_dict(data["render"]),
@@ -89,11 +89,11 @@ class SceneConfig:
 class Scene:
     """A loaded scene: config, the coarse (and optional fine) field, and the occupancy grid."""
 
-    def __init__(self, config: SceneConfig, coarse: NeRFField, fine: NeRFField | None, grid: OccupancyGrid):
+    def __init__(self, config: SceneConfig, coarse: Field, fine: Field | None, grid: OccupancyGrid):
         self.config, self.coarse, self.fine, self.grid = config, coarse, fine, grid
 
     @property
-    def render_field(self) -> NeRFField:
+    def render_field(self) -> Field:
         """The field views, noise and exports use: the fine network when there is one."""
         return render_field(self.coarse, self.fine)
 
@@ -102,7 +102,7 @@ class Scene:
         """nerf-pytorch's coarse/fine sample counts for ordinary renders, where the scene has a fine network."""
         return Hierarchy(self.config.n_coarse, self.config.n_importance) if self.fine is not None else None
 
-    def fields(self) -> dict[str, NeRFField]:
+    def fields(self) -> dict[str, Field]:
         return named_fields(self.coarse, self.fine)
 
     def weight_arrays(self) -> dict[str, np.ndarray]:
@@ -126,22 +126,22 @@ class Scene:
         return directory
 
 
-def build_fields(config: SceneConfig) -> tuple[NeRFField, NeRFField | None]:
-    return NeRFField(config.coarse), NeRFField(config.fine) if config.fine is not None else None
+def build_fields(config: SceneConfig) -> tuple[Field, Field | None]:
+    return build_field(config.coarse), build_field(config.fine) if config.fine is not None else None
 
 
-def render_field(coarse: NeRFField, fine: NeRFField | None) -> NeRFField:
+def render_field(coarse: Field, fine: Field | None) -> Field:
     """The network a scene renders (and hides, and exports as `rgb`/`sigma`) with (runtime.networks)."""
     fields = named_fields(coarse, fine)
     return fields[render_network(fields)]
 
 
-def named_fields(coarse: NeRFField, fine: NeRFField | None) -> dict[str, NeRFField]:
+def named_fields(coarse: Field, fine: Field | None) -> dict[str, Field]:
     """The scene's networks by name ("coarse", and "fine" where there is one)."""
     return {"coarse": coarse, **({"fine": fine} if fine is not None else {})}
 
 
-def field_weights(fields: dict[str, NeRFField]) -> dict[str, torch.Tensor]:
+def field_weights(fields: dict[str, Field]) -> dict[str, torch.Tensor]:
     """Every weight under the scene's names: NETWORK.MODULE (nerf-pytorch's module names), e.g.
     `coarse.pts_linears.0.weight`, as weights.safetensors, fit checkpoints and the ONNX initializers hold them."""
     return {f"{network}.{name}": value for network, field in fields.items() for name, value in field.state_dict().items()}
@@ -152,7 +152,7 @@ def weights_of(network: str, tensors: dict) -> dict:
     return {k[len(network) + 1:]: v for k, v in tensors.items() if k.startswith(network + ".")}
 
 
-def _load_field_weights(field: NeRFField, tensors: dict[str, np.ndarray], prefix: str, path: Path) -> None:
+def _load_field_weights(field: Field, tensors: dict[str, np.ndarray], prefix: str, path: Path) -> None:
     expected = field.state_dict()
     found = weights_of(prefix, tensors)
     if set(found) != set(expected):

@@ -1,0 +1,87 @@
+"""Field kinds: the networks a scene may hold, one registered kind per architecture family.
+
+A network's architecture (scene.json, the model's metadata, and through the fingerprint every bundle)
+names its kind under "kind"; a network without one is an `mlp` (the standard NeRF MLP, whose
+architecture was written before kinds existed, so its fingerprints and graphs stay what they were). A
+kind owns, torch-free: its architecture's keys and caps (`checked`), its noise as named segments
+(`segments`: the position segment the trunk reads, then the direction segment the colour head reads),
+its part of the graph (`build`: every node, constant and weight of one network, from noisy inputs to its
+rgb and sigma outputs) and the opset that part needs. Its torch twin is train.scene.field_kinds.
+
+`field_graph` composes a model's networks into the one graph the export writes and the reveal checks
+(runtime.graph.check_graph); web/src/fields/ mirrors this package.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Protocol
+
+from noisenerf.runtime.errors import UserError
+from noisenerf.runtime.graph import BATCH, COARSE_OUTPUT_NAMES, OUTPUT_NAMES, FieldGraph, GraphBuilder, Port
+
+DEFAULT_KIND = "mlp"  # the kind of a network whose architecture names none
+
+
+@dataclass(frozen=True)
+class Segment:
+    """A named run of a network's noise vector: `dims` values added to the encoding called `name`."""
+
+    name: str  # "position" (read by the trunk) or "direction" (read by the colour head alone)
+    dims: int
+
+
+class FieldKind(Protocol):
+    name: str
+    opset: int  # the default domain's opset its graph needs
+
+    def checked(self, config, what: str) -> dict:
+        """The architecture as metadata states it, every number within the caps (UserError otherwise)."""
+
+    def segments(self, config: dict) -> tuple[Segment, ...]:
+        """The noise segments of a checked architecture, in the noise vector's order."""
+
+    def build(self, builder: GraphBuilder, prefix: str, config: dict, rgb: str, sigma: str) -> None:
+        """One network of a checked architecture: noisy encodings of the `points`, `viewdirs` and `noise`
+        inputs through its layers (weights named `prefix.…`) to the outputs rgb (n, 3) and sigma (n,)."""
+
+
+def field_kinds() -> dict[str, FieldKind]:
+    """Every registered kind by name (imported here, not at the top: the kinds import this module)."""
+    from noisenerf.runtime.fields.hashgrid import HASHGRID
+    from noisenerf.runtime.fields.mlp import MLP
+    return {kind.name: kind for kind in (MLP, HASHGRID)}
+
+
+def field_kind(config, what: str) -> FieldKind:
+    """The kind an architecture names (an `mlp` where it names none); an unknown one is refused."""
+    name = config.get("kind", DEFAULT_KIND) if isinstance(config, dict) else DEFAULT_KIND
+    kinds = field_kinds()
+    if name not in kinds:
+        raise UserError(f"the {what} network is of kind {name!r}; this noisenerf knows {sorted(kinds)}")
+    return kinds[name]
+
+
+def noise_dims(config: dict, what: str) -> int:
+    """Values per noise vector of one network's architecture: its segments' sum."""
+    kind = field_kind(config, what)
+    return sum(segment.dims for segment in kind.segments(kind.checked(config, what)))
+
+
+def field_graph(architecture: dict, noise_dims: int) -> FieldGraph:
+    """The graph of a model with this architecture ({"coarse": architecture, "fine": … | None}) and
+    noise width: outputs rgb, sigma of the render network (the fine one where there is one), then
+    rgb_coarse, sigma_coarse beside a fine network. Refuses an architecture out of the caps (UserError)."""
+    builder = GraphBuilder()
+    kinds = {name: field_kind(config, name) for name, config in architecture.items() if config is not None}
+    checked = {name: kind.checked(architecture[name], name) for name, kind in kinds.items()}
+    outputs = [Port("rgb", (BATCH, 3)), Port("sigma", (BATCH,))]
+    if "fine" not in checked:
+        kinds["coarse"].build(builder, "coarse", checked["coarse"], *OUTPUT_NAMES)
+    else:
+        kinds["fine"].build(builder, "fine", checked["fine"], *OUTPUT_NAMES)
+        kinds["coarse"].build(builder, "coarse", checked["coarse"], *COARSE_OUTPUT_NAMES)
+        outputs += [Port("rgb_coarse", (BATCH, 3)), Port("sigma_coarse", (BATCH,))]
+    inputs = (Port("points", (BATCH, 3)), Port("viewdirs", (BATCH, 3)), Port("noise", (BATCH, noise_dims)))
+    return FieldGraph(tuple(builder.nodes), builder.constants, builder.weights, inputs, tuple(outputs),
+                      max(kind.opset for kind in kinds.values()))

@@ -1,0 +1,235 @@
+"""The `hashgrid` field kind: an Instant-NGP field, with tiny-cuda-nn's hash-grid and SH conventions.
+
+Position: x normalised into the scene box, [0, 1]³ (points outside take the box's nearest point), then
+per level l of L: scale_l = 2^(l·log2 b)·N_min − 1 and resolution_l = ceil(scale_l) + 1 (float32, as
+tiny-cuda-nn computes them), the cell of scale_l·x + 0.5, its 8 corners indexed densely (x + y·res +
+z·res², modulo the level's rows) where res³ fits the table and by the XOR-of-primes hash (x·1 ⊕
+y·2654435761 ⊕ z·805459861, masked to the table) where it does not, their F features trilinearly
+interpolated (Müller et al. 2022, eq. 1–3). Direction: real spherical harmonics of the unit view
+direction up to `sh_degree` (16 values at degree 4), written as one matrix over the monomials of
+degree ≤ 3. Noise segments: position = the L·F interpolated features, direction = the SH values
+(the paper's noise after the encoding, eq. 4–5). Density: a ReLU MLP on the noisy features gives
+[raw density ‖ geometric feature]; σ = exp(min(raw, DENSITY_EXPONENT_CAP)). Colour: a ReLU MLP on
+[noisy SH ‖ geometric feature], sigmoid. Torch twin: train.scene.hashgrid.HashGridField.
+
+The graph needs opset 18 (BitwiseXor, BitwiseAnd; ReduceProd with axes as an input).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from noisenerf.runtime.errors import UserError
+from noisenerf.runtime.fields import Segment
+from noisenerf.runtime.graph import GraphBuilder
+from noisenerf.runtime.limits import (
+    MAX_FIELD_DEPTH, MAX_FIELD_WIDTH, MAX_HASH_FEATURES, MAX_HASH_LEVELS, MAX_HASH_RESOLUTION, MAX_LOG2_TABLE,
+    MAX_TABLE_VALUES, checked_float, checked_int, checked_list,
+)
+
+KEYS = {"kind", "levels", "features", "log2_table", "base_resolution", "per_level_scale", "density_hidden",
+        "geo_features", "sh_degree", "colour_hidden", "colour_layers", "aabb"}
+PRIMES = (1, 2654435761, 805459861)  # Instant-NGP's spatial hash, one per axis
+# σ = exp(raw) saturates a single sample's opacity long before this (σ·Δ ≥ 30 for any Δ ≥ 1e-12); the cap
+# keeps σ and σ·1e10 (the last interval) finite in float32 whatever noise a bundle adds
+DENSITY_EXPONENT_CAP = 30.0
+MAX_SH_DEGREE = 4
+# the monomials of degree 1 to 3 of (x, y, z), in this order: x, y, z, then deg2 = d[A2]·d[B2], deg3 = deg2[A3]·d[B3]
+DEGREE2 = ((0, 0, 0, 1, 1, 2), (0, 1, 2, 1, 2, 2))  # xx xy xz yy yz zz
+DEGREE3 = ((0, 0, 0, 1, 1, 2, 3, 3, 4, 5), (0, 1, 2, 1, 2, 2, 1, 2, 2, 2))  # xxx xxy xxz xyy xyz xzz yyy yyz yzz zzz
+MONOMIALS = 19
+
+
+def sh_matrix() -> tuple[np.ndarray, np.ndarray]:
+    """The real spherical harmonics of degree 4 (16 values, tiny-cuda-nn's order and signs) as a matrix
+    over the 19 monomials above and a constant term: SH(d) = M·m(d) + c. -> (16, 19), (16,) float32."""
+    matrix, constant = np.zeros((16, MONOMIALS), np.float64), np.zeros(16, np.float64)
+    x, y, z, xx, xy, xz, yy, yz, zz, xxx, xxy, xxz, xyy, xyz, xzz, yyy, yyz, yzz, zzz = range(MONOMIALS)
+    constant[0] = 0.28209479177387814
+    matrix[1, y], matrix[2, z], matrix[3, x] = -0.48860251190291987, 0.48860251190291987, -0.48860251190291987
+    matrix[4, xy], matrix[5, yz], matrix[7, xz] = 1.0925484305920792, -1.0925484305920792, -1.0925484305920792
+    matrix[6, zz], constant[6] = 0.94617469575755997, -0.31539156525251999
+    matrix[8, xx], matrix[8, yy] = 0.54627421529603959, -0.54627421529603959
+    matrix[9, xxy], matrix[9, yyy] = -3 * 0.59004358992664352, 0.59004358992664352
+    matrix[10, xyz] = 2.8906114426405538
+    matrix[11, y], matrix[11, yzz] = 0.45704579946446572, -5 * 0.45704579946446572
+    matrix[12, zzz], matrix[12, z] = 5 * 0.3731763325901154, -3 * 0.3731763325901154
+    matrix[13, x], matrix[13, xzz] = 0.45704579946446572, -5 * 0.45704579946446572
+    matrix[14, xxz], matrix[14, yyz] = 1.4453057213202769, -1.4453057213202769
+    matrix[15, xxx], matrix[15, xyy] = -0.59004358992664352, 3 * 0.59004358992664352
+    return matrix.astype(np.float32), constant.astype(np.float32)
+
+
+@dataclass(frozen=True, eq=False)
+class GridLevels:
+    """Per-level constants of a hash grid, (L,) each: float32 scale, int64 vertices per side, table rows,
+    first row, dense (1) or hashed (0)."""
+
+    scale: np.ndarray
+    resolution: np.ndarray
+    rows: np.ndarray
+    offset: np.ndarray
+    dense: np.ndarray
+
+    @property
+    def total_rows(self) -> int:
+        return int(self.rows.sum())
+
+
+def grid_levels(levels: int, log2_table: int, base_resolution: int, per_level_scale: float) -> GridLevels:
+    """tiny-cuda-nn's level layout: scale_l = exp2(l·log2 b)·N_min − 1 and resolution ceil(scale_l) + 1 in
+    float32; rows min(res³ rounded up to 8, 2^log2_table); dense where res³ fits in them."""
+    l = np.arange(levels, dtype=np.float32)
+    scale = (np.exp2(l * np.log2(np.float32(per_level_scale))) * np.float32(base_resolution) - np.float32(1.0))
+    scale = scale.astype(np.float32)
+    resolution = np.ceil(scale).astype(np.int64) + 1
+    cells = resolution ** 3
+    table = 1 << log2_table
+    rows = np.minimum((cells + 7) // 8 * 8, table)
+    offset = np.concatenate([[0], np.cumsum(rows)[:-1]]).astype(np.int64)
+    return GridLevels(scale, resolution, rows.astype(np.int64), offset, (cells <= rows).astype(np.int64))
+
+
+def config_levels(config: dict) -> GridLevels:
+    return grid_levels(config["levels"], config["log2_table"], config["base_resolution"], config["per_level_scale"])
+
+
+def corner_offsets() -> np.ndarray:
+    """The 8 corners of a cell, corner i taking +1 on axis d where bit d of i is set. -> (8, 3) int64."""
+    return np.array([[(i >> d) & 1 for d in range(3)] for i in range(8)], np.int64)
+
+
+class HashGridKind:
+    name = "hashgrid"
+    opset = 18
+
+    def checked(self, config, what: str) -> dict:
+        if not isinstance(config, dict) or set(config) != KEYS:
+            raise UserError(f"the {what} network's architecture must have exactly {', '.join(sorted(KEYS))}")
+        width = lambda key, low=1: checked_int(config[key], f"{what} {key}", low, MAX_FIELD_WIDTH)  # noqa: E731
+        checked = {
+            "kind": self.name,
+            "levels": checked_int(config["levels"], f"{what} levels", 1, MAX_HASH_LEVELS),
+            "features": checked_int(config["features"], f"{what} features", 1, MAX_HASH_FEATURES),
+            "log2_table": checked_int(config["log2_table"], f"{what} log2_table", 3, MAX_LOG2_TABLE),
+            "base_resolution": checked_int(config["base_resolution"], f"{what} base_resolution", 1, MAX_HASH_RESOLUTION),
+            "per_level_scale": checked_float(config["per_level_scale"], f"{what} per_level_scale", 1.0, 8.0),
+            "density_hidden": width("density_hidden"), "geo_features": width("geo_features", 0),
+            "sh_degree": checked_int(config["sh_degree"], f"{what} sh_degree", 1, MAX_SH_DEGREE),
+            "colour_hidden": width("colour_hidden"),
+            "colour_layers": checked_int(config["colour_layers"], f"{what} colour_layers", 1, MAX_FIELD_DEPTH),
+            "aabb": [checked_float(v, f"{what} aabb", -1e9, 1e9) for v in checked_list(config["aabb"], "aabb", length=6)],
+        }
+        if not all(lo < hi for lo, hi in zip(checked["aabb"][:3], checked["aabb"][3:])):
+            raise UserError(f"the {what} network's aabb must have min < max on every axis")
+        finest = (checked["per_level_scale"] ** (checked["levels"] - 1)) * checked["base_resolution"]
+        if not math.isfinite(finest) or finest > MAX_HASH_RESOLUTION:
+            raise UserError(f"the {what} network's finest level has {finest:.6g} vertices a side, more than "
+                            f"{MAX_HASH_RESOLUTION}")
+        levels = config_levels(checked)
+        if levels.total_rows * checked["features"] > MAX_TABLE_VALUES:
+            raise UserError(f"the {what} network's tables hold {levels.total_rows * checked['features']} values, more "
+                            f"than {MAX_TABLE_VALUES}")
+        return checked
+
+    def segments(self, config: dict) -> tuple[Segment, ...]:
+        return Segment("position", config["levels"] * config["features"]), Segment("direction", config["sh_degree"] ** 2)
+
+    def build(self, builder: GraphBuilder, prefix: str, config: dict, rgb: str, sigma: str) -> None:
+        position, direction = self.segments(config)
+        features = grid_features(builder, prefix, config)
+        grid, sh = builder.noisy_pair(features, spherical_harmonics(builder, config["sh_degree"]), lambda: (
+            builder.constant(f"{prefix}.split.noise", np.array([position.dims, direction.dims], np.int64))))
+        hidden = builder.add("Relu", (builder.linear(prefix, "density_linears.0", grid, position.dims,
+                                                     config["density_hidden"]),), f"{prefix}.density_hidden")
+        trunk = builder.linear(prefix, "density_linears.1", hidden, config["density_hidden"], 1 + config["geo_features"])
+        if config["geo_features"]:
+            split = builder.constant(f"{prefix}.split.trunk", np.array([1, config["geo_features"]], np.int64))
+            density, geo = builder.split(trunk, split, (f"{prefix}.raw_density", f"{prefix}.geo"))
+            h = builder.add("Concat", (sh, geo), f"{prefix}.head", axis=1)
+        else:
+            density, h = trunk, sh
+        fan_in = direction.dims + config["geo_features"]
+        for i in range(config["colour_layers"]):
+            h = builder.add("Relu", (builder.linear(prefix, f"colour_linears.{i}", h, fan_in, config["colour_hidden"]),),
+                            f"{prefix}.colour{i}")
+            fan_in = config["colour_hidden"]
+        raw_rgb = builder.linear(prefix, f"colour_linears.{config['colour_layers']}", h, fan_in, 3)
+        builder.add("Sigmoid", (raw_rgb,), rgb)
+        cap = builder.constant("density.exponent_cap", np.array([DENSITY_EXPONENT_CAP], np.float32))
+        capped = builder.add("Min", (density, cap), f"{prefix}.capped_density")
+        builder.add("Squeeze", (builder.add("Exp", (capped,), f"{prefix}.sigma"),
+                                builder.constant("axes.1", np.array([1], np.int64))), sigma)
+
+
+def grid_features(builder: GraphBuilder, prefix: str, config: dict) -> str:
+    """The interpolated hash-grid features of `points` -> (n, L·F), level-major."""
+    levels, name = config_levels(config), f"{prefix}.grid"
+    lo, hi = np.asarray(config["aabb"][:3], np.float32), np.asarray(config["aabb"][3:], np.float32)
+    axes = {k: builder.constant(f"axes.{k}", np.array([k], np.int64)) for k in (1, 2, 3)}
+    unit = builder.add("Div", (builder.add("Sub", (("points"), builder.constant(f"{prefix}.aabb.lo", lo)), f"{name}.shifted"),
+                               builder.constant(f"{prefix}.aabb.extent", hi - lo)), f"{name}.unit")
+    inside = builder.add("Min", (builder.add("Max", (unit, builder.constant("float.0", np.zeros(1, np.float32))),
+                                             f"{name}.above"), builder.constant("float.1", np.ones(1, np.float32))),
+                         f"{name}.inside")
+    scaled = builder.add("Mul", (builder.add("Unsqueeze", (inside, axes[1]), f"{name}.x"),
+                                 builder.constant(f"{name}.scale", levels.scale[:, None])), f"{name}.scaled")
+    position = builder.add("Add", (scaled, builder.constant("float.0.5", np.array([0.5], np.float32))), f"{name}.position")
+    cell = builder.add("Floor", (position,), f"{name}.cell")
+    fraction = builder.add("Unsqueeze", (builder.add("Sub", (position, cell), f"{name}.fraction3"), axes[2]),
+                           f"{name}.fraction")  # (n, L, 1, 3)
+    corners = builder.add("Add", (builder.add("Unsqueeze", (builder.add("Cast", (cell,), f"{name}.cell_int", to=7),
+                                                            axes[2]), f"{name}.cell4"),
+                                  builder.constant("grid.corners", corner_offsets())), f"{name}.corners")  # (n, L, 8, 3)
+    strides = np.stack([np.ones_like(levels.resolution), levels.resolution, levels.resolution ** 2], 1)[:, None, :]
+    dense = builder.add("Mod", (builder.add("ReduceSum", (builder.add("Mul", (corners, builder.constant(
+        f"{name}.strides", strides)), f"{name}.strided"), axes[3]), f"{name}.dense_index", keepdims=0),
+        builder.constant(f"{name}.rows", levels.rows[:, None])), f"{name}.dense")
+    x, y, z = builder.split(builder.add("Mul", (corners, builder.constant("grid.primes", np.array(PRIMES, np.int64))),
+                                        f"{name}.primed"),
+                            builder.constant("split.3x1", np.ones(3, np.int64)),
+                            (f"{name}.hx", f"{name}.hy", f"{name}.hz"), axis=3)
+    hashed = builder.add("Squeeze", (builder.add("BitwiseAnd", (builder.add("BitwiseXor", (builder.add(
+        "BitwiseXor", (x, y), f"{name}.hxy"), z), f"{name}.hxyz"), builder.constant(
+        f"{name}.mask", np.array([(1 << config['log2_table']) - 1], np.int64))), f"{name}.hash4"), axes[3]), f"{name}.hash")
+    is_dense = builder.constant(f"{name}.is_dense", levels.dense[:, None])
+    index = builder.add("Add", (builder.add("Add", (builder.add("Mul", (dense, is_dense), f"{name}.dense_part"),
+                                                    builder.add("Mul", (hashed, builder.constant(
+                                                        f"{name}.is_hashed", 1 - levels.dense[:, None])),
+                                                        f"{name}.hash_part")), f"{name}.level_index"),
+                                builder.constant(f"{name}.offset", levels.offset[:, None])), f"{name}.index")  # (n, L, 8)
+    builder.weights[f"{prefix}.table"] = (levels.total_rows, config["features"])
+    values = builder.add("Gather", (f"{prefix}.table", index), f"{name}.values", axis=0)  # (n, L, 8, F)
+    bits = corner_offsets().astype(np.float32)
+    one = builder.constant("float.1", np.ones(1, np.float32))
+    weights = builder.add("ReduceProd", (builder.add("Add", (
+        builder.add("Mul", (fraction, builder.constant("grid.bits", bits)), f"{name}.upper"),
+        builder.add("Mul", (builder.add("Sub", (one, fraction), f"{name}.rest"),
+                            builder.constant("grid.unbits", 1.0 - bits)), f"{name}.lower")), f"{name}.factors"),
+        axes[3]), f"{name}.weights", keepdims=0)  # (n, L, 8)
+    summed = builder.add("ReduceSum", (builder.add("Mul", (builder.add("Unsqueeze", (weights, axes[3]), f"{name}.weights4"),
+                                                           values), f"{name}.weighted"), axes[2]),
+                         f"{name}.summed", keepdims=0)  # (n, L, F)
+    return builder.add("Reshape", (summed, builder.constant("shape.flat", np.array([0, -1], np.int64))), f"{name}.features")
+
+
+def spherical_harmonics(builder: GraphBuilder, degree: int) -> str:
+    """SH of `viewdirs` up to `degree` -> (n, degree²): sh_matrix over the monomials, by one Gemm."""
+    name = f"sh.{degree}"
+    if builder.computed(name):
+        return name
+    gather = lambda x, index, out: builder.add("Gather", (x, builder.constant(  # noqa: E731
+        f"sh.index.{out}", np.array(index, np.int64))), f"sh.{out}", axis=1)
+    degree2 = builder.add("Mul", (gather("viewdirs", DEGREE2[0], "a2"), gather("viewdirs", DEGREE2[1], "b2")), "sh.deg2")
+    degree3 = builder.add("Mul", (gather(degree2, DEGREE3[0], "a3"), gather("viewdirs", DEGREE3[1], "b3")), "sh.deg3")
+    monomials = builder.add("Concat", ("viewdirs", degree2, degree3), "sh.monomials", axis=1)
+    matrix, constant = sh_matrix()
+    rows = degree ** 2
+    return builder.add("Gemm", (monomials, builder.constant(f"sh.matrix.{degree}", matrix[:rows]),
+                                builder.constant(f"sh.constant.{degree}", constant[:rows])), name, transB=1)
+
+
+HASHGRID = HashGridKind()

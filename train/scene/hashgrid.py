@@ -1,0 +1,243 @@
+"""The `hashgrid` field in torch: Instant-NGP's multiresolution hash encoding with two tiny MLPs.
+
+Every operation is the graph's (runtime.fields.hashgrid, which documents the math), so a torch render
+and an onnxruntime render differ by float32 summation order only. Noise δ is added to the interpolated
+grid features and to the SH encoding, [enc(x) ‖ SH(d)] + δ (paper eq. 4–5 with the hash encoding in
+place of γ). Both MLPs are ReLU networks, so raw outputs are piecewise linear in the noise and the
+exact solver's Gauss–Newton steps carry over; their Jacobian is written by hand (`outputs_and_jacobian`).
+
+Training follows Instant-NGP: the tables' gradient is accumulated by one index_add (GridGather;
+embedding_bag's own backward is several times slower on a CPU), Adam with β₂ = 0.99 and ε = 1e-15, and
+weight decay on the MLPs only (`parameter_groups`).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass
+from typing import ClassVar
+
+import numpy as np
+import torch
+from torch import nn
+from torch.nn import functional
+
+from noisenerf.runtime.fields import Segment
+from noisenerf.runtime.fields.hashgrid import (
+    DEGREE2, DEGREE3, DENSITY_EXPONENT_CAP, HASHGRID, PRIMES, config_levels, corner_offsets, sh_matrix,
+)
+
+TABLE_INIT = 1e-4  # tables start uniform in ±this (Instant-NGP's)
+MLP_WEIGHT_DECAY = 1e-6
+
+
+@dataclass(frozen=True)
+class HashGridConfig:
+    """Architecture of one hash-grid field (runtime.fields.hashgrid's keys). `aabb` is the scene box the
+    grid spans; per_level_scale = (max_resolution / base_resolution)^(1 / (levels − 1)) (`with_max_resolution`)."""
+
+    kind: ClassVar[str] = "hashgrid"
+    levels: int = 16
+    features: int = 2
+    log2_table: int = 17
+    base_resolution: int = 16
+    per_level_scale: float = 1.3195079107728942  # 16 → 1024 over 16 levels
+    density_hidden: int = 64
+    geo_features: int = 15
+    sh_degree: int = 4
+    colour_hidden: int = 64
+    colour_layers: int = 2
+    aabb: tuple[float, ...] = (-1.5, -1.5, -1.5, 1.5, 1.5, 1.5)
+
+    @staticmethod
+    def per_level_scale_for(base_resolution: int, max_resolution: int, levels: int) -> float:
+        """Instant-NGP's b = exp((ln N_max − ln N_min) / (L − 1)), in float64."""
+        return float(np.exp((np.log(max_resolution) - np.log(base_resolution)) / max(levels - 1, 1)))
+
+    @property
+    def segments(self) -> tuple[Segment, ...]:
+        return HASHGRID.segments(self.to_dict())
+
+    @property
+    def position_dims(self) -> int:
+        return self.levels * self.features
+
+    @property
+    def direction_dims(self) -> int:
+        return self.sh_degree ** 2
+
+    @property
+    def noise_dims(self) -> int:
+        return self.position_dims + self.direction_dims
+
+    has_view_branch: ClassVar[bool] = True
+
+    def to_dict(self) -> dict:
+        return {"kind": self.kind, **dataclasses.asdict(self), "aabb": [float(v) for v in self.aabb]}
+
+    @staticmethod
+    def from_dict(data: dict) -> "HashGridConfig":
+        checked = HASHGRID.checked(data, "scene")
+        return HashGridConfig(**{**{k: v for k, v in checked.items() if k != "kind"}, "aabb": tuple(checked["aabb"])})
+
+
+class GridGather(torch.autograd.Function):
+    """Σ_corners weight · table[index] per (sample, level), with the table's gradient by one index_add.
+    table (rows, F), index (b, 8) int64, weights (b, 8) -> (b, F). No gradient for index or weights."""
+
+    @staticmethod
+    def forward(ctx, table, index, weights):
+        ctx.save_for_backward(index, weights)
+        ctx.rows = table.shape[0]
+        return functional.embedding_bag(index, table, per_sample_weights=weights, mode="sum")
+
+    @staticmethod
+    def backward(ctx, grad):
+        index, weights = ctx.saved_tensors
+        rows = (weights[:, :, None] * grad[:, None, :]).reshape(-1, grad.shape[1])
+        return grad.new_zeros(ctx.rows, grad.shape[1]).index_add_(0, index.reshape(-1), rows), None, None
+
+
+class HashGridField(nn.Module):
+    """F(enc(x) + δ_x, SH(d) + δ_d) -> (rgb, σ) with sigmoid colour and σ = exp(min(raw, cap))."""
+
+    def __init__(self, config: HashGridConfig):
+        super().__init__()
+        self.config = config
+        levels = config_levels(config.to_dict())
+        self.table = nn.Parameter(torch.empty(levels.total_rows, config.features).uniform_(-TABLE_INIT, TABLE_INIT))
+        for name, value in {"lo": np.asarray(config.aabb[:3], np.float32),
+                            "extent": np.asarray(config.aabb[3:], np.float32) - np.asarray(config.aabb[:3], np.float32),
+                            "scale": levels.scale[:, None],
+                            "strides": np.stack([np.ones_like(levels.resolution), levels.resolution,
+                                                 levels.resolution ** 2], 1)[:, None, :],
+                            "rows": levels.rows[:, None], "is_dense": levels.dense[:, None],
+                            "offset": levels.offset[:, None], "corners": corner_offsets(),
+                            "primes": np.array(PRIMES, np.int64), "bits": corner_offsets().astype(np.float32)}.items():
+            self.register_buffer(name, torch.from_numpy(np.ascontiguousarray(value)), persistent=False)
+        matrix, constant = sh_matrix()
+        rows = config.direction_dims
+        self.register_buffer("sh_matrix", torch.from_numpy(matrix[:rows].copy()), persistent=False)
+        self.register_buffer("sh_constant", torch.from_numpy(constant[:rows].copy()), persistent=False)
+        self.mask = (1 << config.log2_table) - 1
+        self.density_linears = nn.ModuleList([nn.Linear(config.position_dims, config.density_hidden),
+                                              nn.Linear(config.density_hidden, 1 + config.geo_features)])
+        widths = [config.direction_dims + config.geo_features] + [config.colour_hidden] * config.colour_layers
+        self.colour_linears = nn.ModuleList([nn.Linear(a, b) for a, b in zip(widths, widths[1:] + [3])])
+
+    def density_layers(self) -> list[nn.Linear]:
+        """The layers a density alone runs through (the bench's cost model; the grid is gathers)."""
+        return list(self.density_linears)
+
+    def parameter_groups(self) -> list[dict]:
+        """The optimizer's groups: the tables without weight decay, the MLPs with it (Instant-NGP)."""
+        mlps = [p for name, p in self.named_parameters() if name != "table"]
+        return [{"params": [self.table], "weight_decay": 0.0}, {"params": mlps, "weight_decay": MLP_WEIGHT_DECAY}]
+
+    adam: ClassVar[dict] = {"betas": (0.9, 0.99), "eps": 1e-15}
+
+    def grid_features(self, points: torch.Tensor) -> torch.Tensor:
+        """enc(x): the interpolated features of points (n, 3) -> (n, L·F), level-major."""
+        unit = torch.clamp((points - self.lo) / self.extent, 0.0, 1.0)
+        position = unit[:, None, :] * self.scale + 0.5  # (n, L, 3)
+        cell = torch.floor(position)
+        fraction = (position - cell)[:, :, None, :]  # (n, L, 1, 3)
+        corners = cell.long()[:, :, None, :] + self.corners  # (n, L, 8, 3)
+        dense = (corners * self.strides).sum(-1) % self.rows
+        primed = corners * self.primes
+        hashed = (primed[..., 0] ^ primed[..., 1] ^ primed[..., 2]) & self.mask
+        index = dense * self.is_dense + hashed * (1 - self.is_dense) + self.offset  # (n, L, 8)
+        weights = (fraction * self.bits + (1.0 - fraction) * (1.0 - self.bits)).prod(-1)  # (n, L, 8)
+        n, levels = points.shape[0], self.config.levels
+        gathered = GridGather.apply(self.table, index.reshape(n * levels, 8), weights.reshape(n * levels, 8))
+        return gathered.reshape(n, levels * self.config.features)
+
+    def spherical_harmonics(self, viewdirs: torch.Tensor) -> torch.Tensor:
+        """SH(d) of unit directions (n, 3) -> (n, sh_degree²), as the graph computes it."""
+        degree2 = viewdirs[:, DEGREE2[0]] * viewdirs[:, DEGREE2[1]]
+        degree3 = degree2[:, DEGREE3[0]] * viewdirs[:, DEGREE3[1]]
+        return functional.linear(torch.cat([viewdirs, degree2, degree3], -1), self.sh_matrix, self.sh_constant)
+
+    def encode(self, points: torch.Tensor, viewdirs: torch.Tensor) -> torch.Tensor:
+        """[enc(x) ‖ SH(d)]: (n, 3), (n, 3) -> (n, noise_dims)."""
+        return torch.cat([self.grid_features(points), self.spherical_harmonics(viewdirs)], -1)
+
+    def trunk_outputs(self, encoded_position: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Raw density (n,) and the geometric feature (n, geo_features) from noisy grid features (n, L·F)."""
+        out = self.density_linears[1](torch.relu(self.density_linears[0](encoded_position)))
+        return out[:, 0], out[:, 1:]
+
+    def view_branch(self, feature: torch.Tensor, encoded_dirs: torch.Tensor) -> tuple[torch.Tensor, list]:
+        """Raw colour (n, 3) from the geometric feature and the noisy SH (n, sh_degree²), and the colour
+        MLP's ReLU masks, all its Jacobian needs (`direction_jacobian`)."""
+        h, masks = torch.cat([encoded_dirs, feature], -1), []
+        for layer in self.colour_linears[:-1]:
+            h = layer(h)
+            masks.append(h > 0)
+            h = torch.relu(h)
+        return self.colour_linears[-1](h), masks
+
+    def head_jacobian(self, masks: list) -> torch.Tensor:
+        """∂raw colour/∂[SH ‖ geometric feature] at the masks of view_branch. -> (n, 3, dims + geo)."""
+        rows = self.colour_linears[-1].weight.expand(masks[0].shape[0], 3, -1)
+        for layer, mask in zip(reversed(self.colour_linears[:-1]), reversed(masks)):
+            rows = (rows * mask[:, None, :]) @ layer.weight
+        return rows
+
+    def direction_jacobian(self, masks: list) -> torch.Tensor:
+        """∂raw colour/∂SH (n, 3, sh_degree²)."""
+        return self.head_jacobian(masks)[:, :, :self.config.direction_dims]
+
+    def raw_outputs(self, encoded: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Pre-activation colour (n, 3) and density (n,) of noisy encodings (n, noise_dims)."""
+        density, feature = self.trunk_outputs(encoded[:, :self.config.position_dims])
+        return self.view_branch(feature, encoded[:, self.config.position_dims:])[0], density
+
+    def outputs_and_jacobian(self, encoded: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """[raw colour ‖ raw density] (n, 4) and its exact Jacobian ∂/∂encoded (n, 4, noise_dims): both MLPs
+        are ReLU nets, so each layer's backward is its weight times the forward's mask."""
+        position = self.config.position_dims
+        first = self.density_linears[0](encoded[:, :position])
+        trunk_mask = first > 0
+        out = self.density_linears[1](torch.relu(first))
+        raw_rgb, masks = self.view_branch(out[:, 1:], encoded[:, position:])
+        trunk_rows = (self.density_linears[1].weight * trunk_mask[:, None, :]) @ self.density_linears[0].weight
+        head = self.head_jacobian(masks)  # (n, 3, sh + geo)
+        dirs = self.config.direction_dims
+        rgb_position = head[:, :, dirs:] @ trunk_rows[:, 1:]  # (n, 3, L·F)
+        jacobian = torch.cat([torch.cat([rgb_position, head[:, :, :dirs]], -1),
+                              torch.cat([trunk_rows[:, :1], trunk_rows.new_zeros(len(encoded), 1, dirs)], -1)], 1)
+        return torch.cat([raw_rgb, out[:, :1]], -1), jacobian
+
+    @staticmethod
+    def density_of(raw: torch.Tensor) -> torch.Tensor:
+        """σ = exp(min(raw, cap)) (nerfacto's trunc_exp forward, capped as the graph caps it)."""
+        return torch.exp(torch.clamp_max(raw, DENSITY_EXPONENT_CAP))
+
+    @staticmethod
+    def raw_density_at(density: float) -> float:
+        """The raw value whose σ is `density` (> 0): log σ."""
+        return math.log(density)
+
+    @staticmethod
+    def zero_slope(raw: torch.Tensor) -> torch.Tensor:
+        """Samples whose σ cannot move with their raw density: above the cap."""
+        return raw >= DENSITY_EXPONENT_CAP
+
+    def forward(self, points: torch.Tensor, viewdirs: torch.Tensor, noise: torch.Tensor | None = None
+                ) -> tuple[torch.Tensor, torch.Tensor]:
+        """rgb (n, 3) and σ (n,) at points (n, 3) seen along viewdirs (n, 3), noise (n, noise_dims) optional."""
+        encoded = self.encode(points, viewdirs)
+        if noise is not None:
+            encoded = encoded + noise
+        raw_rgb, raw_density = self.raw_outputs(encoded)
+        return torch.sigmoid(raw_rgb), self.density_of(raw_density)
+
+    def raw_density(self, encoded_position: torch.Tensor) -> torch.Tensor:
+        """Pre-activation density (n,) of noisy grid features (n, L·F)."""
+        return self.trunk_outputs(encoded_position)[0]
+
+    def density(self, points: torch.Tensor) -> torch.Tensor:
+        """σ (n,) alone (occupancy-grid updates). points: (n, 3)."""
+        return self.density_of(self.raw_density(self.grid_features(points)))
