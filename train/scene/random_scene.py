@@ -19,7 +19,7 @@ from noisenerf.train.scene.scene import Scene, SceneConfig, build_fields
 
 # a small hash grid: 4 levels of 2 features, resolutions 4 to 32 (the first two dense), 2^10 rows a level
 SMALL_HASHGRID = HashGridConfig(levels=4, features=2, log2_table=10, base_resolution=4, per_level_scale=2.0,
-                                density_hidden=16, geo_features=7, colour_hidden=16, colour_layers=2)
+                                density_hidden=32, geo_features=15, colour_hidden=64, colour_layers=2)
 TABLE_SPREAD = 1.0  # a random scene's tables are uniform in ±this: Instant-NGP's ±1e-4 would leave it featureless
 
 
