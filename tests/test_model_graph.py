@@ -21,15 +21,19 @@ from noisenerf.runtime import session as session_module
 from noisenerf.runtime.errors import UserError
 from noisenerf.runtime.fields import field_graph
 from noisenerf.runtime.model import load_model
+from noisenerf.train.scene.random_scene import SMALL_HASHGRID
 
 REFUSAL = "the model's graph is not the one its scene exports"
+HASHGRID = SMALL_HASHGRID.to_dict()
 
 
-@pytest.fixture(scope="module", params=[False, True], ids=["coarse", "coarse+fine"])
+@pytest.fixture(scope="module", params=[{}, {"fine": True}, {"kind": "hashgrid"}],
+                ids=["coarse", "coarse+fine", "hashgrid"])
 def exported(request, tmp_path_factory):
-    """(the exported model file, its ModelProto) of a tiny scene, with and without a fine network."""
+    """(the exported model file, its ModelProto) of a tiny scene: an MLP with and without a fine network, a
+    hash grid."""
     folder = tmp_path_factory.mktemp("graph")
-    make_tiny_scene(seed=3, fine=request.param).save(folder / "scene")
+    make_tiny_scene(seed=3, **request.param).save(folder / "scene")
     export_scene(folder / "scene", folder / "model.onnx")
     return folder / "model.onnx", onnx.load(str(folder / "model.onnx"))
 
@@ -86,14 +90,14 @@ def swapped_activation(model):
 
 def changed_opset(model):
     model = copy_of(model)
-    model.opset_import[0].version = 18
+    model.opset_import[0].version += 1
     return model
 
 
 def changed_constant(model):
-    """The encoding's frequencies doubled: the same weights see other inputs."""
+    """The encoding's frequencies (the hash grid's primes) doubled: the same weights see other inputs."""
     model = copy_of(model)
-    index = next(i for i, t in enumerate(model.graph.initializer) if t.name.startswith("freqs."))
+    index = next(i for i, t in enumerate(model.graph.initializer) if t.name.startswith(("freqs.", "grid.primes")))
     values = numpy_helper.to_array(model.graph.initializer[index]) * 2
     model.graph.initializer[index].CopyFrom(numpy_helper.from_array(values, model.graph.initializer[index].name))
     return model
@@ -114,7 +118,7 @@ def extra_value_info(model):
 TAMPERINGS = {"offset colours": (offset_colours, "-> rgb_genuine, expected"),
               "appended node": (appended_node, "1 more nodes"), "removed node": (removed_node, "node"),
               "transB": (changed_attribute, "transB=0"), "activation": (swapped_activation, "Sigmoid"),
-              "opset": (changed_opset, "opsets"), "constant": (changed_constant, "constant 'freqs."),
+              "opset": (changed_opset, "opsets"), "constant": (changed_constant, "constant '"),
               "port": (changed_port, "outputs"), "value_info": (extra_value_info, "graph field 13")}
 
 
@@ -157,6 +161,15 @@ def test_the_export_is_node_for_node_the_graph_the_runtime_derives(exported):
     ({"coarse": {"depth": 2, "width": 8, "skips": [5], "xyz_freqs": 2, "dir_freqs": 1, "use_viewdirs": True},
       "fine": None}, "skip"),
     ({"coarse": {"depth": 2, "width": 8, "skips": [], "xyz_freqs": 2, "dir_freqs": 1}, "fine": None}, "exactly"),
+    ({"coarse": {**HASHGRID, "levels": 33}, "fine": None}, "levels must be between 1 and 32"),
+    ({"coarse": {**HASHGRID, "log2_table": 25}, "fine": None}, "log2_table must be between 3 and 24"),
+    ({"coarse": {**HASHGRID, "levels": 16, "per_level_scale": 4.0}, "fine": None}, "finest level has"),
+    ({"coarse": {**HASHGRID, "levels": 32, "features": 8, "log2_table": 24, "per_level_scale": 1.0, "base_resolution": 4096},
+      "fine": None}, "tables hold"),
+    ({"coarse": {**HASHGRID, "aabb": [0, 0, 0, 1, -1, 1]}, "fine": None}, "min < max"),
+    ({"coarse": {**HASHGRID, "sh_degree": 5}, "fine": None}, "sh_degree must be between 1 and 4"),
+    ({"coarse": {key: value for key, value in HASHGRID.items() if key != "aabb"}, "fine": None}, "exactly"),
+    ({"coarse": {**HASHGRID, "kind": "triplane"}, "fine": None}, "of kind 'triplane'; this noisenerf knows"),
 ])
 def test_an_architecture_out_of_the_caps_derives_no_graph(architecture, message):
     with pytest.raises(UserError, match=message):

@@ -165,12 +165,25 @@ class HashGridKind:
                                 builder.constant("axes.1", np.array([1], np.int64))), sigma)
 
 
+def corner_grid(builder: GraphBuilder, name: str, per_axis: str) -> str:
+    """The 8 corners' combinations of per-axis pairs (n, L, 3, 2) (entry 0: the cell's lower vertex, 1: its
+    upper), axis d broadcast along its own dimension of (n, L, 2, 2, 2) so that corner i = 4·b_z + 2·b_y
+    + b_x (bit d of i: the upper vertex on axis d). -> the three (n, L, ·, ·, ·) terms."""
+    x, y, z = builder.split(per_axis, builder.constant("split.3x1", np.ones(3, np.int64)),
+                            (f"{name}.x", f"{name}.y", f"{name}.z"), axis=2)
+    return tuple(builder.add("Reshape", (term, builder.constant(f"shape.axis{d}", np.array(shape, np.int64))),
+                             f"{name}.{axis}5") for d, (term, axis, shape) in enumerate(
+        ((x, "x", (0, 0, 1, 1, 2)), (y, "y", (0, 0, 1, 2, 1)), (z, "z", (0, 0, 2, 1, 1)))))
+
+
 def grid_features(builder: GraphBuilder, prefix: str, config: dict) -> str:
-    """The interpolated hash-grid features of `points` -> (n, L·F), level-major."""
+    """The interpolated hash-grid features of `points` -> (n, L·F), level-major. The corners are built from
+    per-axis pairs (a dense index is the lower corner's plus a constant per corner; a hash is the XOR of
+    one primed coordinate per axis), so the integer work is per axis, not per corner and axis."""
     levels, name = config_levels(config), f"{prefix}.grid"
     lo, hi = np.asarray(config["aabb"][:3], np.float32), np.asarray(config["aabb"][3:], np.float32)
     axes = {k: builder.constant(f"axes.{k}", np.array([k], np.int64)) for k in (1, 2, 3)}
-    unit = builder.add("Div", (builder.add("Sub", (("points"), builder.constant(f"{prefix}.aabb.lo", lo)), f"{name}.shifted"),
+    unit = builder.add("Div", (builder.add("Sub", ("points", builder.constant(f"{prefix}.aabb.lo", lo)), f"{name}.shifted"),
                                builder.constant(f"{prefix}.aabb.extent", hi - lo)), f"{name}.unit")
     inside = builder.add("Min", (builder.add("Max", (unit, builder.constant("float.0", np.zeros(1, np.float32))),
                                              f"{name}.above"), builder.constant("float.1", np.ones(1, np.float32))),
@@ -178,38 +191,36 @@ def grid_features(builder: GraphBuilder, prefix: str, config: dict) -> str:
     scaled = builder.add("Mul", (builder.add("Unsqueeze", (inside, axes[1]), f"{name}.x"),
                                  builder.constant(f"{name}.scale", levels.scale[:, None])), f"{name}.scaled")
     position = builder.add("Add", (scaled, builder.constant("float.0.5", np.array([0.5], np.float32))), f"{name}.position")
-    cell = builder.add("Floor", (position,), f"{name}.cell")
-    fraction = builder.add("Unsqueeze", (builder.add("Sub", (position, cell), f"{name}.fraction3"), axes[2]),
-                           f"{name}.fraction")  # (n, L, 1, 3)
-    corners = builder.add("Add", (builder.add("Unsqueeze", (builder.add("Cast", (cell,), f"{name}.cell_int", to=7),
-                                                            axes[2]), f"{name}.cell4"),
-                                  builder.constant("grid.corners", corner_offsets())), f"{name}.corners")  # (n, L, 8, 3)
-    strides = np.stack([np.ones_like(levels.resolution), levels.resolution, levels.resolution ** 2], 1)[:, None, :]
-    dense = builder.add("Mod", (builder.add("ReduceSum", (builder.add("Mul", (corners, builder.constant(
-        f"{name}.strides", strides)), f"{name}.strided"), axes[3]), f"{name}.dense_index", keepdims=0),
-        builder.constant(f"{name}.rows", levels.rows[:, None])), f"{name}.dense")
-    x, y, z = builder.split(builder.add("Mul", (corners, builder.constant("grid.primes", np.array(PRIMES, np.int64))),
-                                        f"{name}.primed"),
-                            builder.constant("split.3x1", np.ones(3, np.int64)),
-                            (f"{name}.hx", f"{name}.hy", f"{name}.hz"), axis=3)
-    hashed = builder.add("Squeeze", (builder.add("BitwiseAnd", (builder.add("BitwiseXor", (builder.add(
-        "BitwiseXor", (x, y), f"{name}.hxy"), z), f"{name}.hxyz"), builder.constant(
-        f"{name}.mask", np.array([(1 << config['log2_table']) - 1], np.int64))), f"{name}.hash4"), axes[3]), f"{name}.hash")
-    is_dense = builder.constant(f"{name}.is_dense", levels.dense[:, None])
-    index = builder.add("Add", (builder.add("Add", (builder.add("Mul", (dense, is_dense), f"{name}.dense_part"),
-                                                    builder.add("Mul", (hashed, builder.constant(
-                                                        f"{name}.is_hashed", 1 - levels.dense[:, None])),
-                                                        f"{name}.hash_part")), f"{name}.level_index"),
-                                builder.constant(f"{name}.offset", levels.offset[:, None])), f"{name}.index")  # (n, L, 8)
+    cell = builder.add("Floor", (position,), f"{name}.cell")  # (n, L, 3)
+    fraction = builder.add("Unsqueeze", (builder.add("Sub", (position, cell), f"{name}.fraction"), axes[3]),
+                           f"{name}.fraction4")  # (n, L, 3, 1)
+    lower = builder.add("Cast", (cell,), f"{name}.lower", to=7)
+    strides = np.stack([np.ones_like(levels.resolution), levels.resolution, levels.resolution ** 2], 1)  # (L, 3)
+    base = builder.add("ReduceSum", (builder.add("Mul", (lower, builder.constant(f"{name}.strides", strides)),
+                                                 f"{name}.strided"), axes[2]), f"{name}.dense_base", keepdims=1)
+    corner_strides = builder.constant(f"{name}.corner_strides", (corner_offsets() @ strides.T).T)  # (L, 8)
+    dense = builder.add("Mod", (builder.add("Add", (base, corner_strides), f"{name}.dense_index"),
+                                builder.constant(f"{name}.rows", levels.rows[:, None])), f"{name}.dense")  # (n, L, 8)
+    vertices = builder.add("Add", (builder.add("Unsqueeze", (lower, axes[3]), f"{name}.lower4"),
+                                   builder.constant("grid.pair", np.array([0, 1], np.int64))), f"{name}.vertices")
+    primed = builder.add("Mul", (vertices, builder.constant("grid.primes", np.array(PRIMES, np.int64)[:, None])),
+                         f"{name}.primed")  # (n, L, 3, 2)
+    hx, hy, hz = corner_grid(builder, f"{name}.hash", primed)
+    hashed = builder.add("Reshape", (builder.add("BitwiseAnd", (builder.add("BitwiseXor", (builder.add(
+        "BitwiseXor", (hx, hy), f"{name}.hxy"), hz), f"{name}.hxyz"), builder.constant(
+        f"{name}.mask", np.array([(1 << config['log2_table']) - 1], np.int64))), f"{name}.hash5"),
+        builder.constant("shape.corners", np.array([0, 0, 8], np.int64))), f"{name}.hash")  # (n, L, 8)
+    index = builder.add("Add", (builder.add("Add", (builder.add("Mul", (dense, builder.constant(
+        f"{name}.is_dense", levels.dense[:, None])), f"{name}.dense_part"), builder.add("Mul", (hashed, builder.constant(
+            f"{name}.is_hashed", 1 - levels.dense[:, None])), f"{name}.hash_part")), f"{name}.level_index"),
+        builder.constant(f"{name}.offset", levels.offset[:, None])), f"{name}.index")  # (n, L, 8)
     builder.weights[f"{prefix}.table"] = (levels.total_rows, config["features"])
     values = builder.add("Gather", (f"{prefix}.table", index), f"{name}.values", axis=0)  # (n, L, 8, F)
-    bits = corner_offsets().astype(np.float32)
-    one = builder.constant("float.1", np.ones(1, np.float32))
-    weights = builder.add("ReduceProd", (builder.add("Add", (
-        builder.add("Mul", (fraction, builder.constant("grid.bits", bits)), f"{name}.upper"),
-        builder.add("Mul", (builder.add("Sub", (one, fraction), f"{name}.rest"),
-                            builder.constant("grid.unbits", 1.0 - bits)), f"{name}.lower")), f"{name}.factors"),
-        axes[3]), f"{name}.weights", keepdims=0)  # (n, L, 8)
+    factors = builder.add("Concat", (builder.add("Sub", (builder.constant("float.1", np.ones(1, np.float32)), fraction),
+                                                 f"{name}.rest"), fraction), f"{name}.factors", axis=3)  # (n, L, 3, 2)
+    wx, wy, wz = corner_grid(builder, f"{name}.weight", factors)
+    weights = builder.add("Reshape", (builder.add("Mul", (builder.add("Mul", (wx, wy), f"{name}.wxy"), wz),
+                                                  f"{name}.weights5"), "shape.corners"), f"{name}.weights")  # (n, L, 8)
     summed = builder.add("ReduceSum", (builder.add("Mul", (builder.add("Unsqueeze", (weights, axes[3]), f"{name}.weights4"),
                                                            values), f"{name}.weighted"), axes[2]),
                          f"{name}.summed", keepdims=0)  # (n, L, F)

@@ -82,6 +82,17 @@ class HashGridConfig:
         return HashGridConfig(**{**{k: v for k, v in checked.items() if k != "kind"}, "aabb": tuple(checked["aabb"])})
 
 
+PAIR = torch.tensor([0, 1])  # a cell's lower and upper vertex on one axis
+
+
+def corner_grid(per_axis: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """runtime.fields.hashgrid.corner_grid: per-axis pairs (n, L, 3, 2) as three terms that broadcast to
+    (n, L, 2, 2, 2), corner i = 4·b_z + 2·b_y + b_x."""
+    n, levels = per_axis.shape[:2]
+    return (per_axis[:, :, 0].reshape(n, levels, 1, 1, 2), per_axis[:, :, 1].reshape(n, levels, 1, 2, 1),
+            per_axis[:, :, 2].reshape(n, levels, 2, 1, 1))
+
+
 class GridGather(torch.autograd.Function):
     """Σ_corners weight · table[index] per (sample, level), with the table's gradient by one index_add.
     table (rows, F), index (b, 8) int64, weights (b, 8) -> (b, F). No gradient for index or weights."""
@@ -107,14 +118,13 @@ class HashGridField(nn.Module):
         self.config = config
         levels = config_levels(config.to_dict())
         self.table = nn.Parameter(torch.empty(levels.total_rows, config.features).uniform_(-TABLE_INIT, TABLE_INIT))
+        strides = np.stack([np.ones_like(levels.resolution), levels.resolution, levels.resolution ** 2], 1)
         for name, value in {"lo": np.asarray(config.aabb[:3], np.float32),
                             "extent": np.asarray(config.aabb[3:], np.float32) - np.asarray(config.aabb[:3], np.float32),
-                            "scale": levels.scale[:, None],
-                            "strides": np.stack([np.ones_like(levels.resolution), levels.resolution,
-                                                 levels.resolution ** 2], 1)[:, None, :],
-                            "rows": levels.rows[:, None], "is_dense": levels.dense[:, None],
-                            "offset": levels.offset[:, None], "corners": corner_offsets(),
-                            "primes": np.array(PRIMES, np.int64), "bits": corner_offsets().astype(np.float32)}.items():
+                            "scale": levels.scale[:, None], "strides": strides,
+                            "corner_strides": (corner_offsets() @ strides.T).T, "rows": levels.rows[:, None],
+                            "is_dense": levels.dense[:, None], "offset": levels.offset[:, None],
+                            "primes": np.array(PRIMES, np.int64)[:, None]}.items():
             self.register_buffer(name, torch.from_numpy(np.ascontiguousarray(value)), persistent=False)
         matrix, constant = sh_matrix()
         rows = config.direction_dims
@@ -138,17 +148,19 @@ class HashGridField(nn.Module):
     adam: ClassVar[dict] = {"betas": (0.9, 0.99), "eps": 1e-15}
 
     def grid_features(self, points: torch.Tensor) -> torch.Tensor:
-        """enc(x): the interpolated features of points (n, 3) -> (n, L·F), level-major."""
+        """enc(x): the interpolated features of points (n, 3) -> (n, L·F), level-major, corners built from
+        per-axis pairs as the graph builds them (corner_grid)."""
         unit = torch.clamp((points - self.lo) / self.extent, 0.0, 1.0)
         position = unit[:, None, :] * self.scale + 0.5  # (n, L, 3)
         cell = torch.floor(position)
-        fraction = (position - cell)[:, :, None, :]  # (n, L, 1, 3)
-        corners = cell.long()[:, :, None, :] + self.corners  # (n, L, 8, 3)
-        dense = (corners * self.strides).sum(-1) % self.rows
-        primed = corners * self.primes
-        hashed = (primed[..., 0] ^ primed[..., 1] ^ primed[..., 2]) & self.mask
-        index = dense * self.is_dense + hashed * (1 - self.is_dense) + self.offset  # (n, L, 8)
-        weights = (fraction * self.bits + (1.0 - fraction) * (1.0 - self.bits)).prod(-1)  # (n, L, 8)
+        fraction = (position - cell)[..., None]  # (n, L, 3, 1)
+        lower = cell.long()
+        dense = ((lower * self.strides).sum(-1, keepdim=True) + self.corner_strides) % self.rows  # (n, L, 8)
+        hx, hy, hz = corner_grid((lower[..., None] + PAIR.to(lower.device)) * self.primes)
+        hashed = ((hx ^ hy ^ hz) & self.mask).flatten(2)  # (n, L, 8)
+        index = dense * self.is_dense + hashed * (1 - self.is_dense) + self.offset
+        wx, wy, wz = corner_grid(torch.cat([1.0 - fraction, fraction], -1))
+        weights = (wx * wy * wz).flatten(2)  # (n, L, 8)
         n, levels = points.shape[0], self.config.levels
         gathered = GridGather.apply(self.table, index.reshape(n * levels, 8), weights.reshape(n * levels, 8))
         return gathered.reshape(n, levels * self.config.features)
