@@ -176,6 +176,38 @@ def corner_grid(builder: GraphBuilder, name: str, per_axis: str) -> str:
         ((x, "x", (0, 0, 1, 1, 2)), (y, "y", (0, 0, 1, 2, 1)), (z, "z", (0, 0, 2, 1, 1)))))
 
 
+def corners_shape(builder: GraphBuilder) -> str:
+    """The constant that reshapes (n, L, 2, 2, 2) corners to (n, L, 8)."""
+    return builder.constant("shape.corners", np.array([0, 0, 8], np.int64))
+
+
+def dense_index(builder: GraphBuilder, name: str, lower: str, levels: GridLevels, span: slice) -> str:
+    """Rows of the 8 corners on dense levels: the lower corner's x + y·res + z·res², plus each corner's
+    constant offset, modulo the level's rows (the wraparound). lower: (n, l, 3) int64 -> (n, l, 8)."""
+    strides = np.stack([np.ones_like(levels.resolution), levels.resolution, levels.resolution ** 2], 1)[span]
+    base = builder.add("ReduceSum", (builder.add("Mul", (lower, builder.constant(f"{name}.strides", strides)),
+                                                 f"{name}.strided"), builder.constant("axes.2", np.array([2], np.int64))),
+                       f"{name}.base", keepdims=1)
+    corner_strides = builder.constant(f"{name}.corner_strides", (corner_offsets() @ strides.T).T)  # (l, 8)
+    return builder.add("Mod", (builder.add("Add", (base, corner_strides), f"{name}.unwrapped"),
+                               builder.constant(f"{name}.rows", levels.rows[span, None])), f"{name}.index")
+
+
+def hashed_index(builder: GraphBuilder, name: str, lower: str, log2_table: int) -> str:
+    """Rows of the 8 corners on hashed levels: (x·1 ⊕ y·2654435761 ⊕ z·805459861) & (T − 1), each axis's
+    two primed vertices computed once. lower: (n, l, 3) int64 -> (n, l, 8)."""
+    vertices = builder.add("Add", (builder.add("Unsqueeze", (lower, builder.constant("axes.3", np.array([3], np.int64))),
+                                               f"{name}.lower4"),
+                                   builder.constant("grid.pair", np.array([0, 1], np.int64))), f"{name}.vertices")
+    primed = builder.add("Mul", (vertices, builder.constant("grid.primes", np.array(PRIMES, np.int64)[:, None])),
+                         f"{name}.primed")  # (n, l, 3, 2)
+    hx, hy, hz = corner_grid(builder, name, primed)
+    return builder.add("Reshape", (builder.add("BitwiseAnd", (builder.add("BitwiseXor", (builder.add(
+        "BitwiseXor", (hx, hy), f"{name}.hxy"), hz), f"{name}.hxyz"), builder.constant(
+        f"{name}.mask", np.array([(1 << log2_table) - 1], np.int64))), f"{name}.masked"), corners_shape(builder)),
+        f"{name}.index")
+
+
 def grid_features(builder: GraphBuilder, prefix: str, config: dict) -> str:
     """The interpolated hash-grid features of `points` -> (n, L·F), level-major. The corners are built from
     per-axis pairs (a dense index is the lower corner's plus a constant per corner; a hash is the XOR of
@@ -195,32 +227,24 @@ def grid_features(builder: GraphBuilder, prefix: str, config: dict) -> str:
     fraction = builder.add("Unsqueeze", (builder.add("Sub", (position, cell), f"{name}.fraction"), axes[3]),
                            f"{name}.fraction4")  # (n, L, 3, 1)
     lower = builder.add("Cast", (cell,), f"{name}.lower", to=7)
-    strides = np.stack([np.ones_like(levels.resolution), levels.resolution, levels.resolution ** 2], 1)  # (L, 3)
-    base = builder.add("ReduceSum", (builder.add("Mul", (lower, builder.constant(f"{name}.strides", strides)),
-                                                 f"{name}.strided"), axes[2]), f"{name}.dense_base", keepdims=1)
-    corner_strides = builder.constant(f"{name}.corner_strides", (corner_offsets() @ strides.T).T)  # (L, 8)
-    dense = builder.add("Mod", (builder.add("Add", (base, corner_strides), f"{name}.dense_index"),
-                                builder.constant(f"{name}.rows", levels.rows[:, None])), f"{name}.dense")  # (n, L, 8)
-    vertices = builder.add("Add", (builder.add("Unsqueeze", (lower, axes[3]), f"{name}.lower4"),
-                                   builder.constant("grid.pair", np.array([0, 1], np.int64))), f"{name}.vertices")
-    primed = builder.add("Mul", (vertices, builder.constant("grid.primes", np.array(PRIMES, np.int64)[:, None])),
-                         f"{name}.primed")  # (n, L, 3, 2)
-    hx, hy, hz = corner_grid(builder, f"{name}.hash", primed)
-    hashed = builder.add("Reshape", (builder.add("BitwiseAnd", (builder.add("BitwiseXor", (builder.add(
-        "BitwiseXor", (hx, hy), f"{name}.hxy"), hz), f"{name}.hxyz"), builder.constant(
-        f"{name}.mask", np.array([(1 << config['log2_table']) - 1], np.int64))), f"{name}.hash5"),
-        builder.constant("shape.corners", np.array([0, 0, 8], np.int64))), f"{name}.hash")  # (n, L, 8)
-    index = builder.add("Add", (builder.add("Add", (builder.add("Mul", (dense, builder.constant(
-        f"{name}.is_dense", levels.dense[:, None])), f"{name}.dense_part"), builder.add("Mul", (hashed, builder.constant(
-            f"{name}.is_hashed", 1 - levels.dense[:, None])), f"{name}.hash_part")), f"{name}.level_index"),
-        builder.constant(f"{name}.offset", levels.offset[:, None])), f"{name}.index")  # (n, L, 8)
+    dense_levels = int(levels.dense.sum())  # a prefix: resolutions grow with the level
+    hashed_levels = len(levels.rows) - dense_levels
+    dense_lower = hashed_lower = lower
+    if dense_levels and hashed_levels:
+        dense_lower, hashed_lower = builder.split(lower, builder.constant(f"{name}.split.levels", np.array(
+            [dense_levels, hashed_levels], np.int64)), (f"{name}.dense.lower", f"{name}.hashed.lower"), axis=1)
+    indices = ([dense_index(builder, f"{name}.dense", dense_lower, levels, slice(0, dense_levels))] if dense_levels
+               else []) + ([hashed_index(builder, f"{name}.hashed", hashed_lower, config["log2_table"])]
+                           if hashed_levels else [])
+    joined = indices[0] if len(indices) == 1 else builder.add("Concat", tuple(indices), f"{name}.level_index", axis=1)
+    index = builder.add("Add", (joined, builder.constant(f"{name}.offset", levels.offset[:, None])), f"{name}.index")
     builder.weights[f"{prefix}.table"] = (levels.total_rows, config["features"])
     values = builder.add("Gather", (f"{prefix}.table", index), f"{name}.values", axis=0)  # (n, L, 8, F)
     factors = builder.add("Concat", (builder.add("Sub", (builder.constant("float.1", np.ones(1, np.float32)), fraction),
                                                  f"{name}.rest"), fraction), f"{name}.factors", axis=3)  # (n, L, 3, 2)
     wx, wy, wz = corner_grid(builder, f"{name}.weight", factors)
     weights = builder.add("Reshape", (builder.add("Mul", (builder.add("Mul", (wx, wy), f"{name}.wxy"), wz),
-                                                  f"{name}.weights5"), "shape.corners"), f"{name}.weights")  # (n, L, 8)
+                                                  f"{name}.weights5"), corners_shape(builder)), f"{name}.weights")
     summed = builder.add("ReduceSum", (builder.add("Mul", (builder.add("Unsqueeze", (weights, axes[3]), f"{name}.weights4"),
                                                            values), f"{name}.weighted"), axes[2]),
                          f"{name}.summed", keepdims=0)  # (n, L, F)
