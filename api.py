@@ -42,23 +42,30 @@ def resolve_device(name: str):
     return torch.device(name)
 
 
-def fit(data: PathLike, output: PathLike, *, preset: str = "small", resolution: int | None = None,
-        minutes: float | None = None, iters: int | None = None, seed: int | None = None, skip: bool = True,
-        device: str = "auto", progress: ProgressFn | None = None) -> dict:
-    """Fit a scene to the dataset at `data` (NeRF-Synthetic or LLFF) into the folder `output`, for exactly one
-    of `minutes` or `iters`; run again to resume from its checkpoint. -> fit's report (test PSNR under test.psnr)."""
+def fit(data: PathLike, output: PathLike, *, field: str | None = None, preset: str | None = None,
+        resolution: int | None = None, minutes: float | None = None, iters: int | None = None,
+        seed: int | None = None, skip: bool = True, device: str = "auto", progress: ProgressFn | None = None) -> dict:
+    """Fit a scene to the dataset at `data` (NeRF-Synthetic, LLFF or a capture's transforms.json) into the
+    folder `output`, for exactly one of `minutes` or `iters`; run again to resume from its checkpoint. field:
+    the kind (`mlp`, `hashgrid`), fitted with its default preset unless `preset` names another of its kind;
+    neither: the `mlp` kind's `small`. -> fit's report (test PSNR under test.psnr)."""
     import dataclasses
 
     from noisenerf.runtime.files import check_output_directory
     from noisenerf.train.scene.datasets import load_dataset
-    from noisenerf.train.scene.fit import PRESETS, Budget, fit as fit_scene
+    from noisenerf.train.scene.fit import DEFAULT_PRESETS, PRESETS, Budget, fit as fit_scene
 
     if (minutes is None) == (iters is None):
         raise UserError("give exactly one of --minutes M or --iters N")
     if (iters is not None and iters < 1) or (minutes is not None and minutes <= 0):
         raise UserError("--minutes and --iters must be positive")
+    if field is not None and field not in DEFAULT_PRESETS:
+        raise UserError(f"unknown field kind {field!r:.40} (expected one of {', '.join(DEFAULT_PRESETS)})")
+    preset = preset or DEFAULT_PRESETS[field or "mlp"]
     if preset not in PRESETS:
         raise UserError(f"unknown preset {preset!r:.40} (expected one of {', '.join(PRESETS)})")
+    if field is not None and PRESETS[preset].field.kind != field:
+        raise UserError(f"preset {preset} fits the {PRESETS[preset].field.kind} kind, not {field}")
     torch_device = resolve_device(device)
     check_output_directory(output)
     config = PRESETS[preset]

@@ -44,7 +44,7 @@ def cmd_fit(args) -> None:
     from noisenerf import api
 
     with TerminalProgress(quiet=args.quiet) as bar:
-        report = api.fit(args.data_dir, args.output, preset=args.preset, resolution=args.resolution,
+        report = api.fit(args.data_dir, args.output, field=args.field, preset=args.preset, resolution=args.resolution,
                          minutes=args.minutes, iters=args.iters, seed=args.seed, skip=not args.no_skip,
                          device=args.device, progress=bar)
     test = report["test"]
@@ -168,7 +168,10 @@ def build_parser() -> argparse.ArgumentParser:
     p = add("fit", cmd_fit, "fit a NeRF to a NeRF-Synthetic or LLFF dataset")
     p.add_argument("data_dir")
     p.add_argument("-o", "--output", required=True, help="scene directory to write (resumes if it holds a checkpoint)")
-    p.add_argument("--preset", choices=("small", "paper"), default="small")
+    p.add_argument("--field", choices=("mlp", "hashgrid"),
+                   help="field kind: mlp (the standard NeRF MLP, preset small) or hashgrid (Instant-NGP's hash grid)")
+    p.add_argument("--preset", choices=("small", "paper", "hashgrid"),
+                   help="small or paper (mlp kind), hashgrid (default: the field kind's)")
     p.add_argument("--resolution", type=int, help="image width in pixels (default: the dataset's)")
     p.add_argument("--minutes", type=float, help="training wall-time budget (progress-curve renders excluded)")
     p.add_argument("--iters", type=int, help="step budget (deterministic for a seed on CPU)")

@@ -92,6 +92,34 @@ def flip_first_float32(data: bytes) -> bytes:
 
 # ---- tiny scenes and the reveal's inputs ----------------------------------------------------------
 
+def tiny_fit(kind: str):
+    """A fit config of `kind` ("mlp": the small preset, "hashgrid": its preset with the tiny random scenes'
+    SMALL_HASHGRID) cut down for tests: few rays and samples, a 16³ occupancy grid."""
+    from noisenerf.train.scene.fit import PRESETS
+    from noisenerf.train.scene.occupancy import OccupancyConfig
+    from noisenerf.train.scene.random_scene import SMALL_HASHGRID
+
+    preset = PRESETS["small"] if kind == "mlp" else dataclasses.replace(PRESETS["hashgrid"], field=SMALL_HASHGRID)
+    return dataclasses.replace(preset, batch_rays=256, n_samples=32, warmup_rays=128, warmup_samples=16,
+                               empty_points=256, precrop_steps=10,
+                               occupancy=OccupancyConfig(resolution=16, warmup_steps=20, update_every=8))
+
+
+def fitted_tiny_scene(folder: Path, kind: str, iters: int = 150):
+    """A scene of `kind` fitted for `iters` steps (tiny_fit) on a 24 px procedural dataset in `folder`."""
+    import torch
+
+    from noisenerf.train.scene.datasets import load_dataset
+    from noisenerf.train.scene.fit import Budget, fit
+    from noisenerf.train.scene.procedural import write_procedural_dataset
+    from noisenerf.train.scene.scene import load_scene
+
+    data = write_procedural_dataset(folder / "data", size=24, n_train=12, n_val=0, n_test=2)
+    fit(load_dataset(data), folder / "fitted", tiny_fit(kind), Budget(iters=iters), torch.device("cpu"),
+        curve_seconds=0)
+    return load_scene(folder / "fitted")
+
+
 def make_tiny_scene(seed: int = 0, **kwargs):
     """A tiny scene with seeded random weights and a full occupancy grid (train/scene/random_scene.py)."""
     from noisenerf.train.scene.random_scene import random_scene

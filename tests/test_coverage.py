@@ -2,8 +2,9 @@
 inexact bundle.
 
 The small version of the bench's coverage sweep (cli/bench/coverage.py): the demo scene at all of its
-cameras and a random-weight scene (another fit entirely, whose shared position noise lifts nothing) at
-all of its own, each with a mosaic of every hard secret; single-colour secrets (whose compact basis is
+cameras, a random-weight scene (another fit entirely, whose shared position noise lifts nothing), and
+of the hash-grid kind a random-weight scene and a fitted one, each at all of its own cameras, with a
+mosaic of every hard secret; single-colour secrets (whose compact basis is
 made of that colour alone) at a spread of cameras. Then an unsolvable tile (a solver allowed one
 iteration) must stop the hide with exit code 3 and no bundle, unless --allow-inexact.
 """
@@ -17,7 +18,7 @@ import numpy as np
 import pytest
 import torch
 
-from helpers import make_tiny_scene, run_main
+from helpers import fitted_tiny_scene, make_tiny_scene, run_main
 from noisenerf.cli.bench.coverage import hard_secrets
 from noisenerf.cli.main import main as noisenerf_main
 from noisenerf.export.onnx_export import export_scene
@@ -39,10 +40,15 @@ def mosaic(secrets: dict[str, np.ndarray]) -> np.ndarray:
     return np.concatenate(list(secrets.values()), axis=1)
 
 
-@pytest.fixture(scope="module", params=["demo", "random weights"])
+SCENES = {"demo": lambda folder: load_scene(DEMO_SCENE), "random weights": lambda folder: make_tiny_scene(seed=4),
+          "random hash grid": lambda folder: make_tiny_scene(seed=4, kind="hashgrid"),
+          "fitted hash grid": lambda folder: fitted_tiny_scene(folder, "hashgrid")}
+
+
+@pytest.fixture(scope="module", params=list(SCENES))
 def scene_and_model(request, tmp_path_factory):
     folder = tmp_path_factory.mktemp("coverage")
-    scene = load_scene(DEMO_SCENE) if request.param == "demo" else make_tiny_scene(seed=4)
+    scene = SCENES[request.param](folder)
     scene.save(folder / "scene")
     export_scene(folder / "scene", folder / "model.onnx")
     return scene, load_model(folder / "model.onnx"), folder

@@ -10,18 +10,17 @@ import numpy as np
 import pytest
 import torch
 
-from helpers import assert_refused
+from helpers import assert_refused, tiny_fit
 from noisenerf.runtime.errors import UserError
 from noisenerf.train.scene.datasets import load_dataset
 from noisenerf.train.scene.fit import PRESETS, Budget, Fitter, fit
-from noisenerf.train.scene.occupancy import OccupancyConfig
 from noisenerf.train.scene.procedural import write_procedural_dataset
+from noisenerf.train.scene.random_scene import SMALL_HASHGRID
 from noisenerf.train.scene.scene import load_scene
 
 CPU = torch.device("cpu")
-TINY = dataclasses.replace(PRESETS["small"], batch_rays=256, n_samples=32, warmup_rays=128, warmup_samples=16,
-                           empty_points=256, precrop_steps=10,
-                           occupancy=OccupancyConfig(resolution=16, warmup_steps=20, update_every=8))
+TINY, TINY_HASHGRID = tiny_fit("mlp"), tiny_fit("hashgrid")
+BOTH_KINDS = pytest.mark.parametrize("config", [TINY, TINY_HASHGRID], ids=["mlp", "hashgrid"])
 
 
 @pytest.fixture(scope="module")
@@ -35,8 +34,9 @@ def quiet_fit(dataset, out, iters, config=TINY):
     return fit(dataset, out, config, Budget(iters=iters), CPU, curve_seconds=0)
 
 
-def test_fit_learns_and_skips(dataset, tmp_path):
-    report = quiet_fit(dataset, tmp_path / "scene", 120)
+@BOTH_KINDS
+def test_fit_learns_and_skips(dataset, tmp_path, config):
+    report = quiet_fit(dataset, tmp_path / "scene", 120, config)
     assert report["steps"] == 120
     assert report["test"]["psnr"] > 12.0  # a grey guess scores about 9 dB on this scene
     assert report["test"]["samples_evaluated"] < report["test"]["samples_dense"] / 2
@@ -45,8 +45,9 @@ def test_fit_learns_and_skips(dataset, tmp_path):
     assert 0.0 < scene.grid.occupancy_fraction() < 0.9
 
 
-def test_resume_after_interruption_gives_identical_weights(dataset, tmp_path, monkeypatch):
-    whole = quiet_fit(dataset, tmp_path / "whole", 40)
+@BOTH_KINDS
+def test_resume_after_interruption_gives_identical_weights(dataset, tmp_path, monkeypatch, config):
+    whole = quiet_fit(dataset, tmp_path / "whole", 40, config)
     step = Fitter.train_step
 
     def interrupted(self, lr):
@@ -56,10 +57,10 @@ def test_resume_after_interruption_gives_identical_weights(dataset, tmp_path, mo
 
     monkeypatch.setattr(Fitter, "train_step", interrupted)
     with pytest.raises(KeyboardInterrupt):
-        fit(dataset, tmp_path / "resumed", TINY, Budget(iters=40), CPU, checkpoint_seconds=0, curve_seconds=0)
+        fit(dataset, tmp_path / "resumed", config, Budget(iters=40), CPU, checkpoint_seconds=0, curve_seconds=0)
     assert not (tmp_path / "resumed" / "scene.json").exists()
     monkeypatch.setattr(Fitter, "train_step", step)
-    resumed = quiet_fit(dataset, tmp_path / "resumed", 40)
+    resumed = quiet_fit(dataset, tmp_path / "resumed", 40, config)
     assert resumed["resumed"] and resumed["steps"] == 40
     assert resumed["fingerprint"] == whole["fingerprint"]
 
@@ -78,6 +79,8 @@ def run_cli(*args):
     (["fit", "{missing}", "-o", "{out}", "--iters", "1"], "dataset folder not found"),
     (["fit", "{data}", "-o", "{out}"], "exactly one of --minutes"),
     (["hide", "{out}", "{data}/x.png", "-o", "{out}/s.bundle"], "not a scene directory"),
+    (["fit", "{data}", "-o", "{out}", "--iters", "1", "--field", "hashgrid", "--preset", "small"],
+     "preset small fits the mlp kind, not hashgrid"),
 ])
 def test_cli_bad_input_is_one_line_and_exit_2(dataset, tmp_path, args, message):
     data = tmp_path / "data"
@@ -94,3 +97,11 @@ def test_fit_json_is_one_object_on_stdout(dataset, tmp_path):
     assert result.returncode == 0, result.stderr
     report = json.loads(result.stdout)
     assert report["steps"] == 3 and np.isfinite(report["test"]["psnr"])
+
+
+def test_a_hashgrid_fit_records_its_kind_and_the_datasets_box(dataset, tmp_path):
+    quiet_fit(dataset, tmp_path / "scene", 3, TINY_HASHGRID)
+    scene_json = json.loads((tmp_path / "scene" / "scene.json").read_text())
+    assert scene_json["coarse"]["kind"] == "hashgrid" and "kind" not in json.loads(json.dumps(TINY.field.to_dict()))
+    assert scene_json["coarse"]["aabb"] == list(dataset.aabb)
+    assert load_scene(tmp_path / "scene").coarse.config == SMALL_HASHGRID.in_box(dataset.aabb)

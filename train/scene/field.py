@@ -66,6 +66,10 @@ class FieldConfig:
     def to_dict(self) -> dict:
         return dataclasses.asdict(self)
 
+    def in_box(self, aabb) -> "FieldConfig":
+        """The config for a scene in this box: unchanged (γ(x) spans all space)."""
+        return self
+
     @staticmethod
     def from_dict(data: dict) -> "FieldConfig":
         return FieldConfig(**{**data, "skips": tuple(data.get("skips", (4,)))})

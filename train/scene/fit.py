@@ -1,10 +1,14 @@
 """`noisenerf fit`: fit a NeRF to a dataset on a CPU (or GPU), with skipping, checkpoints and resume.
 
-Presets:
-- `small` (default): one 6×128 MLP (nerf-pytorch compatible: netdepth 6, netwidth 128, skip at 4),
-  128 uniform samples per ray of which only those in occupied grid cells and before the ray turns
-  opaque are evaluated. Chosen for 2 CPU cores: ≈4× the training throughput of 8×256.
+Presets (`--field` picks a kind's default preset):
+- `small` (the `mlp` kind's default): one 6×128 MLP (nerf-pytorch compatible: netdepth 6, netwidth 128,
+  skip at 4), 128 uniform samples per ray of which only those in occupied grid cells and before the ray
+  turns opaque are evaluated. Chosen for 2 CPU cores: ≈4× the training throughput of 8×256.
 - `paper`: nerf-pytorch's lego setup, 8×256 coarse + fine, 64 + 128 hierarchical samples.
+- `hashgrid` (the `hashgrid` kind's): Instant-NGP's field (16 levels × 2 features, 2^17 rows a level,
+  resolutions 16 to 1024, SH degree 4, 64-wide MLPs) spanning the dataset's box, with the same sampler,
+  occupancy grid and early termination as `small`; Instant-NGP's Adam (β₂ 0.99, ε 1e-15, weight decay on
+  the MLPs only) at its learning rate 1e-2.
 
 The learning rate decays exponentially from `lr` to `lr_final` over the run (by steps with --iters,
 by wall time with --minutes, so that a time-boxed run still anneals). With --iters the result is a
@@ -37,6 +41,8 @@ from noisenerf.runtime.rays import camera_ray_batch, field_space_rays
 from noisenerf.runtime.render import RenderConfig, render_view
 from noisenerf.runtime.sampling import SamplingConfig, jitter_positions, sample_positions
 from noisenerf.train.scene.field import FieldConfig
+from noisenerf.train.scene.field_kinds import FieldConfigs
+from noisenerf.train.scene.hashgrid import HashGridConfig
 from noisenerf.train.scene.occupancy import OccupancyConfig, OccupancyTracker, build_occupancy_grid, carve, cell_points
 from noisenerf.train.scene.render import (TorchRays, numpy_coarse, numpy_field, render_hierarchical, render_rays,
                                           skip_mask)
@@ -55,7 +61,7 @@ class FitConfig:
     """Everything that decides a fit's result; saved with its checkpoints so resume can check it."""
 
     preset: str
-    field: FieldConfig
+    field: FieldConfigs  # a hash grid's box is the dataset's (in_box)
     fine: FieldConfig | None
     n_samples: int  # uniform samples per ray for skipping-based fitting and all ordinary renders
     n_coarse: int  # hierarchical fitting only (paper preset)
@@ -88,7 +94,11 @@ PRESETS = {
                        occupancy=OccupancyConfig(warmup_steps=300)),
     "paper": FitConfig(preset="paper", field=FieldConfig(), fine=FieldConfig(), n_samples=192, n_coarse=64,
                        n_importance=128, batch_rays=1024, lr=5e-4, lr_final=5e-5, skipping=False),
+    "hashgrid": FitConfig(preset="hashgrid", field=HashGridConfig(), fine=None, n_samples=128, n_coarse=0,
+                          n_importance=0, batch_rays=1024, lr=1e-2, lr_final=3e-4,
+                          occupancy=OccupancyConfig(warmup_steps=100)),
 }
+DEFAULT_PRESETS = {"mlp": "small", "hashgrid": "hashgrid"}  # the preset `--field KIND` fits with
 
 
 @dataclass(frozen=True)
@@ -144,7 +154,7 @@ class Fitter:
         self.dataset, self.config, self.device = dataset, config, device
         torch.manual_seed(config.seed)
         self.scene_config = SceneConfig(
-            coarse=config.field, fine=config.fine, n_coarse=config.n_coarse, n_importance=config.n_importance,
+            coarse=config.field.in_box(dataset.aabb), fine=config.fine, n_coarse=config.n_coarse, n_importance=config.n_importance,
             render=RenderConfig(SamplingConfig(dataset.near, dataset.far, config.n_samples),
                                 background=dataset.background, ndc=dataset.ndc, pixel_center=0.5,
                                 early_stop=config.early_stop),
