@@ -2,12 +2,14 @@
 
 `write_fixtures` builds tiny scenes from seeds, hides secrets in them (every layout: compact with an
 escaped pixel, ray, sample; a fine network and the coarse one of a hierarchical scene; an NDC scene; a
-multi-tile bundle), exports the models, and writes beside each model.onnx and secret.bundle what the
-Python runtime computes on them: per tile the rays (runtime.rays.camera_ray_batch), the expanded noise
-(the tile noise's `rows`), the rendered colours (runtime.reveal.render_tile), and the revealed 8-bit
-pixels, digest and exactness (runtime.reveal.reveal). Tampered copies carry the one-line message
-`noisenerf-reveal` prints for them. Then `node --test` runs web/test/ with NOISENERF_WEB_FIXTURES pointing
-there: the JavaScript port must give the same pixels byte for byte and the same refusals.
+multi-tile bundle; a hash-grid field), exports the models, and writes beside each model.onnx and
+secret.bundle what the Python runtime computes on them: per tile the rays (runtime.rays.camera_ray_batch),
+the expanded noise (the tile noise's `rows`), the rendered colours (runtime.reveal.render_tile), and the
+revealed 8-bit pixels, digest and exactness (runtime.reveal.reveal). Tampered copies carry the one-line
+message `noisenerf-reveal` prints for them. The manifest also holds the graphs runtime.fields derives for
+hash-grid architectures, and the messages refusing those out of the caps. Then `node --test` runs
+web/test/ with NOISENERF_WEB_FIXTURES pointing there: the JavaScript port must give the same pixels byte
+for byte, the same graphs and the same refusals.
 
 Run by hand: `python tests/test_web.py DIR` writes the fixtures into DIR (then `npm test` in web/ with
 NOISENERF_WEB_FIXTURES=DIR).
@@ -164,14 +166,112 @@ PAYLOAD = b"the eagle lands at noon\n\x00\xff binary tail"
 PASSPHRASE = "r\u00e9f\u00e9rence"  # not ASCII: the page sends UTF-8, as the CLI's prompt does
 
 
-def changed_weight(data: bytes) -> bytes:
-    """The model with one byte of its first weight's raw data changed (a weight's low mantissa bit)."""
-    from noisenerf.runtime.onnx_file import parse_model
+def changed_initializer(pick):
+    """The model with the first byte of the raw data of its first initializer whose name `pick` accepts changed (a
+    float's low mantissa bit, an integer's lowest bit)."""
+    def apply(data: bytes) -> bytes:
+        from noisenerf.runtime.onnx_file import parse_model
 
-    weights = [r for r in parse_model(data, "model").initializers if r.name.endswith(".weight")]
-    record = weights[0]
-    at = data.index(record.raw_data)
-    return data[:at] + bytes([data[at] ^ 1]) + data[at + 1:]
+        record = next(r for r in parse_model(data, "model").initializers if pick(r.name))
+        at = data.index(record.raw_data)
+        return data[:at] + bytes([data[at] ^ 1]) + data[at + 1:]
+    return apply
+
+
+changed_weight = changed_initializer(lambda name: name.endswith(".weight"))
+
+
+def model_edit(edit):
+    """Edit a model through onnx's ModelProto (edit(model) -> the model to write), e.g. test_model_graph's
+    tamperings."""
+    def apply(data: bytes) -> bytes:
+        import onnx
+
+        return edit(onnx.load_from_string(data)).SerializeToString()
+    return apply
+
+
+def swapped_xor(model):
+    """A model whose hash's second XOR is an OR: the same weights looked up at other rows."""
+    next(node for node in model.graph.node if node.output[0].endswith(".hxyz")).op_type = "BitwiseOr"
+    return model
+
+
+def model_metadata_edit(edit):
+    """Edit a model's noisenerf metadata (JSON), its graph and weights kept."""
+    def apply(model):
+        entry = next(entry for entry in model.metadata_props if entry.key == "noisenerf")
+        meta = json.loads(entry.value)
+        edit(meta)
+        entry.value = json.dumps(meta)
+        return model
+    return model_edit(apply)
+
+
+def graph_golden(architecture: dict, noise_dims: int) -> dict:
+    """runtime.fields.field_graph(architecture, noise_dims) as JSON: nodes, constants (name, dtype, shape, values:
+    float32 values exactly, as the doubles they are), weights, ports and opset, or the refusal's message. The
+    architecture goes as its JSON text, which the JavaScript parses as Python does (16.0 a float, 16 an int)."""
+    from noisenerf.runtime.errors import UserError
+    from noisenerf.runtime.fields import field_graph
+
+    text = json.dumps(architecture)
+    try:
+        graph = field_graph(json.loads(text), noise_dims)
+    except UserError as error:
+        return {"architecture": text, "noise_dims": noise_dims, "message": str(error)}
+    ports = lambda ports: [[port.name, list(port.shape), port.elem_type] for port in ports]  # noqa: E731
+    return {"architecture": text, "noise_dims": noise_dims, "opset": graph.opset,
+            "nodes": [[node.op, list(node.inputs), list(node.outputs), [list(a) for a in node.attributes]]
+                      for node in graph.nodes],
+            "constants": [[name, values.dtype.name, list(values.shape), values.ravel().tolist()]
+                          for name, values in graph.constants.items()],
+            "weights": [[name, list(shape)] for name, shape in graph.weights.items()],
+            "inputs": ports(graph.inputs), "outputs": ports(graph.outputs)}
+
+
+# per_level_scale of 16 levels from 16 to 1024 and to 2048 vertices a side (64 and 128 to the 1/15), and others
+PER_LEVEL_SCALES = (1.3195079107728942, 1.381912879967776, 2.0, 1.5, 1.26, 1.0)
+
+
+def hashgrid_architectures() -> tuple[list, list]:
+    """(architectures whose graphs the JavaScript must derive exactly, architectures it must refuse with Python's
+    message): the random scene's hash grid and variants of it (fine, beside an MLP, without a geometric feature,
+    other SH degrees and widths, every level hashed, every level dense), then every cap, key and kind."""
+    from noisenerf.train.scene.random_scene import SMALL_HASHGRID
+
+    grid = SMALL_HASHGRID.to_dict()
+    mlp = {"depth": 2, "width": 8, "skips": [1], "xyz_freqs": 2, "dir_freqs": 1, "use_viewdirs": True}
+    without_aabb = {key: value for key, value in grid.items() if key != "aabb"}
+
+    def coarse(**change) -> dict:
+        return {"coarse": {**grid, **change}, "fine": None}
+
+    graphs = [coarse(), {"coarse": grid, "fine": grid}, {"coarse": mlp, "fine": grid}, {"coarse": grid, "fine": mlp},
+              coarse(geo_features=0, sh_degree=3, colour_layers=1), coarse(sh_degree=1, colour_hidden=3),
+              coarse(log2_table=3), coarse(log2_table=24, per_level_scale=1.0, levels=2),
+              coarse(levels=8, base_resolution=3, per_level_scale=4.0, log2_table=12, features=1,
+                     aabb=[-2, 0, 1, 3, 1.25, 7])]
+    refused = [coarse(levels=33), coarse(log2_table=25), coarse(levels=16, per_level_scale=4.0), coarse(features=0),
+               coarse(levels=32, features=8, log2_table=24, per_level_scale=1.0, base_resolution=4096),
+               coarse(aabb=[0, 0, 0, 1, -1, 1]), coarse(aabb=[0, 0, 0, 1, 1]), coarse(aabb=[0, 0, 0, 1, 1, 2e9]),
+               coarse(aabb={"lo": 0}), coarse(sh_degree=5), coarse(geo_features=-1), coarse(colour_layers=0),
+               coarse(per_level_scale=9.0), coarse(per_level_scale=0.5), coarse(per_level_scale="2"),
+               coarse(per_level_scale=True), coarse(levels=2.0), coarse(kind="triplane"), coarse(kind=3),
+               coarse(kind=None), coarse(kind="mlp"), {"coarse": without_aabb, "fine": None},
+               {"coarse": grid, "fine": {**grid, "kind": "triplane"}},
+               {"coarse": {**grid, "kind": "nerf"}, "fine": {**grid, "levels": 0}},
+               {"coarse": {**mlp, "kind": "hashgrid"}, "fine": None},
+               {"coarse": {**mlp, "depth": 10 ** 9}, "fine": None}]
+    return graphs, refused
+
+
+def scales_golden() -> list:
+    """runtime.fields.hashgrid.grid_levels' float32 scales (16 levels from N_min 16) for PER_LEVEL_SCALES."""
+    from noisenerf.runtime.fields.hashgrid import grid_levels
+
+    return [{"per_level_scale": scale, "scale": grid_levels(16, 19, 16, scale).scale.tolist()}
+            for scale in PER_LEVEL_SCALES]
 
 
 def bundle_metadata_edit(edit):
@@ -238,13 +338,15 @@ def write_fixtures(root: Path) -> dict:
     from noisenerf.train.hide.settings import PaperSettings
     from noisenerf.train.hide.plan import HideConfig
     from noisenerf.train.hide.run import hide
+    from test_model_graph import appended_node, changed_opset
 
     cpu = torch.device("cpu")
     rng = np.random.default_rng(7)
     secret = rng.integers(0, 256, (20, 24, 3), dtype=np.uint8)
     scenes = {"plain": make_tiny_scene(seed=0), "fine": make_tiny_scene(seed=3, fine=True),
               "ndc": make_tiny_scene(seed=1, ndc=True),
-              "wide": make_tiny_scene(seed=0, width=64, depth=4)}  # tests/test_reference.py's payload scene
+              "wide": make_tiny_scene(seed=0, width=64, depth=4),  # tests/test_reference.py's payload scene
+              "hashgrid": make_tiny_scene(seed=2, kind="hashgrid")}
     paper = (PaperSettings(iters=4, record_at=(4,)),)
     cases = {  # name -> scene, secret, hide config
         "compact_tiles": ("plain", secret, HideConfig(tile_size=16)),
@@ -255,6 +357,8 @@ def write_fixtures(root: Path) -> dict:
         "fine_coarse_sample": ("fine", secret[:6, :8], HideConfig(method="paper", tile_size=16, n_samples=8,
                                                                   settings=paper)),
         "ndc_compact": ("ndc", secret[:8, :12], HideConfig(tile_size=16)),
+        "hashgrid_compact": ("hashgrid", secret[:8, :12], HideConfig(tile_size=16)),
+        "hashgrid_ray": ("hashgrid", secret[:6, :8], HideConfig(layout="ray", tile_size=16, view=2, seed=5)),
     }
     manifest = {"fixtures": {}, "tampered": []}
     threads = torch.get_num_threads()
@@ -339,7 +443,23 @@ def write_fixtures(root: Path) -> dict:
         tamper(root, "compact_tiles", "codec", edit_bundle=bundle_metadata_edit(
             lambda meta: meta["noise"].update(codec="zstd"))),
         tamper(root, "fine_compact", "wrong_model", edit_model=lambda data: (root / "scenes" / "plain.onnx").read_bytes()),
+        # a float constant (the first level's scale), an integer one (the hash's primes), the table (the fingerprint)
+        *(tamper(root, "hashgrid_ray", f"hashgrid_{name}", edit_model=changed_initializer(pick)) for name, pick in (
+            ("scale", lambda name: name.endswith(".scale")), ("primes", lambda name: name == "grid.primes"),
+            ("table", lambda name: name.endswith(".table")))),
+        tamper(root, "hashgrid_compact", "hashgrid_appended_node", edit_model=model_edit(appended_node)),
+        tamper(root, "hashgrid_compact", "hashgrid_xor", edit_model=model_edit(swapped_xor)),
+        tamper(root, "hashgrid_compact", "hashgrid_opset", edit_model=model_edit(changed_opset)),
+        tamper(root, "hashgrid_compact", "hashgrid_per_level_scale", edit_model=model_metadata_edit(
+            lambda meta: meta["architecture"]["coarse"].update(per_level_scale=9.0))),
+        tamper(root, "hashgrid_compact", "hashgrid_kind", edit_model=model_metadata_edit(
+            lambda meta: meta["architecture"]["coarse"].update(kind="triplane"))),
     ]
+    graphs, refused = hashgrid_architectures()
+    noise_dims = scenes["hashgrid"].render_field.config.noise_dims
+    manifest["graphs"] = [graph_golden(architecture, noise_dims) for architecture in graphs + refused]
+    assert ["message" in graph for graph in manifest["graphs"]] == [False] * len(graphs) + [True] * len(refused)
+    manifest["scales"] = scales_golden()
     (root / "manifest.json").write_text(json.dumps(manifest, indent=1))
     return manifest
 

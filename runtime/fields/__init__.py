@@ -57,7 +57,7 @@ def field_kind(config, what: str) -> FieldKind:
     """The kind an architecture names (an `mlp` where it names none); an unknown one is refused."""
     name = config.get("kind", DEFAULT_KIND) if isinstance(config, dict) else DEFAULT_KIND
     kinds = field_kinds()
-    if name not in kinds:
+    if not isinstance(name, str) or name not in kinds:
         raise UserError(f"the {what} network is of kind {name!r}; this noisenerf knows {sorted(kinds)}")
     return kinds[name]
 

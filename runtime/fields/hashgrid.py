@@ -1,8 +1,8 @@
 """The `hashgrid` field kind: an Instant-NGP field, with tiny-cuda-nn's hash-grid and SH conventions.
 
 Position: x normalised into the scene box, [0, 1]³ (points outside take the box's nearest point), then
-per level l of L: scale_l = 2^(l·log2 b)·N_min − 1 and resolution_l = ceil(scale_l) + 1 (float32, as
-tiny-cuda-nn computes them), the cell of scale_l·x + 0.5, its 8 corners indexed densely (x + y·res +
+per level l of L: scale_l = N_min·b^l − 1 and resolution_l = ceil(scale_l) + 1 (float32; level_scales),
+the cell of scale_l·x + 0.5, its 8 corners indexed densely (x + y·res +
 z·res², modulo the level's rows) where res³ fits the table and by the XOR-of-primes hash (x·1 ⊕
 y·2654435761 ⊕ z·805459861, masked to the table) where it does not, their F features trilinearly
 interpolated (Müller et al. 2022, eq. 1–3). Direction: real spherical harmonics of the unit view
@@ -12,7 +12,7 @@ degree ≤ 3. Noise segments: position = the L·F interpolated features, directi
 [raw density ‖ geometric feature]; σ = exp(min(raw, DENSITY_EXPONENT_CAP)). Colour: a ReLU MLP on
 [noisy SH ‖ geometric feature], sigmoid. Torch twin: train.scene.hashgrid.HashGridField.
 
-The graph needs opset 18 (BitwiseXor, BitwiseAnd; ReduceProd with axes as an input).
+The graph needs opset 18 (BitwiseXor, BitwiseAnd on int64).
 """
 
 from __future__ import annotations
@@ -79,12 +79,21 @@ class GridLevels:
         return int(self.rows.sum())
 
 
+def level_scales(levels: int, base_resolution: int, per_level_scale: float) -> np.ndarray:
+    """scale_l = N_min·b^l − 1, b^l by repeated float64 products and the result rounded once to float32: the
+    same bits on every machine and in the browser (float32 exp2/log2, tiny-cuda-nn's own formula, differ by an
+    ulp between CPUs, and where N_min·b^l is near an integer that moves a level's resolution). -> (L,) float32."""
+    power, scales = 1.0, []
+    for _ in range(levels):
+        scales.append(base_resolution * power - 1.0)
+        power *= per_level_scale
+    return np.array(scales, np.float64).astype(np.float32)
+
+
 def grid_levels(levels: int, log2_table: int, base_resolution: int, per_level_scale: float) -> GridLevels:
-    """tiny-cuda-nn's level layout: scale_l = exp2(l·log2 b)·N_min − 1 and resolution ceil(scale_l) + 1 in
-    float32; rows min(res³ rounded up to 8, 2^log2_table); dense where res³ fits in them."""
-    l = np.arange(levels, dtype=np.float32)
-    scale = (np.exp2(l * np.log2(np.float32(per_level_scale))) * np.float32(base_resolution) - np.float32(1.0))
-    scale = scale.astype(np.float32)
+    """tiny-cuda-nn's level layout: scale_l = N_min·b^l − 1 (level_scales) and resolution ceil(scale_l) + 1;
+    rows min(res³ rounded up to 8, 2^log2_table); dense where res³ fits in them."""
+    scale = level_scales(levels, base_resolution, per_level_scale)
     resolution = np.ceil(scale).astype(np.int64) + 1
     cells = resolution ** 3
     table = 1 << log2_table
@@ -253,14 +262,17 @@ def grid_features(builder: GraphBuilder, prefix: str, config: dict) -> str:
 
 def spherical_harmonics(builder: GraphBuilder, degree: int) -> str:
     """SH of `viewdirs` up to `degree` -> (n, degree²): sh_matrix over the monomials, by one Gemm."""
-    name = f"sh.{degree}"
+    name, monomials = f"sh.{degree}", "sh.monomials"
     if builder.computed(name):
         return name
-    gather = lambda x, index, out: builder.add("Gather", (x, builder.constant(  # noqa: E731
-        f"sh.index.{out}", np.array(index, np.int64))), f"sh.{out}", axis=1)
-    degree2 = builder.add("Mul", (gather("viewdirs", DEGREE2[0], "a2"), gather("viewdirs", DEGREE2[1], "b2")), "sh.deg2")
-    degree3 = builder.add("Mul", (gather(degree2, DEGREE3[0], "a3"), gather("viewdirs", DEGREE3[1], "b3")), "sh.deg3")
-    monomials = builder.add("Concat", ("viewdirs", degree2, degree3), "sh.monomials", axis=1)
+    if not builder.computed(monomials):  # shared by every degree
+        gather = lambda x, index, out: builder.add("Gather", (x, builder.constant(  # noqa: E731
+            f"sh.index.{out}", np.array(index, np.int64))), f"sh.{out}", axis=1)
+        degree2 = builder.add("Mul", (gather("viewdirs", DEGREE2[0], "a2"), gather("viewdirs", DEGREE2[1], "b2")),
+                              "sh.deg2")
+        degree3 = builder.add("Mul", (gather(degree2, DEGREE3[0], "a3"), gather("viewdirs", DEGREE3[1], "b3")),
+                              "sh.deg3")
+        builder.add("Concat", ("viewdirs", degree2, degree3), monomials, axis=1)
     matrix, constant = sh_matrix()
     rows = degree ** 2
     return builder.add("Gemm", (monomials, builder.constant(f"sh.matrix.{degree}", matrix[:rows]),

@@ -1,28 +1,33 @@
-// Mirrors runtime/graph.py: the graph a noisenerf model holds as a pure function of its architecture
-// (field_graph), and the rule that binds a model file's graph to it (check_graph), with the same messages.
+// Mirrors runtime/graph.py: the builder the field kinds (src/fields/, runtime/fields/) write a model's graph with,
+// and the rule that binds a model file's graph to the one its architecture derives (check_graph), with the same
+// messages.
 
 import { UserError, repr, tuple, PyFloat } from "./errors.js";
 import { FLOAT, INT64, tensorArray } from "./onnx.js";
-import { MAX_FIELD_DEPTH, MAX_FIELD_WIDTH, MAX_FREQUENCIES, checkedInt, checkedList } from "./limits.js";
 
-export const OPSET = 17;
 export const INPUT_NAMES = ["points", "viewdirs", "noise"];
 export const OUTPUT_NAMES = ["rgb", "sigma"];
 export const COARSE_OUTPUT_NAMES = ["rgb_coarse", "sigma_coarse"];
-const BATCH = "n";
+export const BATCH = "n";
 
-export const encodingDims = (nFreqs) => 3 + 6 * nFreqs;
+/** A graph input or output: name, shape (BATCH for the free batch axis), element type. */
+export const port = (name, shape, elemType = FLOAT) => ({ name, shape, elemType });
 
-class GraphBuilder {
+/** Collects nodes, constants ({dtype, shape, values}) and weights (shapes); a value computed once (an encoding)
+ * is reused by name. The field kinds (src/fields/) write their networks with it. */
+export class GraphBuilder {
   constructor() {
     this.nodes = [];
     this.constants = new Map(); // name -> {dtype, shape, values}
     this.weights = new Map(); // name -> shape
   }
   add(op, inputs, output, attributes = {}) {
+    return this.node(op, inputs, [output], attributes)[0];
+  }
+  node(op, inputs, outputs, attributes) {
     const attrs = Object.entries(attributes).sort((a, b) => (a[0] < b[0] ? -1 : 1));
-    this.nodes.push({ op, inputs: [...inputs], outputs: [output], attributes: attrs });
-    return output;
+    this.nodes.push({ op, inputs: [...inputs], outputs: [...outputs], attributes: attrs });
+    return outputs;
   }
   constant(name, dtype, shape, values) {
     if (!this.constants.has(name)) this.constants.set(name, { dtype, shape, values });
@@ -34,101 +39,19 @@ class GraphBuilder {
     this.weights.set(bias, [fanOut]);
     return this.add("Gemm", [x, weight, bias], `${prefix}.${layer}`, { transB: 1 });
   }
+  /** Split x along `axis` into `outputs` of the sizes held by the constant `sizes`. */
+  split(x, sizes, outputs, axis = 1) { return this.node("Split", [x, sizes], outputs, { axis }); }
   computed(name) { return this.nodes.some((node) => node.outputs.includes(name)); }
-  encoding(x, nFreqs) {
-    const name = `gamma.${x}.${nFreqs}`;
-    if (this.computed(name)) return name;
-    const axis1 = this.constant("axes.1", "int64", [1], [1]);
-    const axis2 = this.constant("axes.2", "int64", [1], [2]);
-    const freqs = this.constant(`freqs.${nFreqs}`, "float32", [nFreqs, 1], Array.from({ length: nFreqs }, (_, i) => 2 ** i));
-    const scaled = this.add("Mul", [this.add("Unsqueeze", [x, axis1], `${name}.x`), freqs], `${name}.scaled`);
-    const sin = this.add("Unsqueeze", [this.add("Sin", [scaled], `${name}.sin`), axis2], `${name}.sin4`);
-    const cos = this.add("Unsqueeze", [this.add("Cos", [scaled], `${name}.cos`), axis2], `${name}.cos4`);
-    const bands = this.add("Concat", [sin, cos], `${name}.bands4`, { axis: 2 });
-    const flat = this.add("Reshape", [bands, this.constant("shape.flat", "int64", [2], [0, -1])], `${name}.bands`);
-    return this.add("Concat", [x, flat], name, { axis: 1 });
-  }
-  noisyInputs(config) {
-    const xyz = this.encoding("points", config.xyz_freqs);
-    if (!config.use_viewdirs) {
-      const name = `${xyz}+noise`;
-      return [this.computed(name) ? name : this.add("Add", [xyz, "noise"], name), null];
-    }
-    const dirs = this.encoding("viewdirs", config.dir_freqs);
-    const name = `${xyz}|${dirs}+noise`;
+  /** [position ‖ direction] + noise split back into its two segments, computed once per pair of encodings;
+   * `addSizes()` adds the constant holding their widths, after the Add, and returns its name. */
+  noisyPair(position, direction, addSizes) {
+    const name = `${position}|${direction}+noise`;
     if (!this.computed(name)) {
-      this.add("Add", [this.add("Concat", [xyz, dirs], `${xyz}|${dirs}`, { axis: 1 }), "noise"], name);
-      const sizes = this.constant(`split.${config.xyz_freqs}.${config.dir_freqs}`, "int64", [2],
-        [encodingDims(config.xyz_freqs), encodingDims(config.dir_freqs)]);
-      this.nodes.push({ op: "Split", inputs: [name, sizes], outputs: [`${name}.xyz`, `${name}.dirs`], attributes: [["axis", 1]] });
+      this.add("Add", [this.add("Concat", [position, direction], `${position}|${direction}`, { axis: 1 }), "noise"], name);
+      this.split(name, addSizes(), [`${name}.xyz`, `${name}.dirs`]);
     }
     return [`${name}.xyz`, `${name}.dirs`];
   }
-  network(prefix, config, rgb, sigma) {
-    const [xyz, dirs] = this.noisyInputs(config);
-    const xyzDims = encodingDims(config.xyz_freqs), width = config.width;
-    let h = xyz, fanIn = xyzDims;
-    for (let i = 0; i < config.depth; i++) {
-      h = this.add("Relu", [this.linear(prefix, `pts_linears.${i}`, h, fanIn, width)], `${prefix}.h${i}`);
-      fanIn = width;
-      if (config.skips.includes(i)) {
-        h = this.add("Concat", [xyz, h], `${prefix}.skip${i}`, { axis: 1 });
-        fanIn = width + xyzDims;
-      }
-    }
-    let rawRgb, density;
-    if (config.use_viewdirs) {
-      density = this.linear(prefix, "alpha_linear", h, width, 1);
-      const feature = this.linear(prefix, "feature_linear", h, width, width);
-      const branch = this.add("Concat", [feature, dirs], `${prefix}.branch`, { axis: 1 });
-      const hidden = this.linear(prefix, "views_linears.0", branch, width + encodingDims(config.dir_freqs), Math.floor(width / 2));
-      rawRgb = this.linear(prefix, "rgb_linear", this.add("Relu", [hidden], `${prefix}.views`), Math.floor(width / 2), 3);
-    } else {
-      const raw = this.linear(prefix, "output_linear", h, width, 4);
-      const sizes = this.constant("split.rgb_density", "int64", [2], [3, 1]);
-      rawRgb = `${prefix}.raw_rgb`;
-      density = `${prefix}.raw_density`;
-      this.nodes.push({ op: "Split", inputs: [raw, sizes], outputs: [rawRgb, density], attributes: [["axis", 1]] });
-    }
-    this.add("Sigmoid", [rawRgb], rgb);
-    this.add("Squeeze", [this.add("Relu", [density], `${prefix}.sigma`), this.constant("axes.1", "int64", [1], [1])], sigma);
-  }
-}
-
-const NETWORK_KEYS = ["depth", "width", "skips", "xyz_freqs", "dir_freqs", "use_viewdirs"];
-
-/** checked_network: a network's architecture as metadata states it, every number within the caps. */
-export function checkedNetwork(config, what) {
-  if (config === null || typeof config !== "object" || Array.isArray(config) ||
-      Object.keys(config).length !== NETWORK_KEYS.length || !NETWORK_KEYS.every((k) => Object.hasOwn(config, k))) {
-    throw new UserError(`the ${what} network's architecture must have exactly depth, width, skips, xyz_freqs, ` +
-      "dir_freqs and use_viewdirs");
-  }
-  const depth = checkedInt(config.depth, `${what} depth`, 1, MAX_FIELD_DEPTH);
-  const skips = checkedList(config.skips, "skips", null, depth).map((skip) => checkedInt(skip, `${what} skip`, 0, depth - 1));
-  if (typeof config.use_viewdirs !== "boolean") throw new UserError(`the ${what} network's use_viewdirs must be true or false`);
-  const width = checkedInt(config.width, `${what} width`, 2, MAX_FIELD_WIDTH);
-  const freqs = {};
-  for (const key of ["xyz_freqs", "dir_freqs"]) freqs[key] = checkedInt(config[key], `${what} ${key}`, 0, MAX_FREQUENCIES);
-  return { depth, width, skips: [...new Set(skips)].sort((a, b) => a - b), use_viewdirs: config.use_viewdirs, ...freqs };
-}
-
-/** field_graph: the graph of a model with this architecture ({coarse, fine}) and noise width. */
-export function fieldGraph(architecture, noiseDims) {
-  const builder = new GraphBuilder();
-  const checked = {};
-  for (const [name, config] of Object.entries(architecture)) checked[name] = config === null ? null : checkedNetwork(config, name);
-  const fine = checked.fine ?? null;
-  const outputs = [{ name: "rgb", shape: [BATCH, 3], elemType: FLOAT }, { name: "sigma", shape: [BATCH], elemType: FLOAT }];
-  if (fine === null) builder.network("coarse", checked.coarse, ...OUTPUT_NAMES);
-  else {
-    builder.network("fine", fine, ...OUTPUT_NAMES);
-    builder.network("coarse", checked.coarse, ...COARSE_OUTPUT_NAMES);
-    outputs.push({ name: "rgb_coarse", shape: [BATCH, 3], elemType: FLOAT }, { name: "sigma_coarse", shape: [BATCH], elemType: FLOAT });
-  }
-  const inputs = [{ name: "points", shape: [BATCH, 3], elemType: FLOAT }, { name: "viewdirs", shape: [BATCH, 3], elemType: FLOAT },
-    { name: "noise", shape: [BATCH, noiseDims], elemType: FLOAT }];
-  return { nodes: builder.nodes, constants: builder.constants, weights: builder.weights, inputs, outputs };
 }
 
 function refuse(source, what) {
@@ -154,8 +77,8 @@ export function checkGraph(file, expected, source) {
       throw refuse(source, `its ${kind} are ${repr(got.map(portRepr))}, expected ${repr(want.map(portRepr))}`);
     }
   }
-  if (file.opsets.length !== 1 || file.opsets[0][0] !== "" || file.opsets[0][1] !== OPSET) {
-    throw refuse(source, `it imports opsets ${repr(file.opsets.map(([d, v]) => tuple(d, v)))}, not [('', ${OPSET})]`);
+  if (file.opsets.length !== 1 || file.opsets[0][0] !== "" || file.opsets[0][1] !== expected.opset) {
+    throw refuse(source, `it imports opsets ${repr(file.opsets.map(([d, v]) => tuple(d, v)))}, not [('', ${expected.opset})]`);
   }
   const n = Math.min(file.nodes.length, expected.nodes.length);
   for (let i = 0; i < n; i++) {

@@ -15,6 +15,11 @@ export const MAX_NOISE_DIMS = 4096;
 export const MAX_FIELD_DEPTH = 64;
 export const MAX_FIELD_WIDTH = 4096;
 export const MAX_FREQUENCIES = 32;
+export const MAX_HASH_LEVELS = 32;
+export const MAX_HASH_FEATURES = 8;
+export const MAX_LOG2_TABLE = 24;
+export const MAX_TABLE_VALUES = 2 ** 28;
+export const MAX_HASH_RESOLUTION = 2 ** 20;
 export const MAX_GRID_RESOLUTION = 512;
 export const MAX_CAMERAS = 100_000;
 export const MAX_JSON_DEPTH = 32;
@@ -28,7 +33,8 @@ export function checkedInt(value, what, low, high) {
   return Number(value);
 }
 
-function pyBound(x) { return Number.isFinite(x) ? repr(new PyFloat(x)) : (x > 0 ? "inf" : "-inf"); }
+// Python prints the bounds as given, and every bound runtime/ passes is a float: 0.0, 1e-06, 1000000000.0, inf
+function boundText(x) { return Number.isFinite(x) ? repr(new PyFloat(x)) : (x > 0 ? "inf" : "-inf"); }
 
 /** checked_float: a finite number in [low, high] (an int or a PyFloat). */
 export function checkedFloat(value, what, low = -Infinity, high = Infinity) {
@@ -39,9 +45,6 @@ export function checkedFloat(value, what, low = -Infinity, high = Infinity) {
   }
   return number;
 }
-
-// Python prints the bounds as given: ints as ints, floats as floats
-function boundText(x) { return typeof x === "object" ? repr(x) : Number.isInteger(x) && Math.abs(x) < 1e16 ? String(x) : pyBound(x); }
 
 export function checkedList(value, what, length = null, most = MAX_CAMERAS) {
   if (!Array.isArray(value)) throw new UserError(`${what} must be a list, got ${pyTypeName(value)}`);

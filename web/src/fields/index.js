@@ -1,0 +1,61 @@
+// Mirrors runtime/fields/__init__.py: the field kinds a scene's networks may be, one registered kind per
+// architecture family (a network whose architecture names no "kind" is an `mlp`). A kind owns its architecture's
+// keys and caps (`checked`, with Python's messages), its noise segments (`segments`), its part of the graph
+// (`build`) and the opset that part needs; `fieldGraph` composes a model's networks into the one graph
+// check_graph (src/graph.js) binds the model file to.
+
+import { UserError, repr } from "../errors.js";
+import { isJsonObject } from "../json.js";
+import { COARSE_OUTPUT_NAMES, OUTPUT_NAMES, BATCH, GraphBuilder, port } from "../graph.js";
+import { MLP } from "./mlp.js";
+import { HASHGRID } from "./hashgrid.js";
+
+export const DEFAULT_KIND = "mlp";
+
+/** A named run of a network's noise vector: `dims` values added to the encoding called `name`. */
+export const segment = (name, dims) => ({ name, dims });
+
+/** True when `config` is a JSON object whose keys are exactly `keys` (Python's `set(config) != KEYS`). */
+export const hasExactly = (config, keys) => isJsonObject(config) && Object.keys(config).length === keys.length &&
+  keys.every((key) => Object.hasOwn(config, key));
+
+/** Every registered kind by name (built on each call, as Python's: the kinds import this module). */
+export function fieldKinds() {
+  return Object.fromEntries([MLP, HASHGRID].map((kind) => [kind.name, kind]));
+}
+
+/** field_kind: the kind an architecture names (an `mlp` where it names none); an unknown one is refused. */
+export function fieldKind(config, what) {
+  const name = isJsonObject(config) && Object.hasOwn(config, "kind") ? config.kind : DEFAULT_KIND;
+  const kinds = fieldKinds();
+  if (typeof name !== "string" || !Object.hasOwn(kinds, name)) {
+    throw new UserError(`the ${what} network is of kind ${repr(name)}; this noisenerf knows ${repr(Object.keys(kinds).sort())}`);
+  }
+  return kinds[name];
+}
+
+/** noise_dims: values per noise vector of one network's architecture, its segments' sum. */
+export function noiseDims(config, what) {
+  const kind = fieldKind(config, what);
+  return kind.segments(kind.checked(config, what)).reduce((sum, { dims }) => sum + dims, 0);
+}
+
+/** field_graph: the graph of a model with this architecture ({coarse, fine: … | null}) and noise width: outputs
+ * rgb, sigma of the render network (the fine one where there is one), then rgb_coarse, sigma_coarse beside a fine
+ * network; the opset is the highest its kinds need. Refuses an architecture out of the caps (UserError). */
+export function fieldGraph(architecture, noiseWidth) {
+  const builder = new GraphBuilder();
+  const kinds = {}, checked = {};
+  for (const [name, config] of Object.entries(architecture)) if (config !== null) kinds[name] = fieldKind(config, name);
+  for (const [name, kind] of Object.entries(kinds)) checked[name] = kind.checked(architecture[name], name);
+  const outputs = [port("rgb", [BATCH, 3]), port("sigma", [BATCH])];
+  if (!Object.hasOwn(checked, "fine")) kinds.coarse.build(builder, "coarse", checked.coarse, ...OUTPUT_NAMES);
+  else {
+    kinds.fine.build(builder, "fine", checked.fine, ...OUTPUT_NAMES);
+    kinds.coarse.build(builder, "coarse", checked.coarse, ...COARSE_OUTPUT_NAMES);
+    outputs.push(port("rgb_coarse", [BATCH, 3]), port("sigma_coarse", [BATCH]));
+  }
+  const inputs = [port("points", [BATCH, 3]), port("viewdirs", [BATCH, 3]), port("noise", [BATCH, noiseWidth])];
+  return { nodes: builder.nodes, constants: builder.constants, weights: builder.weights, inputs, outputs,
+    opset: Math.max(...Object.values(kinds).map((kind) => kind.opset)) };
+}
