@@ -165,7 +165,7 @@ def build_parser() -> argparse.ArgumentParser:
     def add_device(p: argparse.ArgumentParser) -> None:
         p.add_argument("--device", default="auto", help="auto (CUDA if present, else CPU), cpu, or cuda")
 
-    p = add("fit", cmd_fit, "fit a NeRF to a NeRF-Synthetic or LLFF dataset")
+    p = add("fit", cmd_fit, "fit a NeRF to a NeRF-Synthetic, LLFF or capture (transforms.json) dataset")
     p.add_argument("data_dir")
     p.add_argument("-o", "--output", required=True, help="scene directory to write (resumes if it holds a checkpoint)")
     p.add_argument("--field", choices=("mlp", "hashgrid"),

@@ -1,13 +1,16 @@
-"""Scene datasets: NeRF-Synthetic (`transforms_*.json`) and LLFF (`poses_bounds.npy` + `images_N/`).
+"""Scene datasets: NeRF-Synthetic (`transforms_*.json`), LLFF (`poses_bounds.npy` + `images_N/`) and captures
+(one `transforms.json`, as Instant-NGP's colmap2nerf.py and nerfstudio's ns-process-data write it).
 
-Both load to one `Dataset`: images composited on a background, one `Camera` per image (OpenGL c2w, at the
-loaded resolution), splits, the ray interval and, for forward-facing LLFF scenes, nerf-pytorch's NDC space.
+All load to one `Dataset`: images composited on a background, one `Camera` per image (OpenGL c2w, at the
+loaded resolution), splits, the ray interval, for forward-facing LLFF scenes nerf-pytorch's NDC space, and
+for captures the lens distortion their training rays go through (`view_rays`).
 LLFF poses follow nerf-pytorch's `load_llff_data(factor, recenter=True, bd_factor=.75, spherify=False)`
 operation for operation (float32), so imported nerf-pytorch checkpoints see the cameras they were trained on.
 """
 
 from __future__ import annotations
 
+import itertools
 import math
 import re
 from dataclasses import dataclass
@@ -15,10 +18,12 @@ from pathlib import Path
 
 import numpy as np
 
-from noisenerf.runtime.camera import Camera, NDCSpace
+from noisenerf.runtime.camera import Camera, NDCSpace, camera_rays
 from noisenerf.runtime.errors import UserError
 from noisenerf.runtime.files import read_json
 from noisenerf.runtime.images import composite_over, image_shape, read_image, resize_image
+from noisenerf.runtime.limits import checked_float, checked_image_size, checked_int, checked_list
+from noisenerf.train.scene.distortion import distorted_camera_rays
 
 BLENDER_SPLITS = ("train", "val", "test")
 BLENDER_NEAR, BLENDER_FAR = 2.0, 6.0
@@ -29,11 +34,16 @@ LLFF_HOLD = 8  # nerf-pytorch's llffhold: every 8th view is held out
 LLFF_DEFAULT_FACTOR = 8
 LLFF_IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png")
 IMAGE_SUFFIXES = LLFF_IMAGE_SUFFIXES + (".tif", ".tiff", ".exr")
+CAPTURE_FILE = "transforms.json"
+CAPTURE_MODELS = ("OPENCV", "PINHOLE")  # OpenCV's radial-tangential distortion, or none: pinhole rays, bent or not
+DISTORTION_KEYS = ("k1", "k2", "k3", "p1", "p2")
+CAPTURE_NEAR = 0.05  # in normalised units, where the cameras span [-1, 1]
+MAX_AABB_SCALE = 128  # Instant-NGP's largest
 
 
 @dataclass(frozen=True)
 class Dataset:
-    kind: str  # "blender" | "llff"
+    kind: str  # "blender" | "llff" | "capture"
     images: np.ndarray | None  # (n, H, W, 3) float32 composited on `background`; None if loaded without images
     cameras: tuple[Camera, ...]  # one per image, at the loaded resolution
     splits: dict[str, tuple[int, ...]]  # "train", "val", "test" -> indices into images / cameras
@@ -43,14 +53,15 @@ class Dataset:
     background: tuple[float, float, float]
     aabb: tuple[float, ...]  # (xmin, ymin, zmin, xmax, ymax, zmax) in the field's space
     alphas: np.ndarray | None = None  # (n, H, W) float32 coverage of RGBA datasets (space carving); else None
+    distortion: np.ndarray | None = None  # (n, 5) float64 k1, k2, k3, p1, p2 of each image's lens; None: pinhole
 
 
 def load_dataset(data_dir, resolution: int | None = None, with_images: bool = True,
                  background=(1.0, 1.0, 1.0), factor: int | None = None) -> Dataset:
-    """Load a NeRF-Synthetic or LLFF scene folder.
+    """Load a NeRF-Synthetic, LLFF or capture scene folder.
 
     resolution: output width in pixels (height keeps the aspect ratio, rounded half up); None = as stored
-    (NeRF-Synthetic) or images_8 (LLFF). factor: LLFF only, load images_{factor} (nerf-pytorch's --factor).
+    (NeRF-Synthetic, captures) or images_8 (LLFF). factor: LLFF only, load images_{factor} (nerf-pytorch's --factor).
     with_images=False reads only image headers (sizes) and leaves `images` None.
     """
     data_dir = Path(data_dir)
@@ -65,8 +76,19 @@ def load_dataset(data_dir, resolution: int | None = None, with_images: bool = Tr
         return load_blender(data_dir, resolution, with_images, background)
     if (data_dir / "poses_bounds.npy").is_file():
         return load_llff(data_dir, resolution, with_images, background, factor)
-    raise UserError(f"{data_dir} is not a dataset: expected transforms_train.json (NeRF-Synthetic) "
-                    "or poses_bounds.npy with images_N/ (LLFF)")
+    if (data_dir / CAPTURE_FILE).is_file():
+        return load_capture(data_dir, resolution, with_images, background)
+    raise UserError(f"{data_dir} is not a dataset: expected transforms_train.json (NeRF-Synthetic), "
+                    f"poses_bounds.npy with images_N/ (LLFF) or {CAPTURE_FILE} (a capture)")
+
+
+def view_rays(dataset: Dataset, index: int, pixel_center: float) -> tuple[np.ndarray, np.ndarray]:
+    """World rays of view `index`'s pixels as its photo saw them, row-major: through the lens's distortion
+    where the dataset has one, else the pinhole camera's. -> rays_o, rays_d: (width · height, 3) float32."""
+    camera = dataset.cameras[index]
+    if dataset.distortion is None:
+        return camera_rays(camera, pixel_center)
+    return distorted_camera_rays(camera, dataset.distortion[index], pixel_center)
 
 
 # ---- shared ------------------------------------------------------------------------------------
@@ -132,8 +154,8 @@ def image_path(data_dir: Path, file_path: str) -> Path:
     return path if path.suffix.lower() in IMAGE_SUFFIXES else path.with_name(path.name + ".png")
 
 
-def parse_frame(data_dir: Path, frame, fov_x: float, where: str) -> BlenderFrame:
-    """One entry of `frames`; UserError naming `where` when malformed."""
+def frame_file_and_pose(data_dir: Path, frame, where: str) -> tuple[Path, np.ndarray]:
+    """One entry of `frames`: its image file and (4, 4) float64 c2w; UserError naming `where` when malformed."""
     if not isinstance(frame, dict) or not isinstance(frame.get("file_path"), str):
         raise UserError(f"{where}: needs a string 'file_path'")
     try:
@@ -142,7 +164,12 @@ def parse_frame(data_dir: Path, frame, fov_x: float, where: str) -> BlenderFrame
         raise UserError(f"{where}: needs a numeric 4x4 'transform_matrix'") from None
     if c2w.shape != (4, 4) or not np.isfinite(c2w).all():
         raise UserError(f"{where}: 'transform_matrix' must be a finite 4x4 matrix")
-    return BlenderFrame(image_path(data_dir, frame["file_path"]), c2w, fov_x)
+    return image_path(data_dir, frame["file_path"]), c2w
+
+
+def parse_frame(data_dir: Path, frame, fov_x: float, where: str) -> BlenderFrame:
+    """One entry of a NeRF-Synthetic `frames`; UserError naming `where` when malformed."""
+    return BlenderFrame(*frame_file_and_pose(data_dir, frame, where), fov_x)
 
 
 def read_blender_split(data_dir: Path, split: str) -> list[BlenderFrame]:
@@ -238,10 +265,14 @@ def llff_c2w(poses: np.ndarray, bounds: np.ndarray) -> np.ndarray:
     return recenter(c2w)
 
 
+def matrix_rows(c2w: np.ndarray) -> tuple[tuple[float, ...], ...]:
+    """A (4, 4) matrix as a Camera's c2w: nested tuples of Python floats."""
+    return tuple(tuple(float(v) for v in row) for row in c2w)
+
+
 def pinhole(c2w: np.ndarray, width: int, height: int, focal: float) -> Camera:
     """Square pixels, principal point at the image centre (nerf-pytorch's K). c2w: (4, 4)."""
-    rows = tuple(tuple(float(v) for v in row) for row in c2w)
-    return Camera(rows, width, height, focal, focal, 0.5 * width, 0.5 * height)
+    return Camera(matrix_rows(c2w), width, height, focal, focal, 0.5 * width, 0.5 * height)
 
 
 def llff_folders(data_dir: Path) -> dict[int, Path]:
@@ -308,3 +339,169 @@ def load_llff(data_dir: Path, resolution: int | None, with_images: bool,
     ndc = NDCSpace(first.width / (2.0 * first.fx), first.height / (2.0 * first.fx), 1.0)
     images = load_images(paths, size, background, composite=False)[0] if with_images else None
     return Dataset("llff", images, cameras, holdout_splits(len(poses)), 0.0, 1.0, ndc, background, LLFF_AABB)
+
+
+# ---- captures: Instant-NGP's and nerfstudio's transforms.json ------------------------------------
+
+@dataclass(frozen=True)
+class CaptureFrame:
+    """One entry of a capture's `frames`, its pose checked, its intrinsics not yet (they need the image size)."""
+
+    path: Path
+    c2w: np.ndarray  # (4, 4) OpenGL camera-to-world as written (both tools write OpenGL's convention)
+    entry: dict  # the frame's JSON object: its own intrinsics win over the file's
+    where: str  # how errors name it
+
+
+@dataclass(frozen=True)
+class Lens:
+    """A frame's pinhole intrinsics in pixels of its stored image, and its OpenCV distortion."""
+
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+    distortion: tuple[float, ...]  # k1, k2, k3, p1, p2
+
+    def camera(self, c2w: np.ndarray, size: tuple[int, int], stored: tuple[int, int]) -> Camera:
+        """The camera at `size` (width, height) of an image stored at `stored`: x scales by the width ratio and
+        y by the height ratio, as the area downscale maps them (they differ by the height's rounding).
+        Distortion acts on normalised coordinates, so it does not scale. c2w: (4, 4)."""
+        sx, sy = size[0] / stored[0], size[1] / stored[1]
+        return Camera(matrix_rows(c2w), *size, self.fx * sx, self.fy * sy, self.cx * sx, self.cy * sy)
+
+
+def lens_may_distort(meta: dict, path: Path) -> bool:
+    """Whether the file's camera model has OpenCV's radial-tangential distortion: OPENCV, or no model named
+    (Instant-NGP writes k1, k2, p1, p2 without one); PINHOLE has none. UserError for any other model
+    (fisheye, equirectangular, ...): its rays are not a pinhole's bent by OpenCV's polynomial."""
+    model = "OPENCV_FISHEYE" if meta.get("is_fisheye") is True else meta.get("camera_model")
+    if model is not None and model not in CAPTURE_MODELS:
+        raise UserError(f"{path}: camera_model {model!r:.40} is not supported (expected OPENCV or PINHOLE; "
+                        "undistort the images first, e.g. with COLMAP's image_undistorter)")
+    return model != "PINHOLE"
+
+
+def read_capture_frame(data_dir: Path, entry, where: str) -> CaptureFrame:
+    """One entry of `frames`: its file and a finite pose whose rotation is invertible; UserError naming `where`."""
+    path, c2w = frame_file_and_pose(data_dir, entry, where)
+    if not abs(np.linalg.det(c2w[:3, :3])) > 1e-6:
+        raise UserError(f"{where}: 'transform_matrix' has a rotation that is not invertible")
+    return CaptureFrame(path, c2w, entry, where)
+
+
+def focal_length(value, key: str, angle_key: str, side: int, where: str) -> float | None:
+    """`key` in pixels, else from the field of view `angle_key` (radians) across `side` pixels; None if neither
+    is given. value: key -> the frame's or the file's JSON value."""
+    if value(key) is not None:
+        return checked_float(value(key), f"{where}: '{key}'", 1e-6, 1e9)
+    if value(angle_key) is None:
+        return None
+    angle = checked_float(value(angle_key), f"{where}: '{angle_key}'", 1e-6, math.pi - 1e-6)
+    return 0.5 * side / math.tan(0.5 * angle)
+
+
+def capture_lens(meta: dict, frame: CaptureFrame, stored: tuple[int, int], distorts: bool) -> Lens:
+    """A frame's lens, each key from the frame if it has it, else from the file. w, h (default: the image's
+    size) must be the stored image's; fl_x may be given as camera_angle_x (Instant-NGP's older files), fl_y as
+    camera_angle_y, else it is fl_x; cx, cy default to the image centre, k1, k2, k3, p1, p2 to 0."""
+    def value(key, default=None):
+        found = frame.entry.get(key, meta.get(key))
+        return default if found is None else found
+
+    where = frame.where
+    width, height = checked_image_size(value("w", stored[0]), value("h", stored[1]), f"{where}: image")
+    if (width, height) != stored:
+        raise UserError(f"{where}: w and h say {width}x{height}, but {frame.path} is {stored[0]}x{stored[1]}")
+    fx = focal_length(value, "fl_x", "camera_angle_x", width, where)
+    if fx is None:
+        raise UserError(f"{where}: needs a focal length, 'fl_x' or 'camera_angle_x'")
+    fy = focal_length(value, "fl_y", "camera_angle_y", height, where)
+    cx, cy = (checked_float(value(key, 0.5 * side), f"{where}: '{key}'", -1e9, 1e9)
+              for key, side in (("cx", width), ("cy", height)))
+    distortion = tuple(checked_float(value(key, 0.0), f"{where}: '{key}'") for key in DISTORTION_KEYS)
+    if not distorts and any(distortion):
+        raise UserError(f"{where}: camera_model PINHOLE has no distortion, yet "
+                        f"{next(k for k, c in zip(DISTORTION_KEYS, distortion) if c)} is not 0")
+    return Lens(fx, fx if fy is None else fy, cx, cy, distortion)
+
+
+def capture_box(meta: dict, path: Path) -> tuple[float, ...]:
+    """The cube [-aabb_scale, aabb_scale]^3 in normalised units: the cameras span [-1, 1]^3, and Instant-NGP's
+    aabb_scale (default 1) extends the box beyond them for the content around them."""
+    scale = checked_float(meta.get("aabb_scale", 1), f"{path}: 'aabb_scale'", 1.0, MAX_AABB_SCALE)
+    return (-scale,) * 3 + (scale,) * 3
+
+
+def rotation_onto_z(up: np.ndarray) -> np.ndarray:
+    """The shortest rotation taking unit vector `up` onto +z (Rodrigues); a half turn about x for −z, where the
+    shortest one is not unique. (3,) -> (3, 3)."""
+    if up[2] < -1.0 + 1e-12:
+        return np.diag([1.0, -1.0, -1.0])
+    ax, ay, _ = np.cross(up, [0.0, 0.0, 1.0])
+    cross = np.array([[0.0, 0.0, ay], [0.0, 0.0, -ax], [-ay, ax, 0.0]])
+    return np.eye(3) + cross + cross @ cross / (1.0 + up[2])
+
+
+def normalized_poses(c2w: np.ndarray, path: Path) -> np.ndarray:
+    """nerfstudio's default dataparser normalisation (auto_orient_and_center_poses with method "up" and
+    center_method "poses", then auto_scale_poses), in float64:
+    1. rotate the world by the shortest rotation taking the mean camera up vector (c2w's y column) to +z;
+    2. move the mean camera position to the origin;
+    3. scale the positions by one factor so that the largest absolute camera coordinate is 1.
+    (n, 4, 4) -> (n, 4, 4)."""
+    up = c2w[:, :3, 1].mean(axis=0)
+    if not np.linalg.norm(up) > 1e-9:
+        raise UserError(f"{path}: the cameras' up vectors cancel out: there is no up to orient the scene by")
+    rotation = rotation_onto_z(up / np.linalg.norm(up))
+    positions = (c2w[:, :3, 3] - c2w[:, :3, 3].mean(axis=0)) @ rotation.T
+    extent = np.abs(positions).max()
+    if not extent > 1e-9 * (1.0 + np.abs(c2w[:, :3, 3]).max()):
+        raise UserError(f"{path}: all cameras stand at one point; a NeRF needs views from different places")
+    normalized = np.tile(np.eye(4), (len(c2w), 1, 1))
+    normalized[:, :3, :3] = rotation @ c2w[:, :3, :3]
+    normalized[:, :3, 3] = positions / extent
+    return normalized
+
+
+def farthest_corner(positions: np.ndarray, aabb: tuple[float, ...]) -> float:
+    """The largest distance from a camera to a corner of the box, so a ray sampled out to it crosses the whole
+    box. positions: (n, 3)."""
+    corners = np.array(list(itertools.product(*zip(aabb[:3], aabb[3:]))))
+    return float(np.linalg.norm(positions[:, None] - corners[None], axis=-1).max())
+
+
+def load_capture(data_dir: Path, resolution: int | None, with_images: bool,
+                 background: tuple[float, float, float]) -> Dataset:
+    """One transforms.json, as Instant-NGP's colmap2nerf.py and nerfstudio's ns-process-data write it.
+
+    Frames (file_path relative to the folder) are sorted by image file, then every 8th from the first is
+    held out as test (and val), LLFF's convention (`holdout_splits`): a capture has no test split of its own.
+    Intrinsics are each frame's (`capture_lens`), scaled with the image to `resolution` (`Lens.camera`).
+    Poses are normalised as nerfstudio's dataparser does (`normalized_poses`), so the cameras span [-1, 1]^3;
+    the box is [-aabb_scale, aabb_scale]^3 (`capture_box`). Rays run from near 0.05 to the farthest box corner
+    seen from any camera: with the near plane close to the cameras, every ray's samples cover all of the box
+    in front of it. RGBA images are composited on `background` as NeRF-Synthetic's are; their alpha is kept
+    for space carving only without distortion, since carving projects through the pinhole cameras.
+    """
+    path = data_dir / CAPTURE_FILE
+    meta = read_json(path, CAPTURE_FILE)
+    distorts = lens_may_distort(meta, path)
+    aabb = capture_box(meta, path)
+    entries = checked_list(meta.get("frames"), f"{path}: 'frames'")
+    if len(entries) < 2:
+        raise UserError(f"{path}: needs at least two frames (one is held out for testing), got {len(entries)}")
+    frames = sorted((read_capture_frame(data_dir, entry, f"{path} frame {k}") for k, entry in enumerate(entries)),
+                    key=lambda frame: str(frame.path))
+    paths = [frame.path for frame in frames]
+    height, width = common_shape(paths, (3, 4))
+    lenses = [capture_lens(meta, frame, (width, height), distorts) for frame in frames]
+    c2w = normalized_poses(np.stack([frame.c2w for frame in frames]), path)
+    size = scaled_size(width, height, resolution)
+    cameras = tuple(lens.camera(matrix, size, (width, height)) for lens, matrix in zip(lenses, c2w))
+    distortion = np.array([lens.distortion for lens in lenses])
+    distorted = bool(distortion.any())
+    images, alphas = load_images(paths, size, background, composite=True) if with_images else (None, None)
+    return Dataset("capture", images, cameras, holdout_splits(len(frames)), CAPTURE_NEAR,
+                   farthest_corner(c2w[:, :3, 3], aabb), None, background, aabb, None if distorted else alphas,
+                   distortion if distorted else None)

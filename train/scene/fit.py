@@ -30,16 +30,16 @@ import torch
 from safetensors.torch import load_file, save
 
 from noisenerf.runtime import render as numpy_render
-from noisenerf.runtime.camera import camera_rays
 from noisenerf.runtime.errors import UserError
 from noisenerf.runtime.field_callbacks import plain
 from noisenerf.runtime.files import check_output_directory, read_json, write_bytes, write_json
 from noisenerf.runtime.progress import Counter, ProgressFn
 from noisenerf.runtime.metrics import psnr, ssim
 from noisenerf.runtime.occupancy import OccupancyGrid
-from noisenerf.runtime.rays import camera_ray_batch, field_space_rays
+from noisenerf.runtime.rays import field_space_rays
 from noisenerf.runtime.render import RenderConfig, render_view
 from noisenerf.runtime.sampling import SamplingConfig, jitter_positions, sample_positions
+from noisenerf.train.scene.datasets import view_rays
 from noisenerf.train.scene.field import FieldConfig
 from noisenerf.train.scene.field_kinds import FieldConfigs
 from noisenerf.train.scene.hashgrid import HashGridConfig
@@ -127,7 +127,7 @@ def training_rays(dataset: Dataset, render: RenderConfig, config: FitConfig, dev
     offset = 0
     for index in dataset.splits["train"]:
         camera = dataset.cameras[index]
-        batch = camera_ray_batch(camera, render)
+        batch = field_space_rays(render, *view_rays(dataset, index, render.pixel_center))
         origins.append(batch.origins)
         directions.append(batch.directions)
         viewdirs.append(batch.viewdirs)
@@ -294,14 +294,31 @@ def held_out_quality(scene: Scene, dataset: Dataset, views: list[int], skipping:
     scores, dense, evaluated = [], 0, 0
     for index in views:
         grid = scene.grid if skipping else scene.grid.box_only()
-        image, stats = render_view(dataset.cameras[index], scene.config.render, field, grid,
-                                   early_stop=None if skipping else 0.0, coarse=coarse)
+        early_stop = None if skipping else 0.0
+        if dataset.distortion is None:
+            image, stats = render_view(dataset.cameras[index], scene.config.render, field, grid, early_stop=early_stop,
+                                       coarse=coarse)
+        else:  # the photo saw its lens's rays, not the pinhole camera's: render those
+            image, stats = lens_view(scene, dataset, index, field, grid, early_stop, coarse)
         target = dataset.images[index]
         scores.append((psnr(image, target), ssim(image, target)))
         dense += stats.n_samples_dense
         evaluated += stats.n_samples_evaluated
     return {"psnr": float(np.mean([s[0] for s in scores])), "ssim": float(np.mean([s[1] for s in scores])),
             "views": len(views), "samples_dense": dense, "samples_evaluated": evaluated}
+
+
+def lens_view(scene: Scene, dataset: Dataset, index: int, field, grid: OccupancyGrid, early_stop: float | None,
+              coarse) -> tuple[np.ndarray, numpy_render.RenderStats]:
+    """View `index` rendered along the rays its photo saw (datasets.view_rays, through the lens's distortion),
+    a chunk at a time as render_view renders: image (height, width, 3) float32 and counts."""
+    camera, config = dataset.cameras[index], scene.config.render
+    rays = field_space_rays(config, *view_rays(dataset, index, config.pixel_center))
+    per_ray = config.sampling.n_samples if coarse is None else coarse.hierarchy.samples_per_ray
+    colors, stats = numpy_render.render_in_chunks(
+        len(rays), numpy_render.rays_per_chunk(per_ray),
+        lambda start, stop: numpy_render.render_rays(config, rays.rows(start, stop), plain(field), grid, early_stop, coarse))
+    return colors.reshape(camera.height, camera.width, 3), stats
 
 
 def curve_psnr(scene: Scene, dataset: Dataset, views: list[int], rays_per_view: int, seed: int) -> float:
@@ -313,7 +330,7 @@ def curve_psnr(scene: Scene, dataset: Dataset, views: list[int], rays_per_view: 
         camera = dataset.cameras[index]
         chosen = rng.choice(camera.width * camera.height, min(rays_per_view, camera.width * camera.height),
                             replace=False)
-        rays_o, rays_d = camera_rays(camera, scene.config.render.pixel_center)
+        rays_o, rays_d = view_rays(dataset, index, scene.config.render.pixel_center)
         rays = field_space_rays(scene.config.render, rays_o[chosen], rays_d[chosen])
         colors, _ = numpy_render.render_rays(scene.config.render, rays, plain(field), scene.grid, coarse=coarse)
         errors.append((colors - dataset.images[index].reshape(-1, 3)[chosen]) ** 2)

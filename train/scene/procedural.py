@@ -3,7 +3,8 @@
 `write_procedural_dataset` ray-traces a small still life (a checkered slab, four spheres, a box) inside
 [-1, 1]^3 exactly (analytic ray–primitive intersection, Lambert + ambient shading from a fixed sun with
 hard shadows, 3×3 supersampling for anti-aliased alpha edges) from cameras on the upper hemisphere, and
-writes it in the NeRF-Synthetic format. `procedural_secret` draws a picture to hide in the demo.
+writes it in the NeRF-Synthetic format, or as a phone capture seen through a distorting lens (nerfstudio's
+transforms.json). `procedural_secret` draws a picture to hide in the demo.
 Everything is numpy and deterministic for a seed: the same call writes byte-identical files.
 """
 
@@ -21,8 +22,10 @@ import numpy as np
 from noisenerf.runtime.camera import Camera, pixel_rays
 from noisenerf.runtime.errors import UserError
 from noisenerf.runtime.files import check_output_directory, write_json
-from noisenerf.runtime.images import write_image
+from noisenerf.runtime.images import composite_over, write_image
 from noisenerf.runtime.images import to_uint8
+from noisenerf.train.scene.datasets import CAPTURE_FILE, DISTORTION_KEYS, matrix_rows
+from noisenerf.train.scene.distortion import distorted_pixel_rays
 
 FOV_X = 0.6911112070083618  # lego's camera_angle_x
 CAMERA_RADIUS = 4.0
@@ -33,6 +36,10 @@ LIGHT = np.array([0.45, -0.35, 1.0]) / np.linalg.norm([0.45, -0.35, 1.0])  # tow
 EPSILON = 1e-6  # nearest accepted hit distance, and how far shadow rays start off the surface
 CHECKER_CELL = 0.25  # slab checker square size; the slab edges (±0.95) fall inside squares, not on seams
 SPLITS = ("train", "val", "test")
+FORMATS = ("blender", "capture")
+CAPTURE_RADIUS = 1.8  # closer than the NeRF-Synthetic views, as a phone walks round an object
+CAPTURE_FOCAL = 0.55  # fl_x / width: a phone's wide angle (about 85° across), where the distortion moves pixels
+CAPTURE_LENS = {"k1": -0.05, "k2": 0.01, "p1": 0.002, "p2": -0.001}  # OpenCV's model: mild barrel, a tilted lens
 # the shipped demo scene, fitted on this dataset (README, "The demo scene"); package data of noisenerf.train
 DEMO_SCENE = Path(__file__).resolve().parents[1] / "assets" / "demo_scene"
 
@@ -130,13 +137,15 @@ def shade(origins: np.ndarray, dirs: np.ndarray) -> tuple[np.ndarray, np.ndarray
     return albedo * (AMBIENT + (1.0 - AMBIENT) * lambert)[:, None], hit
 
 
-def render_rgba(camera: Camera) -> np.ndarray:
-    """A view with straight alpha (the covered fraction of each pixel). -> (height, width, 4) float64 in [0, 1]."""
+def render_rgba(camera: Camera, distortion: tuple[float, ...] | None = None) -> np.ndarray:
+    """A view with straight alpha (the covered fraction of each pixel), seen through a lens with OpenCV
+    distortion k1, k2, k3, p1, p2 (None: a pinhole). -> (height, width, 4) float64 in [0, 1]."""
     offsets = (np.arange(SUPERSAMPLE) + 0.5) / SUPERSAMPLE
     shape = (camera.height, camera.width, SUPERSAMPLE, SUPERSAMPLE)
-    px = np.broadcast_to(np.arange(camera.width)[None, :, None, None] + offsets[None, None, None, :], shape)
-    py = np.broadcast_to(np.arange(camera.height)[:, None, None, None] + offsets[None, None, :, None], shape)
-    origins, dirs = pixel_rays(camera, px.ravel(), py.ravel())
+    px = np.broadcast_to(np.arange(camera.width)[None, :, None, None] + offsets[None, None, None, :], shape).ravel()
+    py = np.broadcast_to(np.arange(camera.height)[:, None, None, None] + offsets[None, None, :, None], shape).ravel()
+    origins, dirs = (pixel_rays(camera, px, py) if distortion is None
+                     else distorted_pixel_rays(camera, distortion, px, py))
     rgb, hit = shade(origins.astype(np.float64), unit(dirs.astype(np.float64)))
     per_pixel = SUPERSAMPLE * SUPERSAMPLE
     rgb = rgb.reshape(camera.height, camera.width, per_pixel, 3).sum(axis=2)
@@ -154,12 +163,12 @@ def look_at_origin(eye: np.ndarray) -> np.ndarray:
     return c2w
 
 
-def camera_positions(count: int, rng: np.random.Generator) -> np.ndarray:
-    """Uniform by area on the upper hemisphere band CAMERA_HEIGHTS, radius CAMERA_RADIUS. -> (count, 3)."""
+def camera_positions(count: int, rng: np.random.Generator, radius: float = CAMERA_RADIUS) -> np.ndarray:
+    """Uniform by area on the upper hemisphere band CAMERA_HEIGHTS of `radius`. -> (count, 3)."""
     azimuth = rng.uniform(0.0, 2.0 * np.pi, count)
     z = rng.uniform(*CAMERA_HEIGHTS, count)
     ring = np.sqrt(1.0 - z * z)
-    return CAMERA_RADIUS * np.stack([ring * np.cos(azimuth), ring * np.sin(azimuth), z], axis=1)
+    return radius * np.stack([ring * np.cos(azimuth), ring * np.sin(azimuth), z], axis=1)
 
 
 def write_frame(folder: Path, split: str, index: int, c2w: np.ndarray, size: int) -> dict:
@@ -167,6 +176,32 @@ def write_frame(folder: Path, split: str, index: int, c2w: np.ndarray, size: int
     rgba = render_rgba(Camera.from_fov(c2w, size, size, FOV_X))
     write_image(folder / split / f"r_{index}.png", to_uint8(rgba))
     return {"file_path": f"./{split}/r_{index}", "rotation": 0.0, "transform_matrix": c2w.tolist()}
+
+
+def capture_intrinsics(width: int, height: int) -> dict:
+    """A capture's shared intrinsics, as a calibration finds them: pixels not quite square, the principal
+    point off the centre."""
+    focal = CAPTURE_FOCAL * width
+    return {"w": width, "h": height, "fl_x": focal, "fl_y": 1.01 * focal, "cx": 0.5 * width + 0.37,
+            "cy": 0.5 * height - 0.29}
+
+
+def write_capture(folder: Path, count: int, size: int, rng: np.random.Generator) -> None:
+    """`count` views through the lens CAPTURE_LENS as RGB photos over white (a photo has no alpha),
+    images/frame_00001.png on (size × ¾·size), and one transforms.json as nerfstudio writes it: camera_model
+    OPENCV, shared intrinsics that the second frame overrides (fl_x, cx), frames in shuffled order."""
+    shared = capture_intrinsics(size, size * 3 // 4)
+    distortion = tuple(CAPTURE_LENS.get(key, 0.0) for key in DISTORTION_KEYS)
+    (folder / "images").mkdir()
+    frames = []
+    for k, eye in enumerate(camera_positions(count, rng, CAPTURE_RADIUS)):
+        own = {"fl_x": 1.1 * shared["fl_x"], "cx": shared["cx"] - 0.6} if k == 1 else {}
+        lens, c2w, name = {**shared, **own}, look_at_origin(eye), f"images/frame_{k + 1:05d}.png"
+        camera = Camera(matrix_rows(c2w), lens["w"], lens["h"], lens["fl_x"], lens["fl_y"], lens["cx"], lens["cy"])
+        write_image(folder / name, to_uint8(composite_over(render_rgba(camera, distortion), (1.0, 1.0, 1.0))))
+        frames.append({"file_path": name, "transform_matrix": c2w.tolist(), **own})
+    write_json(folder / CAPTURE_FILE, {"camera_model": "OPENCV", **shared, **CAPTURE_LENS,
+                                       "frames": [frames[k] for k in rng.permutation(count)]})
 
 
 @contextlib.contextmanager
@@ -187,22 +222,29 @@ def staging_folder(out_dir: Path):
 
 
 def write_procedural_dataset(out_dir, size: int = 64, n_train: int = 40, n_val: int = 4, n_test: int = 8,
-                             seed: int = 0) -> Path:
+                             seed: int = 0, format: str = "blender") -> Path:
     """Write the still life as a NeRF-Synthetic dataset: {train,val,test}/r_k.png (size×size RGBA, alpha 0
     off the objects) and transforms_{train,val,test}.json; cameras at radius 4 on the upper hemisphere,
-    drawn from `seed`. The folder appears whole or not at all; it must not exist (or be empty)."""
+    drawn from `seed`. format="capture": n_train + n_val + n_test views in one transforms.json instead
+    (`write_capture`; its loader holds out its own test views). The folder appears whole or not at all; it
+    must not exist (or be empty)."""
     if size < 8:
         raise UserError(f"procedural dataset size must be at least 8 px, got {size}")
     if n_train < 1 or n_val < 0 or n_test < 0:
         raise UserError(f"need at least one train view and no negative counts, got {n_train}/{n_val}/{n_test}")
+    if format not in FORMATS:
+        raise UserError(f"unknown procedural dataset format {format!r:.40} (expected one of {', '.join(FORMATS)})")
     out_dir = Path(out_dir)
     rng = np.random.default_rng(seed)
     with staging_folder(out_dir) as staging:
-        for split, count in zip(SPLITS, (n_train, n_val, n_test)):
-            (staging / split).mkdir()
-            frames = [write_frame(staging, split, k, look_at_origin(eye), size)
-                      for k, eye in enumerate(camera_positions(count, rng))]
-            write_json(staging / f"transforms_{split}.json", {"camera_angle_x": FOV_X, "frames": frames})
+        if format == "capture":
+            write_capture(staging, n_train + n_val + n_test, size, rng)
+        else:
+            for split, count in zip(SPLITS, (n_train, n_val, n_test)):
+                (staging / split).mkdir()
+                frames = [write_frame(staging, split, k, look_at_origin(eye), size)
+                          for k, eye in enumerate(camera_positions(count, rng))]
+                write_json(staging / f"transforms_{split}.json", {"camera_angle_x": FOV_X, "frames": frames})
     return out_dir
 
 
