@@ -136,6 +136,7 @@ def cmd_bench(args) -> None:
                          browser_size=args.browser_size, cluster_size=args.cluster_size,
                          cluster_tile=args.cluster_tile, cluster_photo=size_argument(args.cluster_photo, "--cluster-photo"),
                          big_secret=size_argument(args.big_secret, "--big-secret"),
+                         fields_minutes=args.fields_minutes, fields_resolution=args.fields_resolution,
                          device=str(resolve_device(args.device)),
                          experiments=tuple(args.only.split(",")) if args.only else None)
     command = "noisenerf " + " ".join(sys.argv[1:]) if sys.argv[0].endswith("noisenerf") else "noisenerf bench ..."
@@ -237,7 +238,7 @@ def build_parser() -> argparse.ArgumentParser:
     p = add("bench", cmd_bench, "measure everything BENCHMARKS.md reports; writes it with CSVs and plots")
     p.add_argument("--scene", required=True, help="scene directory (the README's Benchmarks section fits it)")
     p.add_argument("--secret", required=True, help="the secret image most experiments hide")
-    p.add_argument("--data", help="dataset whose test views the skipping experiment renders")
+    p.add_argument("--data", help="dataset whose test views the skipping experiment renders and the fields one fits")
     p.add_argument("--photos", nargs="*", default=[], help="secrets hidden at native size (photos experiment)")
     p.add_argument("--view", type=int, default=0, help="scene camera the secrets are hidden at")
     p.add_argument("--small-width", type=int, default=48, help="secret width for the paper-mode curves on a CPU")
@@ -252,6 +253,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--cluster-tile", type=int, default=128, help="its tile size")
     p.add_argument("--cluster-photo", default="4032x3024", help="WxH of the photo the cluster experiment hides through Ray")
     p.add_argument("--big-secret", default="7680x4320", help="WxH of the secret the big_secret experiment hides and reveals")
+    p.add_argument("--fields-minutes", type=float, default=15.0, help="fields: each field kind's fit, in minutes")
+    p.add_argument("--fields-resolution", type=int, default=200, help="fields: the width the kinds are fitted at")
     p.add_argument("--only", help="comma-separated experiments, run with those they need (default: all)")
     add_device(p)
     p.add_argument("--stress", action="store_true", help="also run the full numerical stress suite")

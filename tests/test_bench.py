@@ -20,6 +20,7 @@ from noisenerf.cli.bench.report import verdict
 from noisenerf.cli.bench.run import stress_section
 from noisenerf.runtime.errors import UserError
 from noisenerf.runtime.images import write_image
+from noisenerf.train.scene.procedural import write_procedural_dataset
 
 
 @pytest.fixture(scope="module")
@@ -27,12 +28,15 @@ def inputs(tmp_path_factory):
     """A tiny scene and secret, and a bench config measuring them at tiny sizes."""
     folder = tmp_path_factory.mktemp("bench")
     make_tiny_scene(seed=2).save(folder / "scene")
+    data = write_procedural_dataset(folder / "data", size=16, n_train=6, n_val=0, n_test=2)
     secret = np.random.default_rng(0).integers(0, 256, (12, 16, 3), dtype=np.uint8)
     write_image(folder / "secret.png", secret)
     config = BenchConfig(scene=str(folder / "scene"), secret=str(folder / "secret.png"),
                          photos=(str(folder / "secret.png"),), small_width=12, paper_samples=3, paper_iters=60, ablation_samples=2,
                          twok_size=32, twok_tile=16, twok_rows=1, threads=(1,), payload_bytes=200, view_width=12,
                          contention_width=12, browser_size=32, browser_repeats=3, big_secret=(40, 24),
+                         data=str(data), fields_minutes=0.2, fields_resolution=16, fields_curve_seconds=2.0,
+                         coverage_size=8,
                          experiments=tuple(name for name in EXPERIMENTS if name != "cluster"))  # Ray: test_cluster.py
     return folder, config
 
@@ -209,6 +213,22 @@ def test_bench_stress_reports_a_failed_case_and_runs_the_others(monkeypatch):
     assert [row["passed"] for row in section.rows] == [False, True]
     assert "**1 of 2 passed**" in section.lines[0]
     assert section.lines[-1] == "- failed: `not_negative(-1)`: AssertionError: negative"
+
+
+def test_fields_fits_both_kinds_alike_and_hides_exactly_in_each(report):
+    out, sections = report
+    rows = sections["fields"].rows
+    for preset in ("small", "hashgrid"):
+        assert [row for row in rows if row["row"] == "curve" and row["preset"] == preset], preset
+        hides = [row for row in rows if row["row"] == "hide" and row["preset"] == preset]
+        assert hides and all(row["exact"] for row in hides)
+        assert {row["view"] for row in hides} == {2, 5}  # a third and two thirds round the 8 cameras
+        assert {row["backend"] for row in rows if row["row"] == "rate" and row["preset"] == preset} == \
+            {"onnxruntime", "torch"}
+    covered = [row for row in rows if row["row"] == "coverage"]
+    assert len(covered) == 8 and all(row["exact_pixels"] == row["pixels"] for row in covered)
+    assert (out / "fields.png").read_bytes()[:4] == b"\x89PNG"
+    assert "Goal: every hard secret" in "\n".join(sections["fields"].lines)
 
 
 def test_big_secret_is_hidden_and_revealed_exactly_by_the_tools_with_their_memory_measured(report):

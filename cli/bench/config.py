@@ -41,5 +41,8 @@ class BenchConfig:
     view_width: int | None = 128  # their width there (None: native; 8 × 5 native photos take ~15 min on 2 cores)
     contention_width: int = 256  # the contention experiment's secret: several chunks, so the hide's workers take part
     coverage_size: int = 24  # the coverage experiment's hard secrets (square): 10 of them at every camera
+    fields_resolution: int = 200  # px wide: the fields experiment fits each kind on `data` at this width
+    fields_minutes: float = 15.0  # each kind's fit, in training minutes
+    fields_curve_seconds: float = 60.0  # a test-PSNR point every this many seconds of it
     experiments: tuple[str, ...] | None = None  # --only's names; None: every experiment (registry.selected)
     seed: int = 0

@@ -10,8 +10,8 @@ from typing import Any, Callable, Mapping
 
 from noisenerf.runtime.errors import UserError
 
-from noisenerf.cli.bench import (big_secret, browser, cluster, coverage, exact_cost, exact_scale, paper, payload,
-                                 reliability)
+from noisenerf.cli.bench import (big_secret, browser, cluster, coverage, exact_cost, exact_scale, fields, paper,
+                                 payload, reliability)
 from noisenerf.cli.bench.context import BenchContext, Measured, Section
 
 
@@ -65,6 +65,8 @@ REGISTRY = (
     Experiment("cluster", "Hiding on Ray", cluster.measure_cluster, cluster.describe_cluster),
     Experiment("big_secret", "An 8K secret, and the memory it takes", big_secret.measure_big_secret,
                big_secret.describe_big_secret),
+    Experiment("fields", "Field kinds: the MLP and the hash grid, fitted alike, hidden in alike", fields.measure_fields,
+               fields.describe_fields, fields.plot_fields),
 )
 EXPERIMENTS = tuple(experiment.name for experiment in REGISTRY)
 

@@ -1,0 +1,179 @@
+"""The `fields` experiment: each field kind fitted on the same data, at the same resolution, for the same
+minutes, on this machine; then the bench's photos hidden in each at views the other experiments do not use,
+revealed through onnxruntime and in the browser; each kind's field evaluations per second; and the coverage
+sweep (hard secrets at every camera) on the hash-grid fit.
+
+Rows (fields.csv) are of three sorts, told apart by `row`: "curve" (a fit's test PSNR on a seeded subset of
+its held-out pixels against training seconds), "hide" (one photo at one view) and "rate" (evaluations per
+second); the coverage sweep's rows follow, as coverage.csv's are.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import shutil
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from noisenerf.runtime.images import load_secret, write_image
+from noisenerf.runtime.model import load_model
+from noisenerf.train.hide.plan import HideConfig
+from noisenerf.train.scene.fit import PRESETS, Budget, fit
+from noisenerf.train.scene.render import numpy_field
+from noisenerf.train.scene.scene import load_scene
+
+from noisenerf.cli.bench import browser, coverage
+from noisenerf.cli.bench.context import BenchContext, Measured, small_secret, timed
+from noisenerf.cli.bench.report import curves_plot, verdict
+
+KINDS = ("small", "hashgrid")  # the presets compared: the mlp kind's default and the hash grid's
+PSNR_GOAL_DB = 30.0  # the hash-grid preset's test PSNR on lego at 200 px within 15 minutes
+PSNR_MARGIN_GOAL_DB = 2.0  # and how far above the mlp small preset's, same data, resolution and minutes
+REVEAL_RATIO_GOAL = 1 / 3  # hash-grid reveal time per pixel ÷ the mlp small preset's
+RATE_SAMPLES = 1 << 16  # samples per field-rate batch
+
+
+@dataclass(frozen=True, kw_only=True)
+class FieldsMeasured(Measured):
+    fits: dict  # preset -> its fit's report (steps, seconds, test)
+
+
+def rate_rows(preset: str, scene, model) -> list[dict]:
+    """Field evaluations per second of the scene's render field, through onnxruntime (the reveal's) and torch
+    (the hide's), on RATE_SAMPLES random points in its box with random noise; best of three."""
+    rng = np.random.default_rng(0)
+    lo, hi = np.asarray(scene.config.aabb[:3], np.float32), np.asarray(scene.config.aabb[3:], np.float32)
+    points = (lo + rng.random((RATE_SAMPLES, 3), dtype=np.float32) * (hi - lo)).astype(np.float32)
+    viewdirs = rng.normal(size=(RATE_SAMPLES, 3)).astype(np.float32)
+    viewdirs /= np.linalg.norm(viewdirs, axis=1, keepdims=True)
+    noise = rng.normal(size=(RATE_SAMPLES, model.noise_dims)).astype(np.float32)
+    rows = []
+    for backend, field in (("onnxruntime", model.field), ("torch", numpy_field(scene.render_field))):
+        seconds = min(timed(field, points, viewdirs, noise)[1] for _ in range(3))
+        rows.append({"row": "rate", "preset": preset, "backend": backend, "samples_per_second": RATE_SAMPLES / seconds})
+    return rows
+
+
+def png_bytes(pixels: np.ndarray, folder: Path) -> int:
+    """The photo's size as the project's image writer saves it (PNG, default compression)."""
+    path = folder / "photo.png"
+    write_image(path, pixels)
+    return path.stat().st_size
+
+
+def hide_rows(context: BenchContext, preset: str, views: tuple[int, ...]) -> tuple[list[dict], dict[str, Path]]:
+    """The photos (view_width wide) hidden at `views` with the defaults, revealed through onnxruntime; the
+    bundles kept for the browser, by row name."""
+    rows, bundles = [], {}
+    for path in context.config.photos[:context.config.view_photos] or (context.config.secret,):
+        photo = small_secret(load_secret(path)[0], context.config.view_width or 128)
+        for view in views:
+            name = f"{preset}_{Path(path).stem}_{view}"
+            report, revealed, reveal_seconds = context.hide_and_reveal(photo, name, HideConfig(view=view))
+            size = (context.work / f"{name}.bundle").stat().st_size
+            rows.append({"row": "hide", "preset": preset, "photo": Path(path).name, "view": view,
+                         "pixels": photo.shape[0] * photo.shape[1], "bundle_bytes": size,
+                         "bytes_per_pixel": size / (photo.shape[0] * photo.shape[1]),
+                         "png_bytes": png_bytes(photo, context.work), "exact": bool((revealed.pixels == photo).all()),
+                         "escaped": sum(t.get("escaped", 0) for t in report["tiles"]),
+                         "hide_seconds": report["seconds"], "reveal_seconds": reveal_seconds, "name": name})
+            bundles[name] = context.work / f"{name}.bundle"
+    return rows, bundles
+
+
+def browser_seconds(context: BenchContext, bundles: dict[str, Path]) -> dict[str, float]:
+    """Each bundle revealed in the single-file page at its default workers: seconds by bundle name (empty
+    where the browser or the web build is missing, which the report says)."""
+    if browser.browser_missing() is not None:
+        return {}
+    dist = context.work / "fields_pages"
+    shutil.rmtree(dist, ignore_errors=True)
+    shutil.copytree(browser.WEB_DIST, dist)
+    rows = browser.browser_reveals(dist, bundles, context.model_path, repeats=1)
+    return {row["secret"]: row["seconds"] for row in rows if row["page"] == "single file" and row["default"]}
+
+
+def measure_fields(context: BenchContext) -> FieldsMeasured:
+    config = context.config
+    from noisenerf.export.onnx_export import export_scene
+    from noisenerf.runtime.errors import UserError
+    from noisenerf.train.scene.datasets import load_dataset
+
+    if config.data is None:
+        raise UserError("the fields experiment fits each field kind: give the dataset with --data")
+    dataset = load_dataset(config.data, resolution=config.fields_resolution)
+    rows, fits, hashgrid_context = [], {}, None
+    for preset in KINDS:
+        folder = context.work / f"fields_{preset}"
+        report = fit(dataset, folder, dataclasses.replace(PRESETS[preset], seed=config.seed),
+                     Budget(minutes=config.fields_minutes), torch.device("cpu"), curve_seconds=config.fields_curve_seconds)
+        fits[preset] = {key: report[key] for key in ("steps", "seconds", "test", "samples_evaluated")}
+        rows += [{"row": "curve", "preset": preset, "seconds": point["seconds"], "psnr": point["psnr"]}
+                 for point in report["curve"]]
+        export_scene(folder, folder / "model.onnx")
+        scene_context = dataclasses.replace(context, scene=load_scene(folder), model_path=folder / "model.onnx",
+                                            model=load_model(folder / "model.onnx"))
+        cameras = len(scene_context.scene.config.cameras)
+        hides, bundles = hide_rows(scene_context, preset, (cameras // 3, 2 * cameras // 3))
+        in_browser = browser_seconds(scene_context, bundles)
+        rows += [{**row, "browser_seconds": in_browser.get(row["name"])} for row in hides]
+        rows += rate_rows(preset, scene_context.scene, scene_context.model)
+        if preset == "hashgrid":
+            hashgrid_context = scene_context
+    secrets = coverage.hard_secrets(config.coverage_size, hashgrid_context.scene.config.render.background,
+                                    seed=config.seed)
+    mosaic = {"every hard secret": np.concatenate(list(secrets.values()), axis=1)}
+    rows += [{"row": "coverage", **row} for row in coverage.sweep(
+        hashgrid_context, mosaic, range(len(hashgrid_context.scene.config.cameras)), "hashgrid fit")]
+    return FieldsMeasured(rows, fits=fits)
+
+
+def median_of(rows: list[dict], preset: str, key: str) -> float:
+    return float(np.median([row[key] for row in rows if row["row"] == "hide" and row["preset"] == preset
+                            and row[key] is not None] or [np.nan]))
+
+
+def describe_fields(context: BenchContext, measured: FieldsMeasured) -> list[str]:
+    config, rows, fits = context.config, measured.rows, measured.fits
+    lines = [f"Both presets fitted on `{config.data}` at {config.fields_resolution} px for {config.fields_minutes:g} "
+             "minutes each on this machine (CPU), one after the other; test PSNR over every held-out view.", "",
+             "| preset | kind | steps | test PSNR dB | SSIM |", "|---|---|---|---|---|"]
+    for preset, report in fits.items():
+        lines.append(f"| {preset} | {PRESETS[preset].field.kind} | {report['steps']:,} | {report['test']['psnr']:.2f} | "
+                     f"{report['test']['ssim']:.4f} |")
+    grid, small = fits["hashgrid"]["test"]["psnr"], fits["small"]["test"]["psnr"]
+    lines += ["", f"Goal: the hash grid ≥ {PSNR_GOAL_DB:g} dB and ≥ {PSNR_MARGIN_GOAL_DB:g} dB above the small preset: "
+                  f"{grid:.2f} dB, {grid - small:+.2f} dB: **{verdict(grid, PSNR_GOAL_DB, False, grid - small >= PSNR_MARGIN_GOAL_DB)}**.",
+              "", "Photos hidden with the defaults at two views the other experiments do not use (a third and two thirds "
+                  "round the cameras), medians:", "",
+              "| preset | bytes/px | bundle ÷ PNG | escaped | hide s | reveal s (onnxruntime) | reveal s (browser) | "
+              "exact |", "|---|---|---|---|---|---|---|---|"]
+    for preset in fits:
+        hides = [row for row in rows if row["row"] == "hide" and row["preset"] == preset]
+        ratio = np.median([row["bundle_bytes"] / row["png_bytes"] for row in hides])
+        lines.append(f"| {preset} | {median_of(rows, preset, 'bytes_per_pixel'):.2f} | {ratio:.2f} | "
+                     f"{median_of(rows, preset, 'escaped'):.0f} | {median_of(rows, preset, 'hide_seconds'):.2f} | "
+                     f"{median_of(rows, preset, 'reveal_seconds'):.3f} | {median_of(rows, preset, 'browser_seconds'):.3f} | "
+                     f"{sum(row['exact'] for row in hides)} / {len(hides)} |")
+    rates = {(row["preset"], row["backend"]): row["samples_per_second"] for row in rows if row["row"] == "rate"}
+    lines += ["", "Field evaluations per second (65,536 random samples with noise): " + ", ".join(
+        f"{preset} {backend} {rate / 1e3:,.0f} k" for (preset, backend), rate in rates.items()) + "."]
+    reveal_ratio = median_of(rows, "hashgrid", "reveal_seconds") / median_of(rows, "small", "reveal_seconds")
+    bytes_ratio = median_of(rows, "hashgrid", "bytes_per_pixel") / median_of(rows, "small", "bytes_per_pixel")
+    covered = [row for row in rows if row["row"] == "coverage"]
+    exact, pixels = sum(row["exact_pixels"] for row in covered), sum(row["pixels"] for row in covered)
+    lines += ["", f"Goal: hash-grid reveal time per pixel ≤ {REVEAL_RATIO_GOAL:.2f}× the small preset's: {reveal_ratio:.2f}×: "
+                  f"**{verdict(reveal_ratio, REVEAL_RATIO_GOAL, True)}**.",
+              f"Goal: hash-grid keys no larger than the small preset's (median bytes/px): {bytes_ratio:.2f}×: "
+              f"**{verdict(bytes_ratio, 1.0, True)}**.",
+              f"Goal: every hard secret ({config.coverage_size}² each, side by side) exact at every one of the hash-grid "
+              f"fit's {len(covered)} cameras: {exact:,} of {pixels:,} pixels: **{verdict(exact, pixels, False)}**."]
+    return lines
+
+
+def plot_fields(rows: list[dict], path: Path) -> None:
+    curves_plot([row for row in rows if row["row"] == "curve"], path, "preset", "seconds", "psnr",
+                ("training seconds", "test PSNR (dB, held-out pixel subset)"), marker="o")
