@@ -48,12 +48,12 @@ def fit(data: PathLike, output: PathLike, *, field: str | None = None, preset: s
     """Fit a scene to the dataset at `data` (NeRF-Synthetic, LLFF or a capture's transforms.json) into the
     folder `output`, for exactly one of `minutes` or `iters`; run again to resume from its checkpoint. field:
     the kind (`mlp`, `hashgrid`), fitted with its default preset unless `preset` names another of its kind;
-    neither: the `mlp` kind's `small`. -> fit's report (test PSNR under test.psnr)."""
+    neither: the `hashgrid` preset (fit.DEFAULT_FIELD). -> fit's report (test PSNR under test.psnr)."""
     import dataclasses
 
     from noisenerf.runtime.files import check_output_directory
     from noisenerf.train.scene.datasets import load_dataset
-    from noisenerf.train.scene.fit import DEFAULT_PRESETS, PRESETS, Budget, fit as fit_scene
+    from noisenerf.train.scene.fit import DEFAULT_FIELD, DEFAULT_PRESETS, PRESETS, Budget, fit as fit_scene
 
     if (minutes is None) == (iters is None):
         raise UserError("give exactly one of --minutes M or --iters N")
@@ -61,7 +61,7 @@ def fit(data: PathLike, output: PathLike, *, field: str | None = None, preset: s
         raise UserError("--minutes and --iters must be positive")
     if field is not None and field not in DEFAULT_PRESETS:
         raise UserError(f"unknown field kind {field!r:.40} (expected one of {', '.join(DEFAULT_PRESETS)})")
-    preset = preset or DEFAULT_PRESETS[field or "mlp"]
+    preset = preset or DEFAULT_PRESETS[field or DEFAULT_FIELD]
     if preset not in PRESETS:
         raise UserError(f"unknown preset {preset!r:.40} (expected one of {', '.join(PRESETS)})")
     if field is not None and PRESETS[preset].field.kind != field:

@@ -170,7 +170,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("data_dir")
     p.add_argument("-o", "--output", required=True, help="scene directory to write (resumes if it holds a checkpoint)")
     p.add_argument("--field", choices=("mlp", "hashgrid"),
-                   help="field kind: mlp (the standard NeRF MLP, preset small) or hashgrid (Instant-NGP's hash grid)")
+                   help="field kind: hashgrid (Instant-NGP's hash grid, the default) or mlp (the standard NeRF MLP, "
+                        "preset small)")
     p.add_argument("--preset", choices=("small", "paper", "hashgrid"),
                    help="small or paper (mlp kind), hashgrid (default: the field kind's)")
     p.add_argument("--resolution", type=int, help="image width in pixels (default: the dataset's)")

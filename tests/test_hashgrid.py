@@ -1,16 +1,24 @@
 """The hash-grid field kind against its specification (tiny-cuda-nn's / Instant-NGP's conventions, the
 figures in ../shared/research/nerfacto-import.md §2), written here independently of the implementation:
 per-level layouts and parameter counts, the uint32 hash, dense indexing with its wraparound, trilinear
-weights, the spherical harmonics, the hand-written Jacobian, and the graph against torch."""
+weights, the spherical harmonics, the hand-written Jacobian; then a hash-grid scene through the command
+lines (tiles, a sealed payload, ordinary renders)."""
 
 from __future__ import annotations
+
+import json
 
 import numpy as np
 import pytest
 import torch
 
-from helpers import make_tiny_scene
+from helpers import make_tiny_scene, run_main, run_reveal
+from noisenerf.cli.main import main
 from noisenerf.runtime.fields.hashgrid import grid_levels, sh_matrix
+from noisenerf.runtime.images import read_native, to_uint8, write_image
+from noisenerf.runtime.render import render_view
+from noisenerf.train.scene.procedural import procedural_secret
+from noisenerf.train.scene.render import numpy_field
 from noisenerf.train.scene.hashgrid import HashGridConfig, HashGridField
 from noisenerf.train.scene.random_scene import SMALL_HASHGRID
 
@@ -168,3 +176,45 @@ def test_the_table_gradient_is_the_encodings_transpose():
         expected = 2 * float((features.detach().numpy().astype(np.float64) * along).sum())
         assert float((field.table.grad.numpy().astype(np.float64) * direction).sum()) == pytest.approx(expected,
                                                                                                        rel=1e-4)
+
+
+@pytest.fixture(scope="module")
+def hashgrid_model(tmp_path_factory):
+    """A random hash-grid scene (tests/helpers.make_tiny_scene) saved and exported: (folder, scene)."""
+    from noisenerf.export.onnx_export import export_scene
+
+    folder = tmp_path_factory.mktemp("hashgrid")
+    scene = make_tiny_scene(seed=6, kind="hashgrid")
+    scene.save(folder / "scene")
+    export_scene(folder / "scene", folder / "model.onnx")
+    return folder, scene
+
+
+def test_tiles_a_sealed_payload_and_ordinary_renders_work_on_a_hash_grid(hashgrid_model, tmp_path, capfd):
+    """What works for the mlp kind works for the hash grid, through the command lines: a secret cut into
+    tiles (at several cameras), a sealed file payload, an ordinary render equal to torch's."""
+    folder, scene = hashgrid_model
+    secret = procedural_secret(24, 16, seed=3)
+    write_image(tmp_path / "secret.png", secret)
+    assert run_main(main, ["hide", folder / "scene", tmp_path / "secret.png", "-o", tmp_path / "tiled.bundle",
+                           "--tile-size", "16", "--quiet", "--json"], capfd).code == 0
+    revealed = run_reveal(folder / "model.onnx", tmp_path / "tiled.bundle", "-o", tmp_path / "out.png", "--json")
+    assert revealed.returncode == 0, revealed.stderr
+    assert json.loads(revealed.stdout)["exact"] is True
+    assert np.array_equal(read_native(tmp_path / "out.png")[..., :3], secret)
+
+    payload = tmp_path / "note.txt"
+    payload.write_bytes(b"hidden in a hash grid\n" * 5)
+    (tmp_path / "pass.txt").write_text("correct horse battery staple")
+    assert run_main(main, ["hide", folder / "scene", "--file", payload, "-o", tmp_path / "p.bundle",
+                           "--passphrase-file", tmp_path / "pass.txt", "--quiet"], capfd).code == 0
+    opened = run_reveal(folder / "model.onnx", tmp_path / "p.bundle", "-o", tmp_path / "note.out",
+                        "--passphrase-file", tmp_path / "pass.txt")
+    assert opened.returncode == 0, opened.stderr
+    assert (tmp_path / "note.out").read_bytes() == payload.read_bytes()
+
+    rendered = run_reveal(folder / "model.onnx", "--view", "1", "-o", tmp_path / "view.png")
+    assert rendered.returncode == 0, rendered.stderr
+    image, _ = render_view(scene.config.cameras[1], scene.config.render, numpy_field(scene.render_field), scene.grid)
+    ours = read_native(tmp_path / "view.png")[..., :3].astype(int)
+    assert np.abs(ours - to_uint8(image).astype(int)).max() <= 1  # torch and onnxruntime agree to float32 rounding

@@ -84,16 +84,18 @@ def hide_rows(context: BenchContext, preset: str, views: tuple[int, ...]) -> tup
     return rows, bundles
 
 
-def browser_seconds(context: BenchContext, bundles: dict[str, Path]) -> dict[str, float]:
-    """Each bundle revealed in the single-file page at its default workers: seconds by bundle name (empty
-    where the browser or the web build is missing, which the report says)."""
+def browser_results(context: BenchContext, bundles: dict[str, Path]) -> dict[str, dict]:
+    """Each bundle revealed in the single-file page at its default workers: by bundle name, its seconds and
+    whether the page found it exact (the revealed pixels' digest is the bundle's); empty where the browser or
+    the web build is missing."""
     if browser.browser_missing() is not None:
         return {}
     dist = context.work / "fields_pages"
     shutil.rmtree(dist, ignore_errors=True)
     shutil.copytree(browser.WEB_DIST, dist)
     rows = browser.browser_reveals(dist, bundles, context.model_path, repeats=1)
-    return {row["secret"]: row["seconds"] for row in rows if row["page"] == "single file" and row["default"]}
+    return {row["secret"]: {"browser_seconds": row["seconds"], "browser_exact": row["exact"]}
+            for row in rows if row["page"] == "single file" and row["default"]}
 
 
 def measure_fields(context: BenchContext) -> FieldsMeasured:
@@ -118,8 +120,9 @@ def measure_fields(context: BenchContext) -> FieldsMeasured:
                                             model=load_model(folder / "model.onnx"))
         cameras = len(scene_context.scene.config.cameras)
         hides, bundles = hide_rows(scene_context, preset, (cameras // 3, 2 * cameras // 3))
-        in_browser = browser_seconds(scene_context, bundles)
-        rows += [{**row, "browser_seconds": in_browser.get(row["name"])} for row in hides]
+        in_browser = browser_results(scene_context, bundles)
+        rows += [{**row, "browser_seconds": None, "browser_exact": None, **in_browser.get(row["name"], {})}
+                 for row in hides]
         rows += rate_rows(preset, scene_context.scene, scene_context.model)
         if preset == "hashgrid":
             hashgrid_context = scene_context
@@ -150,14 +153,15 @@ def describe_fields(context: BenchContext, measured: FieldsMeasured) -> list[str
               "", "Photos hidden with the defaults at two views the other experiments do not use (a third and two thirds "
                   "round the cameras), medians:", "",
               "| preset | bytes/px | bundle ÷ PNG | escaped | hide s | reveal s (onnxruntime) | reveal s (browser) | "
-              "exact |", "|---|---|---|---|---|---|---|---|"]
+              "exact (onnxruntime, browser) |", "|---|---|---|---|---|---|---|---|"]
     for preset in fits:
         hides = [row for row in rows if row["row"] == "hide" and row["preset"] == preset]
         ratio = np.median([row["bundle_bytes"] / row["png_bytes"] for row in hides])
         lines.append(f"| {preset} | {median_of(rows, preset, 'bytes_per_pixel'):.2f} | {ratio:.2f} | "
                      f"{median_of(rows, preset, 'escaped'):.0f} | {median_of(rows, preset, 'hide_seconds'):.2f} | "
                      f"{median_of(rows, preset, 'reveal_seconds'):.3f} | {median_of(rows, preset, 'browser_seconds'):.3f} | "
-                     f"{sum(row['exact'] for row in hides)} / {len(hides)} |")
+                     f"{sum(row['exact'] for row in hides)}, {sum(row['browser_exact'] is True for row in hides)} "
+                     f"/ {len(hides)} |")
     rates = {(row["preset"], row["backend"]): row["samples_per_second"] for row in rows if row["row"] == "rate"}
     lines += ["", "Field evaluations per second (65,536 random samples with noise): " + ", ".join(
         f"{preset} {backend} {rate / 1e3:,.0f} k" for (preset, backend), rate in rates.items()) + "."]
