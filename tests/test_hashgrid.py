@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 import torch
 
-from helpers import make_tiny_scene, run_main, run_reveal
+from helpers import fitted_tiny_scene, make_tiny_scene, run_main, run_reveal
 from noisenerf.cli.main import main
 from noisenerf.runtime.fields.hashgrid import grid_levels, sh_matrix
 from noisenerf.runtime.images import read_native, to_uint8, write_image
@@ -218,3 +218,27 @@ def test_tiles_a_sealed_payload_and_ordinary_renders_work_on_a_hash_grid(hashgri
     image, _ = render_view(scene.config.cameras[1], scene.config.render, numpy_field(scene.render_field), scene.grid)
     ours = read_native(tmp_path / "view.png")[..., :3].astype(int)
     assert np.abs(ours - to_uint8(image).astype(int)).max() <= 1  # torch and onnxruntime agree to float32 rounding
+
+
+def test_the_samples_the_paper_method_leaves_out_move_a_colour_by_under_half_a_step(tmp_path):
+    """Exp density has no dead samples; `negligible` leaves out each ray's least opaque ones while their σΔ
+    sum stays under half an 8-bit step: rendered with their checked density and colour 0 (as the paper's
+    skipping passes do), every ray's colour is within half a step of the full render."""
+    from noisenerf.runtime.bundle import Tile
+    from noisenerf.runtime.sampling import SamplingConfig
+    from noisenerf.train.hide.secret_view import SecretView
+
+    scene = fitted_tiny_scene(tmp_path, "hashgrid")  # a fitted scene has empty space: a random one has none
+    camera = scene.config.cameras[2]
+    tile = Tile((0, 0, camera.width, camera.height), camera, SamplingConfig(2.0, 6.0, 48), None)
+    view = SecretView(scene.coarse, tile, scene.config.render, torch.device("cpu"))
+    index = torch.arange(view.n_rays)
+    noise = 0.1 * torch.randn(view.n_rays, view.n_samples, view.noise_dims, generator=torch.Generator().manual_seed(0))
+    with torch.no_grad():
+        raw_rgb, raw_density = view.raw(index, noise)
+        left_out = view.field.negligible(raw_density, view.deltas)
+        full = view.shade(index, raw_rgb, raw_density)
+        skipped = view.shade(index, torch.where(left_out[..., None], 0.0, raw_rgb), raw_density)
+    assert 0.0 < float(left_out.float().mean()) < 1.0  # the rule leaves samples out, not all (a young fit: ~7 %)
+    assert float((torch.sigmoid(raw_rgb) * left_out[..., None]).amax()) > 0  # and those had colour to lose
+    assert float((full - skipped).abs().max()) < 0.5 / 255

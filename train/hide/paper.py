@@ -38,6 +38,10 @@ weight decay pulls every encoded input toward 0, which lego's field leaves empty
 - `skip_dead` (exact): the colour branch and the backward pass run only on live samples (and on a
   dead ray's densest sample, which the density floor term moves). The update is unchanged, bit for bit
   on a CPU (rows are padded so that BLAS runs them through the kernel the full batch uses).
+- A field kind without dead samples (the hash grid's exp density) leaves out instead each ray's least
+  opaque samples while their σΔ sum stays under half an 8-bit step (`negligible`): kept at their checked
+  density with colour 0, they move the ray's colour by less than that (approximate, where dead samples
+  are exact).
 - `recheck_every` (approximate when > 1): a dead sample is not evaluated at all until the next check,
   every recheck_every iterations. Its noise still moves every step (Adam's momentum, weight decay), so
   a sample that comes alive between checks joins at the next one; 1 checks every iteration (exact).
@@ -95,8 +99,8 @@ def density_shortfall(raw_density: torch.Tensor, floor: float) -> torch.Tensor:
 
 
 def gradient_samples(raw_density: torch.Tensor, dead: torch.Tensor, floor: float | None) -> torch.Tensor:
-    """The samples whose gradient can be nonzero: live ones (not `dead`: the field kind's zero slope, e.g.
-    raw σ ≤ 0 under ReLU, where a sample has weight 0 in eq. 2 and no slope), and with the density floor
+    """The samples whose gradient is evaluated: live ones (not `dead`: the field kind's negligible samples,
+    e.g. raw σ ≤ 0 under ReLU, where a sample has weight 0 in eq. 2 and no slope), and with the density floor
     term (floor not None, raw) the densest samples of each ray below the floor (density_shortfall's
     gradient). raw_density, dead: (m, n_samples) -> bool, same shape."""
     active = ~dead
@@ -239,8 +243,8 @@ class BlockProblem:
         """Every sample's raw density with noise (m, k, dims): which samples the next passes evaluate."""
         with torch.no_grad():
             self.checked_density = torch.cat([self.secret_view.raw_density(self.index[p], noise[p]) for p in self.parts])
-        self.active = gradient_samples(self.checked_density, self.secret_view.field.zero_slope(self.checked_density),
-                                       self.floor)
+        self.active = gradient_samples(self.checked_density, self.secret_view.field.negligible(
+            self.checked_density, self.secret_view.deltas[self.index]), self.floor)
         self.work[1] += self.checked_density.numel()
 
     def losses_and_grad(self, noise: torch.Tensor, loss: Loss, t: int) -> tuple[torch.Tensor, torch.Tensor]:

@@ -213,6 +213,11 @@ class NeRFField(nn.Module):
         """Samples whose σ cannot move with their raw density: ReLU's off side."""
         return raw <= 0
 
+    def negligible(self, raw: torch.Tensor, deltas: torch.Tensor) -> torch.Tensor:
+        """Samples of rays (m, n_samples) whose colour and noise the paper's method may leave out: the dead
+        ones (zero_slope), whose weight in eq. 2 and gradient are exactly zero. deltas: the intervals."""
+        return self.zero_slope(raw)
+
     def forward(self, points: torch.Tensor, viewdirs: torch.Tensor, noise: torch.Tensor | None = None
                 ) -> tuple[torch.Tensor, torch.Tensor]:
         """rgb (n, 3) in [0, 1] and σ (n,) ≥ 0 at points (n, 3) seen along viewdirs (n, 3), with optional

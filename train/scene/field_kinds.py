@@ -61,6 +61,9 @@ class Field(Protocol):
     def zero_slope(self, raw: torch.Tensor) -> torch.Tensor:
         """Samples whose density cannot move with their raw density (bool, raw's shape)."""
 
+    def negligible(self, raw: torch.Tensor, deltas: torch.Tensor) -> torch.Tensor:
+        """Samples of rays (m, n_samples) the paper's method may leave out between checks (bool)."""
+
     def parameter_groups(self) -> list[dict]:
         """The optimizer's parameter groups (weight decay per group)."""
 

@@ -29,6 +29,7 @@ from noisenerf.runtime.fields.hashgrid import (
 )
 
 TABLE_INIT = 1e-4  # tables start uniform in ±this (Instant-NGP's)
+NEGLIGIBLE_OPACITY = 0.5 / 255  # Σ σΔ a ray's left-out samples may hold (negligible): half an 8-bit step
 MLP_WEIGHT_DECAY = 1e-6
 
 
@@ -253,6 +254,16 @@ class HashGridField(nn.Module):
     def zero_slope(raw: torch.Tensor) -> torch.Tensor:
         """Samples whose σ cannot move with their raw density: above the cap."""
         return raw >= DENSITY_EXPONENT_CAP
+
+    def negligible(self, raw: torch.Tensor, deltas: torch.Tensor) -> torch.Tensor:
+        """Samples of rays (m, n_samples) whose colour the paper's method may leave out: exp density has no
+        dead samples, so a ray's least opaque ones, σΔ smallest first, as long as their σΔ sum stays within
+        NEGLIGIBLE_OPACITY. Left out (their density kept, their colour 0), they move the ray's colour by at
+        most Σ w ≤ Σ σΔ (eq. 2: w = T(1 − e^(−σΔ)) ≤ σΔ): under half an 8-bit step. deltas: (m, n_samples)."""
+        opacity = self.density_of(raw) * deltas
+        order = opacity.argsort(-1)
+        within = opacity.gather(-1, order).cumsum(-1) <= NEGLIGIBLE_OPACITY
+        return torch.zeros_like(within).scatter(-1, order, within)
 
     def forward(self, points: torch.Tensor, viewdirs: torch.Tensor, noise: torch.Tensor | None = None
                 ) -> tuple[torch.Tensor, torch.Tensor]:
