@@ -72,6 +72,17 @@ def test_every_source_file_is_in_a_layer():
     assert stray == []
 
 
+def test_every_source_folder_is_a_package_the_install_ships():
+    """pyproject.toml lists the packages a (non-editable) install copies: a folder of modules missing there
+    imports in the checkout and fails in every installed copy."""
+    import tomllib
+
+    listed = set(tomllib.loads((REPO / "pyproject.toml").read_text())["tool"]["setuptools"]["packages"])
+    folders = {"noisenerf" + "".join(f".{part}" for part in path.parent.relative_to(REPO).parts)
+               for path in source_files() | {REPO / "api.py": ""}}
+    assert folders - listed == set()
+
+
 @pytest.mark.parametrize("source, reason", [
     ("from noisenerf.export.onnx_export import export_scene\n", "runtime may import only runtime"),
     ("def f():\n    from noisenerf.train.hide.run import hide\n", "runtime may import only runtime"),
