@@ -4,12 +4,12 @@ The graph holds the scene's frozen fields: inputs `points` (n, 3), `viewdirs` (n
 (n, noise_dims), outputs `rgb` (n, 3) and `sigma` (n,) of the render network (the fine one if there is
 one) and, for a scene with a fine network, `rgb_coarse` and `sigma_coarse` of the coarse one on the same
 inputs: the runtime needs it for nerf-pytorch's hierarchical render and for bundles hidden through it
-(the paper's method). n is dynamic. Positional encoding is inside the graph and the noise is added to
-[γ(x) ‖ γ(d)] exactly as NeRFField.forward does; rays, sampling, skipping and compositing stay in numpy
-on the host (noisenerf.runtime), so a torch render and an onnxruntime render differ only by field
-evaluation.
+(the paper's method). n is dynamic. The encodings (γ, or the hash grid and SH) are inside the graph and
+the noise is added to them exactly as the field kind's torch module does; rays, sampling, skipping and
+compositing stay in numpy on the host (noisenerf.runtime), so a torch render and an onnxruntime render
+differ only by field evaluation.
 
-The graph is written node for node from runtime.graph.field_graph, a pure function of the architecture
+The graph is written node for node from runtime.fields.field_graph, a pure function of the architecture
 that the reveal rebuilds to check a model's graph (so it is not traced: a tracer's output may change with
 the torch version, and the runtime could not predict it). The initializers are the scene's weights under
 the scene's names (coarse.pts_linears.0.weight, ...) in nn.Linear's (out, in) layout, which
@@ -37,7 +37,7 @@ from noisenerf.runtime.onnx_file import ModelFile, parse_model
 from noisenerf.runtime.fields import field_graph
 from noisenerf.runtime.graph import IR_VERSION, Port, check_graph
 from noisenerf.runtime.session import OnnxField
-from noisenerf.train.scene.field import NeRFField
+from noisenerf.train.scene.field_kinds import Field
 from noisenerf.train.scene.render import numpy_field
 from noisenerf.train.scene.scene import Scene, load_scene
 
@@ -48,7 +48,7 @@ PROBE_NOISE_SCALES = {"zero": 0.0, "normal": 1.0, "huge": 1e3}
 
 
 def fields_to_onnx(scene: Scene, metadata: ModelMetadata) -> onnx.ModelProto:
-    """The ONNX model of the scene's fields, node for node runtime.graph.field_graph of its architecture
+    """The ONNX model of the scene's fields, node for node runtime.fields.field_graph of its architecture
     (the graph the reveal checks), with the scene's weights as named initializers."""
     graph = field_graph(metadata.architecture, metadata.noise_dims)
     weights = scene.weight_arrays()
@@ -127,7 +127,7 @@ class CaseParity:
         return {**dataclasses.asdict(self), "passed": self.passed}
 
 
-def probe_parity(field: NeRFField, onnx_field: OnnxField, aabb, seed: int, network: str = "render"
+def probe_parity(field: Field, onnx_field: OnnxField, aabb, seed: int, network: str = "render"
                  ) -> tuple[CaseParity, ...]:
     """Compare one network of the exported graph with torch on the probe batches.
 

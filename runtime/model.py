@@ -2,8 +2,8 @@
 
     metadata_props
       noisenerf_format_version   "2"
-      noisenerf                  JSON: format_version, fingerprint, architecture ({"coarse": FieldConfig,
-                                 "fine": FieldConfig | null}), noise_dims, render (RenderConfig),
+      noisenerf                  JSON: format_version, fingerprint, architecture ({"coarse": a field kind's
+                                 architecture, "fine": … | null}), noise_dims, render (RenderConfig),
                                  hierarchy ({n_coarse, n_importance} | null: set iff there is a fine
                                  network), cameras, grid (aabb, resolution, occupancy bits: np.packbits
                                  of the C-order cube, base64)
@@ -83,7 +83,7 @@ class ModelMetadata:
     """Everything a model file says about its fields besides the graph and weights."""
 
     fingerprint: str
-    architecture: dict  # {"coarse": FieldConfig dict, "fine": FieldConfig dict | None}: part of the fingerprint
+    architecture: dict  # {"coarse": architecture, "fine": architecture | None} (runtime.fields): in the fingerprint
     noise_dims: int
     render_config: RenderConfig
     hierarchy: Hierarchy | None  # set iff the scene has a fine network
