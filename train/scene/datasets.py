@@ -22,7 +22,7 @@ from noisenerf.runtime.camera import Camera, NDCSpace, camera_rays
 from noisenerf.runtime.errors import UserError
 from noisenerf.runtime.files import read_json
 from noisenerf.runtime.images import composite_over, image_shape, read_image, resize_image
-from noisenerf.runtime.limits import checked_float, checked_image_size, checked_int, checked_list
+from noisenerf.runtime.limits import checked_float, checked_image_size, checked_list
 from noisenerf.train.scene.distortion import distorted_camera_rays
 
 BLENDER_SPLITS = ("train", "val", "test")
