@@ -62,12 +62,6 @@ def field_kind(config, what: str) -> FieldKind:
     return kinds[name]
 
 
-def noise_dims(config: dict, what: str) -> int:
-    """Values per noise vector of one network's architecture: its segments' sum."""
-    kind = field_kind(config, what)
-    return sum(segment.dims for segment in kind.segments(kind.checked(config, what)))
-
-
 def field_graph(architecture: dict, noise_dims: int) -> FieldGraph:
     """The graph of a model with this architecture ({"coarse": architecture, "fine": … | None}) and
     noise width: outputs rgb, sigma of the render network (the fine one where there is one), then

@@ -15,8 +15,6 @@ import torch
 from torch import nn
 
 from noisenerf.runtime.encoding import encoding_dims
-from noisenerf.runtime.fields import Segment
-from noisenerf.runtime.fields.mlp import MLP
 
 
 @dataclass(frozen=True)
@@ -44,10 +42,6 @@ class FieldConfig:
     def noise_dims(self) -> int:
         """Width of the noise vector at one sample: the whole encoded input, 90 for the standard NeRF."""
         return self.xyz_dims + self.dir_dims
-
-    @property
-    def segments(self) -> tuple[Segment, ...]:
-        return MLP.segments(MLP.checked(self.to_dict(), "scene"))
 
     @property
     def position_dims(self) -> int:
@@ -81,6 +75,17 @@ def positional_encoding(x: torch.Tensor, n_freqs: int) -> torch.Tensor:
     scaled = x[..., None, :] * freqs[:, None]  # (..., L, 3)
     bands = torch.stack([torch.sin(scaled), torch.cos(scaled)], dim=-2)  # (..., L, 2, 3)
     return torch.cat([x, bands.flatten(-3)], dim=-1)
+
+
+def noisy_forward(field, points: torch.Tensor, viewdirs: torch.Tensor, noise: torch.Tensor | None
+                  ) -> tuple[torch.Tensor, torch.Tensor]:
+    """Every field kind's forward (eq. 4–5): its encodings plus the optional noise (n, noise_dims), its raw
+    outputs, sigmoid colour (n, 3) and its density activation (n,). points, viewdirs: (n, 3)."""
+    encoded = field.encode(points, viewdirs)
+    if noise is not None:
+        encoded = encoded + noise
+    raw_rgb, raw_density = field.raw_outputs(encoded)
+    return torch.sigmoid(raw_rgb), field.density_of(raw_density)
 
 
 class NeRFField(nn.Module):
@@ -222,11 +227,7 @@ class NeRFField(nn.Module):
                 ) -> tuple[torch.Tensor, torch.Tensor]:
         """rgb (n, 3) in [0, 1] and σ (n,) ≥ 0 at points (n, 3) seen along viewdirs (n, 3), with optional
         noise (n, noise_dims) added to the encoded input."""
-        encoded = self.encode(points, viewdirs)
-        if noise is not None:
-            encoded = encoded + noise
-        raw_rgb, raw_density = self.raw_outputs(encoded)
-        return torch.sigmoid(raw_rgb), self.density_of(raw_density)
+        return noisy_forward(self, points, viewdirs, noise)
 
     def raw_density(self, encoded_xyz: torch.Tensor) -> torch.Tensor:
         """Pre-activation density alone, without the view branch. encoded_xyz: (n, xyz_dims) -> (n,)."""

@@ -25,7 +25,7 @@ class Field(Protocol):
     """What every field kind's module provides (shapes for n samples; "position" and "direction" are the
     noise segments, the trunk reading the first and the colour head the second with the trunk's feature)."""
 
-    config: FieldConfigs  # with segments, position_dims, direction_dims, noise_dims, has_view_branch
+    config: FieldConfigs  # with position_dims, direction_dims, noise_dims, has_view_branch
     adam: ClassVar[dict]  # the optimizer's arguments besides the learning rate
 
     def encode(self, points: torch.Tensor, viewdirs: torch.Tensor) -> torch.Tensor:

@@ -23,10 +23,10 @@ import torch
 from torch import nn
 from torch.nn import functional
 
-from noisenerf.runtime.fields import Segment
 from noisenerf.runtime.fields.hashgrid import (
     DEGREE2, DEGREE3, DENSITY_EXPONENT_CAP, HASHGRID, PRIMES, config_levels, corner_offsets, sh_matrix,
 )
+from noisenerf.train.scene.field import noisy_forward
 
 TABLE_INIT = 1e-4  # tables start uniform in ±this (Instant-NGP's)
 NEGLIGIBLE_OPACITY = 0.5 / 255  # Σ σΔ a ray's left-out samples may hold (negligible): half an 8-bit step
@@ -55,10 +55,6 @@ class HashGridConfig:
     def per_level_scale_for(base_resolution: int, max_resolution: int, levels: int) -> float:
         """Instant-NGP's b = exp((ln N_max − ln N_min) / (L − 1)), in float64."""
         return float(np.exp((np.log(max_resolution) - np.log(base_resolution)) / max(levels - 1, 1)))
-
-    @property
-    def segments(self) -> tuple[Segment, ...]:
-        return HASHGRID.segments(self.to_dict())
 
     @property
     def position_dims(self) -> int:
@@ -268,11 +264,7 @@ class HashGridField(nn.Module):
     def forward(self, points: torch.Tensor, viewdirs: torch.Tensor, noise: torch.Tensor | None = None
                 ) -> tuple[torch.Tensor, torch.Tensor]:
         """rgb (n, 3) and σ (n,) at points (n, 3) seen along viewdirs (n, 3), noise (n, noise_dims) optional."""
-        encoded = self.encode(points, viewdirs)
-        if noise is not None:
-            encoded = encoded + noise
-        raw_rgb, raw_density = self.raw_outputs(encoded)
-        return torch.sigmoid(raw_rgb), self.density_of(raw_density)
+        return noisy_forward(self, points, viewdirs, noise)
 
     def raw_density(self, encoded_position: torch.Tensor) -> torch.Tensor:
         """Pre-activation density (n,) of noisy grid features (n, L·F)."""
