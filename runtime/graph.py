@@ -38,6 +38,11 @@ COARSE_OUTPUT_NAMES = ("rgb_coarse", "sigma_coarse")  # the coarse network, pres
 BATCH = "n"  # the symbolic batch axis of every port
 
 
+def proposal_output(index: int) -> str:
+    """The output of a scene's proposal network `index` (density only; runtime.fields.nerfacto)."""
+    return f"sigma_proposal{index}"
+
+
 @dataclass(frozen=True)
 class Node:
     """One graph node: op type (default domain), input and output value names, integer attributes."""

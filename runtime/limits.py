@@ -32,6 +32,7 @@ MAX_HASH_LEVELS = 32  # levels of a hash-grid field (Instant-NGP's 16)
 MAX_HASH_FEATURES = 8  # features per level (Instant-NGP's 2)
 MAX_LOG2_TABLE = 24  # rows of one level's table, log2 (Instant-NGP's 19)
 MAX_TABLE_VALUES = 1 << 28  # float32 values in one hash grid's tables together (1 GiB)
+MAX_PROPOSAL_NETWORKS = 4  # density networks placing an ordinary render's samples (nerfacto's 2)
 MAX_HASH_RESOLUTION = 1 << 20  # vertices per side of a hash grid's finest level: corner × prime stays in int64
 MAX_GRID_RESOLUTION = 512  # cells per side of a model's occupancy grid (128 Mi cells)
 MAX_CAMERAS = 100_000  # dataset cameras listed in a model or scene

@@ -18,7 +18,9 @@ from dataclasses import dataclass
 from typing import Protocol
 
 from noisenerf.runtime.errors import UserError
-from noisenerf.runtime.graph import BATCH, COARSE_OUTPUT_NAMES, OUTPUT_NAMES, FieldGraph, GraphBuilder, Port
+from noisenerf.runtime.graph import (
+    BATCH, COARSE_OUTPUT_NAMES, OUTPUT_NAMES, FieldGraph, GraphBuilder, Port, proposal_output,
+)
 
 DEFAULT_KIND = "mlp"  # the kind of a network whose architecture names none
 
@@ -43,14 +45,19 @@ class FieldKind(Protocol):
 
     def build(self, builder: GraphBuilder, prefix: str, config: dict, rgb: str, sigma: str) -> None:
         """One network of a checked architecture: noisy encodings of the `points`, `viewdirs` and `noise`
-        inputs through its layers (weights named `prefix.…`) to the outputs rgb (n, 3) and sigma (n,)."""
+        inputs through its layers (weights named `prefix.…`) to the outputs rgb (n, 3) and sigma (n,), and
+        any density-only outputs (density_outputs)."""
+
+    def density_outputs(self, config: dict) -> int:
+        """How many proposal networks the architecture holds: outputs sigma_proposal0, … (points alone)."""
 
 
 def field_kinds() -> dict[str, FieldKind]:
     """Every registered kind by name (imported here, not at the top: the kinds import this module)."""
     from noisenerf.runtime.fields.hashgrid import HASHGRID
     from noisenerf.runtime.fields.mlp import MLP
-    return {kind.name: kind for kind in (MLP, HASHGRID)}
+    from noisenerf.runtime.fields.nerfacto import NERFACTO
+    return {kind.name: kind for kind in (MLP, HASHGRID, NERFACTO)}
 
 
 def field_kind(config, what: str) -> FieldKind:
@@ -65,7 +72,8 @@ def field_kind(config, what: str) -> FieldKind:
 def field_graph(architecture: dict, noise_dims: int) -> FieldGraph:
     """The graph of a model with this architecture ({"coarse": architecture, "fine": … | None}) and
     noise width: outputs rgb, sigma of the render network (the fine one where there is one), then
-    rgb_coarse, sigma_coarse beside a fine network. Refuses an architecture out of the caps (UserError)."""
+    rgb_coarse, sigma_coarse beside a fine network, then sigma_proposal0, … of the render network's proposal
+    networks. Refuses an architecture out of the caps (UserError)."""
     builder = GraphBuilder()
     kinds = {name: field_kind(config, name) for name, config in architecture.items() if config is not None}
     checked = {name: kind.checked(architecture[name], name) for name, kind in kinds.items()}
@@ -76,6 +84,10 @@ def field_graph(architecture: dict, noise_dims: int) -> FieldGraph:
         kinds["fine"].build(builder, "fine", checked["fine"], *OUTPUT_NAMES)
         kinds["coarse"].build(builder, "coarse", checked["coarse"], *COARSE_OUTPUT_NAMES)
         outputs += [Port("rgb_coarse", (BATCH, 3)), Port("sigma_coarse", (BATCH,))]
+    proposals = {name: kind.density_outputs(checked[name]) for name, kind in kinds.items()}
+    if proposals.get("fine") or (proposals["coarse"] and "fine" in checked):
+        raise UserError("a network with proposal networks cannot be beside a fine network")
+    outputs += [Port(proposal_output(i), (BATCH,)) for i in range(proposals["coarse"])]
     inputs = (Port("points", (BATCH, 3)), Port("viewdirs", (BATCH, 3)), Port("noise", (BATCH, noise_dims)))
     return FieldGraph(tuple(builder.nodes), builder.constants, builder.weights, inputs, tuple(outputs),
                       max(kind.opset for kind in kinds.values()))

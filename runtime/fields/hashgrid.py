@@ -91,15 +91,21 @@ def level_scales(levels: int, base_resolution: int, per_level_scale: float) -> n
 
 
 def grid_levels(levels: int, log2_table: int, base_resolution: int, per_level_scale: float) -> GridLevels:
-    """tiny-cuda-nn's level layout: scale_l = N_min·b^l − 1 (level_scales) and resolution ceil(scale_l) + 1;
-    rows min(res³ rounded up to 8, 2^log2_table); dense where res³ fits in them."""
-    scale = level_scales(levels, base_resolution, per_level_scale)
+    """tiny-cuda-nn's level layout of scales N_min·b^l − 1 (level_scales)."""
+    return layout_levels(level_scales(levels, base_resolution, per_level_scale), log2_table)
+
+
+def layout_levels(scale: np.ndarray, log2_table: int, all_hashed: bool = False) -> GridLevels:
+    """The tables of levels at these float32 scales: tiny-cuda-nn's resolution ceil(scale) + 1 and rows
+    min(res³ rounded up to 8, 2^log2_table), dense where res³ fits in them; or, `all_hashed` (nerfstudio's
+    torch grid), 2^log2_table hashed rows every level."""
     resolution = np.ceil(scale).astype(np.int64) + 1
     cells = resolution ** 3
     table = 1 << log2_table
-    rows = np.minimum((cells + 7) // 8 * 8, table)
+    rows = np.full_like(cells, table) if all_hashed else np.minimum((cells + 7) // 8 * 8, table)
     offset = np.concatenate([[0], np.cumsum(rows)[:-1]]).astype(np.int64)
-    return GridLevels(scale, resolution, rows.astype(np.int64), offset, (cells <= rows).astype(np.int64))
+    dense = np.zeros_like(cells) if all_hashed else (cells <= rows).astype(np.int64)
+    return GridLevels(scale, resolution, rows.astype(np.int64), offset, dense)
 
 
 def config_levels(config: dict) -> GridLevels:
@@ -118,7 +124,6 @@ class HashGridKind:
     def checked(self, config, what: str) -> dict:
         if not isinstance(config, dict) or set(config) != KEYS:
             raise UserError(f"the {what} network's architecture must have exactly {', '.join(sorted(KEYS))}")
-        width = lambda key, low=1: checked_int(config[key], f"{what} {key}", low, MAX_FIELD_WIDTH)  # noqa: E731
         checked = {
             "kind": self.name,
             "levels": checked_int(config["levels"], f"{what} levels", 1, MAX_HASH_LEVELS),
@@ -126,10 +131,7 @@ class HashGridKind:
             "log2_table": checked_int(config["log2_table"], f"{what} log2_table", 3, MAX_LOG2_TABLE),
             "base_resolution": checked_int(config["base_resolution"], f"{what} base_resolution", 1, MAX_HASH_RESOLUTION),
             "per_level_scale": checked_float(config["per_level_scale"], f"{what} per_level_scale", 1.0, 8.0),
-            "density_hidden": width("density_hidden"), "geo_features": width("geo_features", 0),
-            "sh_degree": checked_int(config["sh_degree"], f"{what} sh_degree", 1, MAX_SH_DEGREE),
-            "colour_hidden": width("colour_hidden"),
-            "colour_layers": checked_int(config["colour_layers"], f"{what} colour_layers", 1, MAX_FIELD_DEPTH),
+            **checked_mlps(config, what),
             "aabb": [checked_float(v, f"{what} aabb", -1e9, 1e9) for v in checked_list(config["aabb"], "aabb", length=6)],
         }
         if not all(lo < hi for lo, hi in zip(checked["aabb"][:3], checked["aabb"][3:])):
@@ -144,34 +146,55 @@ class HashGridKind:
                             f"than {MAX_TABLE_VALUES}")
         return checked
 
+    def density_outputs(self, config: dict) -> int:
+        return 0
+
     def segments(self, config: dict) -> tuple[Segment, ...]:
         return Segment("position", config["levels"] * config["features"]), Segment("direction", config["sh_degree"] ** 2)
 
     def build(self, builder: GraphBuilder, prefix: str, config: dict, rgb: str, sigma: str) -> None:
-        position, direction = self.segments(config)
         features = grid_features(builder, prefix, config)
-        grid, sh = builder.noisy_pair(features, spherical_harmonics(builder, config["sh_degree"]), lambda: (
-            builder.constant(f"{prefix}.split.noise", np.array([position.dims, direction.dims], np.int64))))
-        hidden = builder.add("Relu", (builder.linear(prefix, "density_linears.0", grid, position.dims,
-                                                     config["density_hidden"]),), f"{prefix}.density_hidden")
-        trunk = builder.linear(prefix, "density_linears.1", hidden, config["density_hidden"], 1 + config["geo_features"])
-        if config["geo_features"]:
-            split = builder.constant(f"{prefix}.split.trunk", np.array([1, config["geo_features"]], np.int64))
-            density, geo = builder.split(trunk, split, (f"{prefix}.raw_density", f"{prefix}.geo"))
-            h = builder.add("Concat", (sh, geo), f"{prefix}.head", axis=1)
-        else:
-            density, h = trunk, sh
-        fan_in = direction.dims + config["geo_features"]
-        for i in range(config["colour_layers"]):
-            h = builder.add("Relu", (builder.linear(prefix, f"colour_linears.{i}", h, fan_in, config["colour_hidden"]),),
-                            f"{prefix}.colour{i}")
-            fan_in = config["colour_hidden"]
-        raw_rgb = builder.linear(prefix, f"colour_linears.{config['colour_layers']}", h, fan_in, 3)
-        builder.add("Sigmoid", (raw_rgb,), rgb)
+        density = field_mlps(builder, prefix, config, self.segments(config), features,
+                             spherical_harmonics(builder, config["sh_degree"]), rgb)
         cap = builder.constant("density.exponent_cap", np.array([DENSITY_EXPONENT_CAP], np.float32))
         capped = builder.add("Min", (density, cap), f"{prefix}.capped_density")
         builder.add("Squeeze", (builder.add("Exp", (capped,), f"{prefix}.sigma"),
                                 builder.constant("axes.1", np.array([1], np.int64))), sigma)
+
+
+def checked_mlps(config: dict, what: str) -> dict:
+    """The widths of a hash-grid field's two MLPs and its SH degree, within the caps."""
+    width = lambda key, low=1: checked_int(config[key], f"{what} {key}", low, MAX_FIELD_WIDTH)  # noqa: E731
+    return {"density_hidden": width("density_hidden"), "geo_features": width("geo_features", 0),
+            "sh_degree": checked_int(config["sh_degree"], f"{what} sh_degree", 1, MAX_SH_DEGREE),
+            "colour_hidden": width("colour_hidden"),
+            "colour_layers": checked_int(config["colour_layers"], f"{what} colour_layers", 1, MAX_FIELD_DEPTH)}
+
+
+def field_mlps(builder: GraphBuilder, prefix: str, config: dict, segments: tuple[Segment, Segment], features: str,
+               sh: str, rgb: str) -> str:
+    """Noise on [grid features ‖ SH], the density MLP to [raw density ‖ geometric feature], the colour MLP
+    on [noisy SH ‖ geometric feature] to the sigmoid `rgb` output. -> the raw density (n, 1)."""
+    position, direction = segments
+    grid, sh = builder.noisy_pair(features, sh, lambda: (
+        builder.constant(f"{prefix}.split.noise", np.array([position.dims, direction.dims], np.int64))))
+    hidden = builder.add("Relu", (builder.linear(prefix, "density_linears.0", grid, position.dims,
+                                                 config["density_hidden"]),), f"{prefix}.density_hidden")
+    trunk = builder.linear(prefix, "density_linears.1", hidden, config["density_hidden"], 1 + config["geo_features"])
+    if config["geo_features"]:
+        split = builder.constant(f"{prefix}.split.trunk", np.array([1, config["geo_features"]], np.int64))
+        density, geo = builder.split(trunk, split, (f"{prefix}.raw_density", f"{prefix}.geo"))
+        h = builder.add("Concat", (sh, geo), f"{prefix}.head", axis=1)
+    else:
+        density, h = trunk, sh
+    fan_in = direction.dims + config["geo_features"]
+    for i in range(config["colour_layers"]):
+        h = builder.add("Relu", (builder.linear(prefix, f"colour_linears.{i}", h, fan_in, config["colour_hidden"]),),
+                        f"{prefix}.colour{i}")
+        fan_in = config["colour_hidden"]
+    raw_rgb = builder.linear(prefix, f"colour_linears.{config['colour_layers']}", h, fan_in, 3)
+    builder.add("Sigmoid", (raw_rgb,), rgb)
+    return density
 
 
 def corner_grid(builder: GraphBuilder, name: str, per_axis: str) -> str:
@@ -217,21 +240,35 @@ def hashed_index(builder: GraphBuilder, name: str, lower: str, log2_table: int) 
         f"{name}.index")
 
 
+def grid_axes(builder: GraphBuilder) -> dict[int, str]:
+    """The axis constants a grid's nodes use, added before the grid's own constants (the file's order)."""
+    return {k: builder.constant(f"axes.{k}", np.array([k], np.int64)) for k in (1, 2, 3)}
+
+
 def grid_features(builder: GraphBuilder, prefix: str, config: dict) -> str:
-    """The interpolated hash-grid features of `points` -> (n, L·F), level-major. The corners are built from
-    per-axis pairs (a dense index is the lower corner's plus a constant per corner; a hash is the XOR of
-    one primed coordinate per axis), so the integer work is per axis, not per corner and axis."""
-    levels, name = config_levels(config), f"{prefix}.grid"
+    """The interpolated hash-grid features of `points` in the scene box -> (n, L·F), level-major."""
+    name, axes = f"{prefix}.grid", grid_axes(builder)
     lo, hi = np.asarray(config["aabb"][:3], np.float32), np.asarray(config["aabb"][3:], np.float32)
-    axes = {k: builder.constant(f"axes.{k}", np.array([k], np.int64)) for k in (1, 2, 3)}
     unit = builder.add("Div", (builder.add("Sub", ("points", builder.constant(f"{prefix}.aabb.lo", lo)), f"{name}.shifted"),
                                builder.constant(f"{prefix}.aabb.extent", hi - lo)), f"{name}.unit")
     inside = builder.add("Min", (builder.add("Max", (unit, builder.constant("float.0", np.zeros(1, np.float32))),
                                              f"{name}.above"), builder.constant("float.1", np.ones(1, np.float32))),
                          f"{name}.inside")
-    scaled = builder.add("Mul", (builder.add("Unsqueeze", (inside, axes[1]), f"{name}.x"),
+    return interpolated_features(builder, name, f"{prefix}.table", inside, config_levels(config), config["features"],
+                                 config["log2_table"], axes, cell_offset=0.5)
+
+
+def interpolated_features(builder: GraphBuilder, name: str, table: str, unit: str, levels: GridLevels, features: int,
+                          log2_table: int, axes: dict[int, str], cell_offset: float) -> str:
+    """Trilinearly interpolated features of unit-cube points `unit` (n, 3) from the weight `table` laid out
+    by `levels` -> (n, L·F), level-major. The cell is that of scale_l·x + cell_offset (tiny-cuda-nn's 0.5;
+    nerfstudio's torch grid: 0). The corners are built from per-axis pairs (a dense index is the lower
+    corner's plus a constant per corner; a hash is the XOR of one primed coordinate per axis), so the
+    integer work is per axis, not per corner and axis."""
+    scaled = builder.add("Mul", (builder.add("Unsqueeze", (unit, axes[1]), f"{name}.x"),
                                  builder.constant(f"{name}.scale", levels.scale[:, None])), f"{name}.scaled")
-    position = builder.add("Add", (scaled, builder.constant("float.0.5", np.array([0.5], np.float32))), f"{name}.position")
+    position = scaled if not cell_offset else builder.add(
+        "Add", (scaled, builder.constant("float.0.5", np.array([cell_offset], np.float32))), f"{name}.position")
     cell = builder.add("Floor", (position,), f"{name}.cell")  # (n, L, 3)
     fraction = builder.add("Unsqueeze", (builder.add("Sub", (position, cell), f"{name}.fraction"), axes[3]),
                            f"{name}.fraction4")  # (n, L, 3, 1)
@@ -243,12 +280,12 @@ def grid_features(builder: GraphBuilder, prefix: str, config: dict) -> str:
         dense_lower, hashed_lower = builder.split(lower, builder.constant(f"{name}.split.levels", np.array(
             [dense_levels, hashed_levels], np.int64)), (f"{name}.dense.lower", f"{name}.hashed.lower"), axis=1)
     indices = ([dense_index(builder, f"{name}.dense", dense_lower, levels, slice(0, dense_levels))] if dense_levels
-               else []) + ([hashed_index(builder, f"{name}.hashed", hashed_lower, config["log2_table"])]
+               else []) + ([hashed_index(builder, f"{name}.hashed", hashed_lower, log2_table)]
                            if hashed_levels else [])
     joined = indices[0] if len(indices) == 1 else builder.add("Concat", tuple(indices), f"{name}.level_index", axis=1)
     index = builder.add("Add", (joined, builder.constant(f"{name}.offset", levels.offset[:, None])), f"{name}.index")
-    builder.weights[f"{prefix}.table"] = (levels.total_rows, config["features"])
-    values = builder.add("Gather", (f"{prefix}.table", index), f"{name}.values", axis=0)  # (n, L, 8, F)
+    builder.weights[table] = (levels.total_rows, features)
+    values = builder.add("Gather", (table, index), f"{name}.values", axis=0)  # (n, L, 8, F)
     factors = builder.add("Concat", (builder.add("Sub", (builder.constant("float.1", np.ones(1, np.float32)), fraction),
                                                  f"{name}.rest"), fraction), f"{name}.factors", axis=3)  # (n, L, 3, 2)
     wx, wy, wz = corner_grid(builder, f"{name}.weight", factors)
@@ -260,23 +297,27 @@ def grid_features(builder: GraphBuilder, prefix: str, config: dict) -> str:
     return builder.add("Reshape", (summed, builder.constant("shape.flat", np.array([0, -1], np.int64))), f"{name}.features")
 
 
-def spherical_harmonics(builder: GraphBuilder, degree: int) -> str:
-    """SH of `viewdirs` up to `degree` -> (n, degree²): sh_matrix over the monomials, by one Gemm."""
-    name, monomials = f"sh.{degree}", "sh.monomials"
+def spherical_harmonics(builder: GraphBuilder, degree: int, directions: str = "viewdirs", signs=None) -> str:
+    """SH of `directions` (n, 3) up to `degree` -> (n, degree²): sh_matrix over the monomials, by one Gemm;
+    `signs` (16,) flips rows (nerfstudio's torch SH, runtime.fields.nerfacto)."""
+    prefix = "sh" if directions == "viewdirs" else f"{directions}.sh"
+    name, monomials = f"{prefix}.{degree}", f"{prefix}.monomials"
     if builder.computed(name):
         return name
     if not builder.computed(monomials):  # shared by every degree
         gather = lambda x, index, out: builder.add("Gather", (x, builder.constant(  # noqa: E731
-            f"sh.index.{out}", np.array(index, np.int64))), f"sh.{out}", axis=1)
-        degree2 = builder.add("Mul", (gather("viewdirs", DEGREE2[0], "a2"), gather("viewdirs", DEGREE2[1], "b2")),
-                              "sh.deg2")
-        degree3 = builder.add("Mul", (gather(degree2, DEGREE3[0], "a3"), gather("viewdirs", DEGREE3[1], "b3")),
-                              "sh.deg3")
-        builder.add("Concat", ("viewdirs", degree2, degree3), monomials, axis=1)
+            f"sh.index.{out}", np.array(index, np.int64))), f"{prefix}.{out}", axis=1)
+        degree2 = builder.add("Mul", (gather(directions, DEGREE2[0], "a2"), gather(directions, DEGREE2[1], "b2")),
+                              f"{prefix}.deg2")
+        degree3 = builder.add("Mul", (gather(degree2, DEGREE3[0], "a3"), gather(directions, DEGREE3[1], "b3")),
+                              f"{prefix}.deg3")
+        builder.add("Concat", (directions, degree2, degree3), monomials, axis=1)
     matrix, constant = sh_matrix()
     rows = degree ** 2
-    return builder.add("Gemm", (monomials, builder.constant(f"sh.matrix.{degree}", matrix[:rows]),
-                                builder.constant(f"sh.constant.{degree}", constant[:rows])), name, transB=1)
+    if signs is not None:
+        matrix, constant = matrix * signs[:, None], constant * signs
+    return builder.add("Gemm", (monomials, builder.constant(f"{prefix}.matrix.{degree}", matrix[:rows]),
+                                builder.constant(f"{prefix}.constant.{degree}", constant[:rows])), name, transB=1)
 
 
 HASHGRID = HashGridKind()

@@ -69,6 +69,9 @@ class MlpKind:
                 **{key: checked_int(config[key], f"{what} {key}", 0, MAX_FREQUENCIES)
                    for key in ("xyz_freqs", "dir_freqs")}}
 
+    def density_outputs(self, config: dict) -> int:
+        return 0
+
     def segments(self, config: dict) -> tuple[Segment, ...]:
         position = Segment("position", encoding_dims(config["xyz_freqs"]))
         return (position, Segment("direction", encoding_dims(config["dir_freqs"]))) if config["use_viewdirs"] \

@@ -24,7 +24,7 @@ from torch import nn
 from torch.nn import functional
 
 from noisenerf.runtime.fields.hashgrid import (
-    DEGREE2, DEGREE3, DENSITY_EXPONENT_CAP, HASHGRID, PRIMES, config_levels, corner_offsets, sh_matrix,
+    DEGREE2, DEGREE3, DENSITY_EXPONENT_CAP, HASHGRID, PRIMES, GridLevels, config_levels, corner_offsets, sh_matrix,
 )
 from noisenerf.train.scene.field import noisy_forward
 
@@ -33,8 +33,22 @@ NEGLIGIBLE_OPACITY = 0.5 / 255  # Σ σΔ a ray's left-out samples may hold (neg
 MLP_WEIGHT_DECAY = 1e-6
 
 
+class GridFieldDims:
+    """The noise widths of a config with `position_dims` (grid features) and `sh_degree`."""
+
+    has_view_branch: ClassVar[bool] = True
+
+    @property
+    def direction_dims(self) -> int:
+        return self.sh_degree ** 2
+
+    @property
+    def noise_dims(self) -> int:
+        return self.position_dims + self.direction_dims
+
+
 @dataclass(frozen=True)
-class HashGridConfig:
+class HashGridConfig(GridFieldDims):
     """Architecture of one hash-grid field (runtime.fields.hashgrid's keys). `aabb` is the scene box the
     grid spans; per_level_scale = (max_resolution / base_resolution)^(1 / (levels − 1)) (`with_max_resolution`)."""
 
@@ -59,16 +73,6 @@ class HashGridConfig:
     @property
     def position_dims(self) -> int:
         return self.levels * self.features
-
-    @property
-    def direction_dims(self) -> int:
-        return self.sh_degree ** 2
-
-    @property
-    def noise_dims(self) -> int:
-        return self.position_dims + self.direction_dims
-
-    has_view_branch: ClassVar[bool] = True
 
     def to_dict(self) -> dict:
         return {"kind": self.kind, **dataclasses.asdict(self), "aabb": [float(v) for v in self.aabb]}
@@ -114,6 +118,52 @@ class GridGather(torch.autograd.Function):
         return torch.stack(columns, 1), None, None
 
 
+class GridEncoding(nn.Module):
+    """runtime.fields.hashgrid.interpolated_features in torch: the interpolated features of unit-cube points
+    from a table laid out by `levels`, cell of scale·u + cell_offset. Holds only constants; the table is its
+    owner's parameter (so weight names stay the owner's)."""
+
+    def __init__(self, levels: GridLevels, log2_table: int, features: int, cell_offset: float):
+        super().__init__()
+        self.levels, self.features, self.cell_offset = len(levels.rows), features, cell_offset
+        self.dense_levels = dense = int(levels.dense.sum())
+        self.mask = (1 << log2_table) - 1
+        # int32 where every product fits: the finest vertex times a prime reduced modulo the table
+        self.index_dtype = torch.int32 if (int(levels.resolution.max()) + 1) * self.mask < 2 ** 31 else torch.int64
+        integer = np.int32 if self.index_dtype == torch.int32 else np.int64
+        strides = np.stack([np.ones_like(levels.resolution), levels.resolution, levels.resolution ** 2], 1)[:dense]
+        for name, value in {"scale": levels.scale[:, None], "strides": strides.astype(integer),
+                            "corner_strides": (corner_offsets() @ strides.T).T.astype(integer),
+                            "rows": levels.rows[:dense, None].astype(integer), "offset": levels.offset[:, None].astype(integer),
+                            "primes": (np.array(PRIMES, np.int64)[:, None] & self.mask).astype(integer)}.items():
+            self.register_buffer(name, torch.from_numpy(np.ascontiguousarray(value)), persistent=False)
+
+    def hashed_index(self, lower: torch.Tensor) -> torch.Tensor:
+        """runtime.fields.hashgrid.hashed_index: the 8 corners' rows on hashed levels, lower (n, l, 3) ->
+        (n, l, 8). The primes are taken modulo the table first, which leaves the masked XOR unchanged and
+        lets the products fit index_dtype."""
+        hx, hy, hz = corner_grid((lower[..., None] + PAIR.to(lower)) * self.primes)
+        return ((hx ^ hy ^ hz) & self.mask).flatten(2)
+
+    def forward(self, table: torch.Tensor, unit: torch.Tensor) -> torch.Tensor:
+        """Features of unit-cube points (n, 3) -> (n, L·F), level-major, corners built from per-axis pairs as
+        the graph builds them (corner_grid)."""
+        position = unit[:, None, :] * self.scale
+        if self.cell_offset:
+            position = position + self.cell_offset  # (n, L, 3)
+        cell = torch.floor(position)
+        fraction = (position - cell)[..., None]  # (n, L, 3, 1)
+        lower = cell.to(self.index_dtype)
+        dense = self.dense_levels
+        index = torch.cat([((lower[:, :dense] * self.strides).sum(-1, keepdim=True) + self.corner_strides) % self.rows,
+                           self.hashed_index(lower[:, dense:])], 1) + self.offset  # (n, L, 8)
+        wx, wy, wz = corner_grid(torch.cat([1.0 - fraction, fraction], -1))
+        weights = (wx * wy * wz).flatten(2)  # (n, L, 8)
+        n = unit.shape[0]
+        gathered = GridGather.apply(table, index.reshape(n * self.levels, 8), weights.reshape(n * self.levels, 8))
+        return gathered.reshape(n, self.levels * self.features)
+
+
 class HashGridField(nn.Module):
     """F(enc(x) + δ_x, SH(d) + δ_d) -> (rgb, σ) with sigmoid colour and σ = exp(min(raw, cap))."""
 
@@ -122,27 +172,24 @@ class HashGridField(nn.Module):
         self.config = config
         levels = config_levels(config.to_dict())
         self.table = nn.Parameter(torch.empty(levels.total_rows, config.features).uniform_(-TABLE_INIT, TABLE_INIT))
-        self.dense_levels = dense = int(levels.dense.sum())
-        self.mask = (1 << config.log2_table) - 1
-        # int32 where every product fits: the finest vertex times a prime reduced modulo the table
-        self.index_dtype = torch.int32 if (int(levels.resolution.max()) + 1) * self.mask < 2 ** 31 else torch.int64
-        integer = np.int32 if self.index_dtype == torch.int32 else np.int64
-        strides = np.stack([np.ones_like(levels.resolution), levels.resolution, levels.resolution ** 2], 1)[:dense]
+        self.grid = GridEncoding(levels, config.log2_table, config.features, cell_offset=0.5)
         for name, value in {"lo": np.asarray(config.aabb[:3], np.float32),
-                            "extent": np.asarray(config.aabb[3:], np.float32) - np.asarray(config.aabb[:3], np.float32),
-                            "scale": levels.scale[:, None], "strides": strides.astype(integer),
-                            "corner_strides": (corner_offsets() @ strides.T).T.astype(integer),
-                            "rows": levels.rows[:dense, None].astype(integer), "offset": levels.offset[:, None].astype(integer),
-                            "primes": (np.array(PRIMES, np.int64)[:, None] & self.mask).astype(integer)}.items():
-            self.register_buffer(name, torch.from_numpy(np.ascontiguousarray(value)), persistent=False)
-        matrix, constant = sh_matrix()
-        rows = config.direction_dims
-        self.register_buffer("sh_matrix", torch.from_numpy(matrix[:rows].copy()), persistent=False)
-        self.register_buffer("sh_constant", torch.from_numpy(constant[:rows].copy()), persistent=False)
+                            "extent": np.asarray(config.aabb[3:], np.float32) - np.asarray(config.aabb[:3], np.float32)
+                            }.items():
+            self.register_buffer(name, torch.from_numpy(value), persistent=False)
+        self.register_sh(config.direction_dims)
         self.density_linears = nn.ModuleList([nn.Linear(config.position_dims, config.density_hidden),
                                               nn.Linear(config.density_hidden, 1 + config.geo_features)])
         widths = [config.direction_dims + config.geo_features] + [config.colour_hidden] * config.colour_layers
         self.colour_linears = nn.ModuleList([nn.Linear(a, b) for a, b in zip(widths, widths[1:] + [3])])
+
+    def register_sh(self, rows: int, signs: np.ndarray | None = None) -> None:
+        """The SH matrix and constant (runtime.fields.hashgrid.sh_matrix), rows flipped by `signs`."""
+        matrix, constant = sh_matrix()
+        if signs is not None:
+            matrix, constant = matrix * signs[:, None], constant * signs
+        self.register_buffer("sh_matrix", torch.from_numpy(matrix[:rows].copy()), persistent=False)
+        self.register_buffer("sh_constant", torch.from_numpy(constant[:rows].copy()), persistent=False)
 
     def density_layers(self) -> list[nn.Linear]:
         """The layers a density alone runs through (the bench's cost model; the grid is gathers)."""
@@ -155,29 +202,9 @@ class HashGridField(nn.Module):
 
     adam: ClassVar[dict] = {"betas": (0.9, 0.99), "eps": 1e-15}
 
-    def hashed_index(self, lower: torch.Tensor) -> torch.Tensor:
-        """runtime.fields.hashgrid.hashed_index: the 8 corners' rows on hashed levels, lower (n, l, 3) ->
-        (n, l, 8). The primes are taken modulo the table first, which leaves the masked XOR unchanged and
-        lets the products fit index_dtype."""
-        hx, hy, hz = corner_grid((lower[..., None] + PAIR.to(lower)) * self.primes)
-        return ((hx ^ hy ^ hz) & self.mask).flatten(2)
-
     def grid_features(self, points: torch.Tensor) -> torch.Tensor:
-        """enc(x): the interpolated features of points (n, 3) -> (n, L·F), level-major, corners built from
-        per-axis pairs as the graph builds them (corner_grid)."""
-        unit = torch.clamp((points - self.lo) / self.extent, 0.0, 1.0)
-        position = unit[:, None, :] * self.scale + 0.5  # (n, L, 3)
-        cell = torch.floor(position)
-        fraction = (position - cell)[..., None]  # (n, L, 3, 1)
-        lower = cell.to(self.index_dtype)
-        dense = self.dense_levels
-        index = torch.cat([((lower[:, :dense] * self.strides).sum(-1, keepdim=True) + self.corner_strides) % self.rows,
-                           self.hashed_index(lower[:, dense:])], 1) + self.offset  # (n, L, 8)
-        wx, wy, wz = corner_grid(torch.cat([1.0 - fraction, fraction], -1))
-        weights = (wx * wy * wz).flatten(2)  # (n, L, 8)
-        n, levels = points.shape[0], self.config.levels
-        gathered = GridGather.apply(self.table, index.reshape(n * levels, 8), weights.reshape(n * levels, 8))
-        return gathered.reshape(n, levels * self.config.features)
+        """enc(x): the interpolated features of points (n, 3) in the scene box -> (n, L·F), level-major."""
+        return self.grid(self.table, torch.clamp((points - self.lo) / self.extent, 0.0, 1.0))
 
     def spherical_harmonics(self, viewdirs: torch.Tensor) -> torch.Tensor:
         """SH(d) of unit directions (n, 3) -> (n, sh_degree²), as the graph computes it."""
