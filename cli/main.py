@@ -61,6 +61,17 @@ def cmd_import(args) -> None:
          [f"scene: {args.output}", f"fingerprint: {scene.fingerprint()}"])
 
 
+def cmd_import_nerfstudio(args) -> None:
+    from noisenerf.train.scene.import_nerfstudio import import_nerfstudio
+
+    scene = import_nerfstudio(Path(args.run_dir), Path(args.output), data=Path(args.data) if args.data else None)
+    config = scene.config.coarse
+    emit({"scene": args.output, "fingerprint": scene.fingerprint(), "implementation": config.implementation,
+          "cameras": len(scene.config.cameras)}, args.json,
+         [f"scene: {args.output} (nerfacto, {config.implementation} implementation, {len(scene.config.cameras)} "
+          "cameras in nerfstudio's frame order)", f"fingerprint: {scene.fingerprint()}"])
+
+
 def cmd_hide(args) -> None:
     from noisenerf import api
 
@@ -186,6 +197,13 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("checkpoint")
     p.add_argument("--config", required=True, help="the nerf-pytorch config .txt the checkpoint was trained with")
     p.add_argument("--data-dir", help="dataset folder (default: the config's datadir)")
+    p.add_argument("-o", "--output", required=True)
+
+    p = add("import-nerfstudio", cmd_import_nerfstudio,
+            "convert a nerfstudio nerfacto run directory into a scene directory")
+    p.add_argument("run_dir", help="outputs/<experiment>/nerfacto/<timestamp>: config.yml, dataparser_transforms.json, "
+                                   "nerfstudio_models/")
+    p.add_argument("--data", help="the dataset folder holding transforms.json (default: the run's recorded path)")
     p.add_argument("-o", "--output", required=True)
 
     p = add("hide", cmd_hide, "hide a secret image (or any file) in a scene; writes the secret bundle")

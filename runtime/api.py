@@ -194,7 +194,8 @@ def render(model: Source | Model, view: int, *, skip: bool = True, device: str =
            progress: ProgressFn | None = None) -> RenderResult:
     """An ordinary render of dataset camera `view` of `model`. skip: empty-space skipping and early termination
     (off: every sample inside the scene's box). A model with a fine network renders hierarchically, as
-    nerf-pytorch does, and never skips."""
+    nerf-pytorch does, and never skips; an imported nerfacto scene renders as nerfstudio does at eval
+    (runtime.proposal) and never skips."""
     from noisenerf.runtime.render import render_view
 
     start = time.perf_counter()
@@ -204,8 +205,8 @@ def render(model: Source | Model, view: int, *, skip: bool = True, device: str =
     grid = model.grid if skip else model.grid.box_only()
     image, stats = render_view(camera, model.render_config, model.field, grid, early_stop=None if skip else 0.0,
                                progress=Counter(progress, "render", camera.width * camera.height, "ray"),
-                               coarse=model.coarse)
-    hierarchical = model.coarse is not None
+                               coarse=model.coarse, proposals=model.proposals)
+    hierarchical = model.coarse is not None or model.proposals is not None
     return RenderResult(view, image, skip and not hierarchical, hierarchical, stats.n_rays,
                         stats.n_samples_evaluated, stats.n_samples_dense,
                         {"load": loaded - start, "render": time.perf_counter() - loaded})

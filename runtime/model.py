@@ -39,13 +39,14 @@ from noisenerf.runtime.camera import Camera
 from noisenerf.runtime.errors import UserError
 from noisenerf.runtime.files import parse_json
 from noisenerf.runtime.fingerprint import weights_fingerprint
-from noisenerf.runtime.fields import field_graph
+from noisenerf.runtime.fields import field_graph, proposal_sampler
 from noisenerf.runtime.graph import FieldGraph, check_graph
 from noisenerf.runtime.limits import (
     MAX_CAMERAS, MAX_GRID_RESOLUTION, MAX_NOISE_DIMS, checked_float, checked_int, checked_list,
 )
 from noisenerf.runtime.occupancy import OccupancyGrid
 from noisenerf.runtime.pdf import Hierarchy
+from noisenerf.runtime.proposal import ProposalNetworks, ProposalSampling
 from noisenerf.runtime.render import CoarseNetwork, RenderConfig
 from noisenerf.runtime.session import OnnxField, read_model_file
 
@@ -169,6 +170,16 @@ class Model:
         """What an ordinary render needs besides the render field: the coarse pass, for scenes with a fine network."""
         hierarchy = self.metadata.hierarchy
         return CoarseNetwork(self.field.network("coarse"), hierarchy) if hierarchy is not None else None
+
+    @property
+    def proposals(self) -> ProposalNetworks | None:
+        """What an ordinary render needs besides the render field for a nerfacto scene: its proposal sampler
+        and networks (runtime.proposal)."""
+        sampler = proposal_sampler(self.metadata.architecture)
+        if sampler is None:
+            return None
+        return ProposalNetworks(ProposalSampling.from_architecture(sampler),
+                                tuple(self.field.proposal_density(i) for i in range(len(sampler["proposal_samples"]))))
 
     def camera(self, view: int) -> Camera:
         """The dataset camera of a view index, refusing one out of range."""

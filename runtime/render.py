@@ -1,6 +1,7 @@
 """The numpy render pipeline, for any field backend (onnxruntime, or torch behind a numpy callback).
 
-One pipeline: sampler (uniform, or coarse → sample_pdf for scenes with a fine network) → field callback
+One pipeline: sampler (uniform, coarse → sample_pdf for scenes with a fine network, or nerfacto's proposal
+sampler with its own compositor: runtime.proposal) → field callback
 (runtime.field_callbacks, evaluated by runtime.marching.march_rays) → compositor (runtime.compositing);
 and one loop over a camera's pixels in chunks, `render_in_chunks`, which ordinary renders (render_view)
 and reveals (runtime.reveal.render_tile) both run, so two backends rendering the same view differ only by
@@ -23,6 +24,7 @@ from noisenerf.runtime.limits import checked_float, checked_list
 from noisenerf.runtime.marching import march_rays
 from noisenerf.runtime.occupancy import OccupancyGrid
 from noisenerf.runtime.pdf import Hierarchy, sample_pdf
+from noisenerf.runtime.proposal import ProposalNetworks, render_proposal_rays
 from noisenerf.runtime.rays import RayBatch, pixel_range_rays
 from noisenerf.runtime.sampling import SamplingConfig, sample_along, sample_positions
 
@@ -153,12 +155,20 @@ def render_in_chunks(n_rays: int, chunk_rays: int, render_chunk: ChunkRenderer,
 
 def render_view(camera: Camera, config: RenderConfig, field: FieldFn, grid: OccupancyGrid | None,
                 chunk_rays: int = CHUNK_RAYS, early_stop: float | None = None, progress=None,
-                coarse: CoarseNetwork | None = None) -> tuple[np.ndarray, RenderStats]:
+                coarse: CoarseNetwork | None = None, proposals: ProposalNetworks | None = None
+                ) -> tuple[np.ndarray, RenderStats]:
     """An ordinary (noise-free) render of a camera: image (height, width, 3) float32 and counts. With the
-    `coarse` network, hierarchical (see render_rays)."""
-    per_ray = config.sampling.n_samples if coarse is None else coarse.hierarchy.samples_per_ray
-    colors, stats = render_in_chunks(
-        camera.width * camera.height, rays_per_chunk(per_ray, chunk_rays),
-        lambda start, stop: render_rays(config, pixel_range_rays(camera, config, start, stop), plain(field), grid,
-                                        early_stop, coarse), progress)
+    `coarse` network, hierarchical (see render_rays); with `proposals`, nerfacto's (runtime.proposal)."""
+    if proposals is not None:
+        def render_chunk(start: int, stop: int) -> tuple[np.ndarray, RenderStats]:
+            colours, evaluated = render_proposal_rays(pixel_range_rays(camera, config, start, stop), field, proposals)
+            return colours, RenderStats(stop - start, evaluated, evaluated)
+        per_ray = proposals.sampling.most_samples
+    else:
+        def render_chunk(start: int, stop: int) -> tuple[np.ndarray, RenderStats]:
+            return render_rays(config, pixel_range_rays(camera, config, start, stop), plain(field), grid, early_stop,
+                               coarse)
+        per_ray = config.sampling.n_samples if coarse is None else coarse.hierarchy.samples_per_ray
+    colors, stats = render_in_chunks(camera.width * camera.height, rays_per_chunk(per_ray, chunk_rays), render_chunk,
+                                     progress)
     return colors.reshape(camera.height, camera.width, 3), stats

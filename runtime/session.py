@@ -21,7 +21,7 @@ import onnxruntime as ort
 
 from noisenerf.runtime.cores import available_cores
 from noisenerf.runtime.errors import UserError
-from noisenerf.runtime.graph import COARSE_OUTPUT_NAMES, INPUT_NAMES, OUTPUT_NAMES
+from noisenerf.runtime.graph import COARSE_OUTPUT_NAMES, INPUT_NAMES, OUTPUT_NAMES, proposal_output
 from noisenerf.runtime.networks import NETWORKS, network_names, render_network
 from noisenerf.runtime.onnx_file import ModelFile, parse_model
 
@@ -151,15 +151,37 @@ class OnnxField:
             rgb[window], sigma[window] = self.evaluate(feed)
         return rgb, sigma
 
+    def proposal_density(self, index: int):
+        """σ (n,) of proposal network `index` at points (n, 3) (output sigma_proposal<index>; the graph check
+        has made it exist), run in chunks as the field is."""
+        output = proposal_output(index)
+
+        def density(points: np.ndarray) -> np.ndarray:
+            sigma = np.empty(points.shape[0], dtype=np.float32)
+            for start in range(0, points.shape[0], self.chunk):
+                chunk = np.ascontiguousarray(points[start:start + self.chunk], dtype=np.float32)
+                m = chunk.shape[0]
+                feed = {"points": chunk, "viewdirs": np.zeros((m, 3), np.float32),
+                        "noise": np.zeros((m, self.noise_dims), np.float32)}
+                sigma[start:start + m] = self.run([output], feed, (m,))[0]
+            return sigma
+
+        return density
+
+    def run(self, outputs: list[str], feed: dict[str, np.ndarray], *shapes: tuple[int, ...]) -> list[np.ndarray]:
+        """One onnxruntime run; a failing graph, or outputs of other shapes than `shapes`, is one UserError."""
+        try:
+            results = self.session.run(outputs, feed, self.run_options)
+        except Exception as error:  # onnxruntime's pybind errors share no base class but Exception
+            raise UserError(f"{self.source} failed to evaluate: {' '.join(str(error).split())[:200]}") from None
+        if [result.shape for result in results] != list(shapes):
+            raise UserError(f"{self.source} returned {' and '.join(f'{n} {r.shape}' for n, r in zip(outputs, results))} "
+                            f"for {feed['points'].shape[0]} points, expected {' and '.join(map(str, shapes))}")
+        return results
+
     def evaluate(self, feed: dict[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
         """One chunk through onnxruntime; a failing graph, or outputs of another shape than the declared
         (m, 3) and (m,), is one UserError."""
         m = feed["points"].shape[0]
-        try:
-            rgb, sigma = self.session.run(list(self.outputs), feed, self.run_options)
-        except Exception as error:  # onnxruntime's pybind errors share no base class but Exception
-            raise UserError(f"{self.source} failed to evaluate: {' '.join(str(error).split())[:200]}") from None
-        if rgb.shape != (m, 3) or sigma.shape != (m,):
-            raise UserError(f"{self.source} returned rgb {rgb.shape} and sigma {sigma.shape} for {m} points, "
-                            f"expected ({m}, 3) and ({m},)")
+        rgb, sigma = self.run(list(self.outputs), feed, (m, 3), (m,))
         return rgb, sigma

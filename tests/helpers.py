@@ -275,3 +275,165 @@ def turning_llff(folder: Path, n: int = 9, full=(60, 80, 70.0), factors=(2, 4), 
         right, up = np.array([math.cos(angle), 0.0, -math.sin(angle)]), np.array([0.0, 1.0, 0.0])
         c2ws.append(np.stack([right, up, np.cross(right, up), rng.normal(size=3)], axis=1))
     return write_llff(folder, c2ws, full, [[2.0 + 0.1 * k, 20.0] for k in range(n)], factors, 10, extra_images)
+
+
+# ---- nerfstudio run directories --------------------------------------------------------------------
+
+NERFSTUDIO_CONFIG = """!!python/object:nerfstudio.engine.trainer.TrainerConfig
+_target: !!python/name:nerfstudio.engine.trainer.Trainer ''
+data: null
+method_name: {method}
+output_dir: !!python/object/apply:pathlib.PosixPath
+- outputs
+machine: !!python/object:nerfstudio.configs.base_config.MachineConfig
+  device_type: cpu
+  seed: 42
+pipeline: !!python/object:nerfstudio.pipelines.base_pipeline.VanillaPipelineConfig
+  _target: !!python/name:nerfstudio.pipelines.base_pipeline.VanillaPipeline ''
+  datamanager: !!python/object:nerfstudio.data.datamanagers.parallel_datamanager.ParallelDataManagerConfig
+    data: null
+    dataparser: !!python/object:nerfstudio.data.dataparsers.nerfstudio_dataparser.NerfstudioDataParserConfig
+      _target: !!python/name:nerfstudio.data.dataparsers.nerfstudio_dataparser.Nerfstudio ''
+      data: !!python/object/apply:pathlib.PosixPath
+      - data
+      downscale_factor: {downscale}
+    eval_image_indices: !!python/tuple
+    - 0
+  model: !!python/object:nerfstudio.models.nerfacto.NerfactoModelConfig
+    _target: !!python/name:nerfstudio.models.{model} ''
+    appearance_embed_dim: 32
+    average_init_density: 0.01
+    background_color: last_sample
+    base_res: 16
+    disable_scene_contraction: false
+    far_plane: 1000.0
+    features_per_level: 2
+    hidden_dim: 64
+    hidden_dim_color: 64
+    implementation: {implementation}
+    log2_hashmap_size: 10
+    max_res: 256
+    near_plane: 0.05
+    num_levels: 8
+    num_nerf_samples_per_ray: 48
+    num_proposal_iterations: 2
+    num_proposal_samples_per_ray: !!python/tuple
+    - 256
+    - 96
+    proposal_initial_sampler: piecewise
+    proposal_net_args_list:
+    - hidden_dim: 16
+      log2_hashmap_size: 8
+      max_res: 64
+      num_levels: 5
+      use_linear: false
+    - hidden_dim: 16
+      log2_hashmap_size: 8
+      max_res: 128
+      num_levels: 5
+      use_linear: false
+    use_appearance_embedding: true
+    use_average_appearance_embedding: true
+    use_same_proposal_network: false
+relative_model_dir: !!python/object/apply:pathlib.PosixPath
+- nerfstudio_models
+{extra}"""
+
+
+def nerfstudio_layout(implementation: str) -> dict[str, tuple[int, ...]]:
+    """The pipeline tensors (under `_model.`) of NERFSTUDIO_CONFIG's nerfacto, by the research notes' layout:
+    torch runs per module, tcnn runs as flat parameter vectors (MLP matrices padded to 16, then the grid)."""
+    def grid_rows(levels, log2, max_res):
+        b = math.exp((math.log(max_res) - math.log(16)) / (levels - 1))
+        if implementation == "torch":
+            return levels << log2
+        rows = 0
+        for level in range(levels):
+            res = math.ceil(16 * b ** level - 1) + 1
+            rows += min(-(-res ** 3 // 8) * 8, 1 << log2)
+        return rows
+    shapes = {"field.embedding_appearance.embedding.weight": (7, 32)}
+    proposals = ((5, 8, 64), (5, 8, 128))
+    if implementation == "torch":
+        shapes.update({"field.mlp_base.model.0.hash_table": (grid_rows(8, 10, 256), 2),
+                       "field.mlp_base.model.1.layers.0.weight": (64, 16), "field.mlp_base.model.1.layers.0.bias": (64,),
+                       "field.mlp_base.model.1.layers.1.weight": (16, 64), "field.mlp_base.model.1.layers.1.bias": (16,)})
+        for i, (a, b) in enumerate(((63, 64), (64, 64), (64, 3))):
+            shapes[f"field.mlp_head.layers.{i}.weight"], shapes[f"field.mlp_head.layers.{i}.bias"] = (b, a), (b,)
+        for i, grid in enumerate(proposals):
+            net = f"proposal_networks.{i}"
+            shapes[f"{net}.encoding.hash_table"] = shapes[f"{net}.mlp_base.0.hash_table"] = (grid_rows(*grid), 2)
+            for j, (a, b) in enumerate(((10, 16), (16, 1))):
+                shapes[f"{net}.mlp_base.1.layers.{j}.weight"], shapes[f"{net}.mlp_base.1.layers.{j}.bias"] = (b, a), (b,)
+        return shapes
+    shapes["field.mlp_base.model.params"] = (64 * 16 + 16 * 64 + grid_rows(8, 10, 256) * 2,)
+    shapes["field.mlp_head.tcnn_encoding.params"] = (64 * 64 + 64 * 64 + 16 * 64,)
+    shapes["field.direction_encoding.tcnn_encoding.params"] = (0,)
+    for i, grid in enumerate(proposals):
+        net = f"proposal_networks.{i}"
+        shapes[f"{net}.encoding.tcnn_encoding.params"] = shapes[f"{net}.mlp_base.0.tcnn_encoding.params"] = (
+            grid_rows(*grid) * 2,)
+        shapes[f"{net}.mlp_base.1.tcnn_encoding.params"] = (16 * 16 + 16 * 16,)
+    return shapes
+
+
+def write_nerfstudio_run(folder: Path, implementation: str, seed: int = 0, prefix: str = "_model.",
+                         config_extra: str = "", method: str = "nerfacto", model: str = "nerfacto.NerfactoModel",
+                         shapes: dict | None = None, downscale: str = "null") -> tuple[Path, Path]:
+    """A nerfstudio run directory as nerfstudio 1.x writes one (a tagged config.yml, dataparser_transforms.json,
+    nerfstudio_models/step-*.ckpt whose optimizer state holds numpy scalars, LPIPS and camera-optimizer keys
+    beside the model's) with random weights in the nerfacto layout, and its dataset (transforms.json, 7
+    frames listed out of name order). -> (run directory, data directory)."""
+    import torch
+
+    rng = np.random.default_rng(seed)
+    data, run = folder / "data", folder / "outputs" / "scene" / "nerfacto" / "2026-01-01_000000"
+    (run / "nerfstudio_models").mkdir(parents=True)
+    data.mkdir()
+    frames = []
+    for k in rng.permutation(7):  # around the origin, looking at it, OpenGL axes (nerfstudio's)
+        angle = 2 * math.pi * k / 7
+        eye = np.array([3 * math.cos(angle), 3 * math.sin(angle), 1.0])
+        forward = -eye / np.linalg.norm(eye)
+        right = np.cross(forward, [0.0, 0.0, 1.0])
+        right /= np.linalg.norm(right)
+        pose = np.eye(4)
+        pose[:3, :3] = np.stack([right, np.cross(right, forward), -forward], 1)
+        pose[:3, 3] = eye
+        frames.append({"file_path": f"images/frame_{k:05d}.png", "transform_matrix": pose.tolist()})
+    meta = {"camera_model": "OPENCV", "fl_x": 11.0, "fl_y": 10.5, "cx": 6.2, "cy": 4.9, "w": 12, "h": 10,
+            "k1": 0.0, "k2": 0.0, "p1": 0.0, "p2": 0.0, "frames": frames}
+    (data / "transforms.json").write_text(json.dumps(meta))
+    angle = 0.3
+    transform = [[math.cos(angle), -math.sin(angle), 0.0, 0.1], [math.sin(angle), math.cos(angle), 0.0, -0.2],
+                 [0.0, 0.0, 1.0, 0.05]]
+    (run / "dataparser_transforms.json").write_text(json.dumps({"transform": transform, "scale": 0.3}))
+    (run / "config.yml").write_text(NERFSTUDIO_CONFIG.format(implementation=implementation, method=method,
+                                                             model=model, extra=config_extra, downscale=downscale))
+    pipeline = {}
+    for name, shape in (shapes or nerfstudio_layout(implementation)).items():
+        scale = 0.3 if "table" in name or "encoding.tcnn" in name or "model.params" in name else 0.4
+        pipeline[prefix + name] = torch.from_numpy(rng.uniform(-scale, scale, shape).astype(np.float32))
+    pipeline[prefix + "lpips.net.slice1.0.weight"] = torch.zeros(4, 3, 3, 3)
+    pipeline[prefix + "camera_optimizer.pose_adjustment"] = torch.zeros(7, 6)
+    pipeline[prefix + "field.aabb"] = torch.tensor([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]])
+    checkpoint = {"step": 99, "pipeline": pipeline,
+                  "optimizers": {"fields": {"param_groups": [{"lr": np.float64(0.01), "eps": 1e-15}]}},
+                  "schedulers": {"fields": {"_last_lr": [np.float64(0.0099)]}}, "scalers": {}}
+    torch.save(checkpoint, run / "nerfstudio_models" / "step-000000099.ckpt")
+    torch.save({"step": 9}, run / "nerfstudio_models" / "step-000000009.ckpt")  # an older one: not loaded
+    return run, data
+
+
+def tcnn_sh(d: np.ndarray) -> np.ndarray:
+    """tiny-cuda-nn's real spherical harmonics of degree 4 of unit directions, written out (the spec the
+    field kinds' SH matrix is checked against). (n, 3) -> (n, 16)."""
+    x, y, z = d.T
+    return np.stack([
+        np.full_like(x, 0.28209479177387814), -0.48860251190291987 * y, 0.48860251190291987 * z,
+        -0.48860251190291987 * x, 1.0925484305920792 * x * y, -1.0925484305920792 * y * z,
+        0.94617469575755997 * z * z - 0.31539156525251999, -1.0925484305920792 * x * z,
+        0.54627421529603959 * (x * x - y * y), 0.59004358992664352 * y * (-3 * x * x + y * y),
+        2.8906114426405538 * x * y * z, 0.45704579946446572 * y * (1 - 5 * z * z),
+        0.3731763325901154 * z * (5 * z * z - 3), 0.45704579946446572 * x * (1 - 5 * z * z),
+        1.4453057213202769 * z * (x * x - y * y), 0.59004358992664352 * x * (-x * x + 3 * y * y)], 1)

@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 import torch
 
-from helpers import fitted_tiny_scene, make_tiny_scene, run_main, run_reveal
+from helpers import fitted_tiny_scene, make_tiny_scene, run_main, run_reveal, tcnn_sh
 from noisenerf.cli.main import main
 from noisenerf.runtime.fields.hashgrid import grid_levels, sh_matrix
 from noisenerf.runtime.images import read_native, to_uint8, write_image
@@ -119,15 +119,7 @@ def test_spherical_harmonics_are_the_real_basis_of_degree_4():
     rng = np.random.default_rng(1)
     d = rng.normal(size=(64, 3))
     d /= np.linalg.norm(d, axis=1, keepdims=True)
-    x, y, z = d.T
-    expected = np.stack([
-        np.full_like(x, 0.28209479177387814), -0.48860251190291987 * y, 0.48860251190291987 * z,
-        -0.48860251190291987 * x, 1.0925484305920792 * x * y, -1.0925484305920792 * y * z,
-        0.94617469575755997 * z * z - 0.31539156525251999, -1.0925484305920792 * x * z,
-        0.54627421529603959 * (x * x - y * y), 0.59004358992664352 * y * (-3 * x * x + y * y),
-        2.8906114426405538 * x * y * z, 0.45704579946446572 * y * (1 - 5 * z * z),
-        0.3731763325901154 * z * (5 * z * z - 3), 0.45704579946446572 * x * (1 - 5 * z * z),
-        1.4453057213202769 * z * (x * x - y * y), 0.59004358992664352 * x * (-x * x + 3 * y * y)], 1)
+    expected = tcnn_sh(d)
     field = HashGridField(SMALL_HASHGRID)
     with torch.no_grad():
         ours = field.spherical_harmonics(torch.from_numpy(d.astype(np.float32))).numpy()

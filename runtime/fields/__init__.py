@@ -46,10 +46,12 @@ class FieldKind(Protocol):
     def build(self, builder: GraphBuilder, prefix: str, config: dict, rgb: str, sigma: str) -> None:
         """One network of a checked architecture: noisy encodings of the `points`, `viewdirs` and `noise`
         inputs through its layers (weights named `prefix.…`) to the outputs rgb (n, 3) and sigma (n,), and
-        any density-only outputs (density_outputs)."""
+        one density output per proposal network (proposal_sampler)."""
 
-    def density_outputs(self, config: dict) -> int:
-        """How many proposal networks the architecture holds: outputs sigma_proposal0, … (points alone)."""
+    def proposal_sampler(self, config: dict) -> dict | None:
+        """A checked architecture's proposal sampler (runtime.proposal.ProposalSampling's fields), one stage
+        per proposal network (outputs sigma_proposal0, …: density alone, no noise); None for a field
+        rendered with the scene's own sampling."""
 
 
 def field_kinds() -> dict[str, FieldKind]:
@@ -58,6 +60,12 @@ def field_kinds() -> dict[str, FieldKind]:
     from noisenerf.runtime.fields.mlp import MLP
     from noisenerf.runtime.fields.nerfacto import NERFACTO
     return {kind.name: kind for kind in (MLP, HASHGRID, NERFACTO)}
+
+
+def proposal_sampler(architecture: dict) -> dict | None:
+    """The proposal sampler of a (graph-checked) architecture's render network, if its kind has one."""
+    kind = field_kind(architecture["coarse"], "coarse")
+    return kind.proposal_sampler(kind.checked(architecture["coarse"], "coarse"))
 
 
 def field_kind(config, what: str) -> FieldKind:
@@ -84,10 +92,11 @@ def field_graph(architecture: dict, noise_dims: int) -> FieldGraph:
         kinds["fine"].build(builder, "fine", checked["fine"], *OUTPUT_NAMES)
         kinds["coarse"].build(builder, "coarse", checked["coarse"], *COARSE_OUTPUT_NAMES)
         outputs += [Port("rgb_coarse", (BATCH, 3)), Port("sigma_coarse", (BATCH,))]
-    proposals = {name: kind.density_outputs(checked[name]) for name, kind in kinds.items()}
-    if proposals.get("fine") or (proposals["coarse"] and "fine" in checked):
+    samplers = {name: kind.proposal_sampler(checked[name]) for name, kind in kinds.items()}
+    if any(samplers.values()) and "fine" in checked:
         raise UserError("a network with proposal networks cannot be beside a fine network")
-    outputs += [Port(proposal_output(i), (BATCH,)) for i in range(proposals["coarse"])]
+    if samplers["coarse"]:
+        outputs += [Port(proposal_output(i), (BATCH,)) for i in range(len(samplers["coarse"]["proposal_samples"]))]
     inputs = (Port("points", (BATCH, 3)), Port("viewdirs", (BATCH, 3)), Port("noise", (BATCH, noise_dims)))
     return FieldGraph(tuple(builder.nodes), builder.constants, builder.weights, inputs, tuple(outputs),
                       max(kind.opset for kind in kinds.values()))

@@ -146,8 +146,8 @@ class HashGridKind:
                             f"than {MAX_TABLE_VALUES}")
         return checked
 
-    def density_outputs(self, config: dict) -> int:
-        return 0
+    def proposal_sampler(self, config: dict) -> None:
+        return None
 
     def segments(self, config: dict) -> tuple[Segment, ...]:
         return Segment("position", config["levels"] * config["features"]), Segment("direction", config["sh_degree"] ** 2)

@@ -69,8 +69,8 @@ class MlpKind:
                 **{key: checked_int(config[key], f"{what} {key}", 0, MAX_FREQUENCIES)
                    for key in ("xyz_freqs", "dir_freqs")}}
 
-    def density_outputs(self, config: dict) -> int:
-        return 0
+    def proposal_sampler(self, config: dict) -> None:
+        return None
 
     def segments(self, config: dict) -> tuple[Segment, ...]:
         position = Segment("position", encoding_dims(config["xyz_freqs"]))

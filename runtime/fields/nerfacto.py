@@ -79,9 +79,9 @@ class NerfactoKind:
         return (Segment("position", len(config["scales"]) * config["features"]),
                 Segment("direction", config["sh_degree"] ** 2))
 
-    def density_outputs(self, config: dict) -> int:
-        """Outputs sigma_proposal0, … beside rgb and sigma: one per proposal network."""
-        return len(config["proposals"])
+    def proposal_sampler(self, config: dict) -> dict:
+        """The sampler of ordinary renders: one proposal stage per proposal network (outputs sigma_proposal0, …)."""
+        return config["sampler"]
 
     def build(self, builder: GraphBuilder, prefix: str, config: dict, rgb: str, sigma: str) -> None:
         axes = grid_axes(builder)

@@ -1,0 +1,283 @@
+"""`noisenerf import-nerfstudio`: nerfacto runs of both implementations, checked against the layouts' spec
+(an independent numpy evaluation of the checkpoint's own tensors, written from the research notes' figures,
+not from the importer), against nerfstudio's own numbers (tests/goldens/nerfacto_torch, made by
+tools/nerfstudio_goldens.py from a run nerfstudio trained), end to end through a hide and a reveal, and
+with hostile run directories."""
+
+from __future__ import annotations
+
+import math
+import shutil
+
+import numpy as np
+import pytest
+import torch
+
+from helpers import (
+    assert_refused, nerfstudio_layout, run_main, run_reveal, tcnn_sh, write_nerfstudio_run, write_png,
+)
+from noisenerf.cli.main import main
+from noisenerf.runtime.model import load_model
+
+PRIMES = (1, 2654435761, 805459861)
+
+
+# ---- the spec, evaluated on the checkpoint's own tensors ---------------------------------------------
+
+def contract(points):
+    norm = np.abs(points).max(-1, keepdims=True)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        contracted = np.where(norm < 1, points, (2 - 1 / norm) * (points / norm))
+    unit = (contracted + 2) / 4
+    inside = np.all((unit > 0) & (unit < 1), -1, keepdims=True)
+    return unit * inside, inside[:, 0]
+
+
+def spec_grid(unit, values, levels, log2, max_res, implementation, features=2):
+    """Interpolated features (n, levels·F): tcnn §2.1 (params laid out level, entry, feature) or nerfstudio's
+    torch grid §2.2 (table (levels·T, F), every level hashed, ceil/floor corners, no +0.5)."""
+    b = math.exp((math.log(max_res) - math.log(16)) / (levels - 1))
+    size, out, offset = 1 << log2, [], 0
+    for level in range(levels):
+        if implementation == "tcnn":
+            scale = 16 * b ** level - 1
+            res = math.ceil(scale) + 1
+            rows = min(-(-res ** 3 // 8) * 8, size)
+            position = unit * scale + 0.5
+            lower = np.floor(position)
+            upper = lower + 1
+        else:
+            scale = float(torch.floor(16 * b ** torch.arange(levels))[level])  # nerfstudio's expression: float32
+            res, rows = None, size
+            position = unit * scale
+            lower, upper = np.floor(position), np.ceil(position)
+        fraction = position - lower
+        total = np.zeros((len(unit), features))
+        for corner in range(8):
+            bits = [(corner >> d) & 1 for d in range(3)]
+            vertex = np.stack([np.where(bit, upper[:, d], lower[:, d]) for d, bit in enumerate(bits)], 1).astype(np.int64)
+            weight = np.prod([np.where(bit, fraction[:, d], 1 - fraction[:, d]) for d, bit in enumerate(bits)], 0)
+            if res is not None and res ** 3 <= rows:
+                index = (vertex[:, 0] + vertex[:, 1] * res + vertex[:, 2] * res * res) % rows
+            else:
+                index = (vertex[:, 0] * PRIMES[0] ^ vertex[:, 1] * PRIMES[1] ^ vertex[:, 2] * PRIMES[2]) % rows
+            total += weight[:, None] * values[offset + index]
+        out.append(total)
+        offset += rows
+    return np.concatenate(out, 1)
+
+
+def spec_sh(d, implementation):
+    """tiny-cuda-nn's SH of d (degree 4), or nerfstudio's torch SH polynomial of (d + 1)/2."""
+    if implementation == "tcnn":
+        return tcnn_sh(d)
+    x, y, z = ((d + 1) / 2).T
+    xx, yy, zz = x * x, y * y, z * z
+    return np.stack([np.full_like(x, 0.28209479177387814), 0.4886025119029199 * y, 0.4886025119029199 * z,
+                     0.4886025119029199 * x, 1.0925484305920792 * x * y, 1.0925484305920792 * y * z,
+                     0.9461746957575601 * zz - 0.31539156525251999, 1.0925484305920792 * x * z,
+                     0.5462742152960396 * (xx - yy), 0.5900435899266435 * y * (3 * xx - yy), 2.890611442640554 * x * y * z,
+                     0.4570457994644658 * y * (5 * zz - 1), 0.3731763325901154 * z * (5 * zz - 3),
+                     0.4570457994644658 * x * (5 * zz - 1), 1.445305721320277 * z * (xx - yy),
+                     0.5900435899266435 * x * (xx - 3 * yy)], 1)
+
+
+def tcnn_mlp(params, x, widths, pad_value):
+    """tiny-cuda-nn: input padded to 16 with `pad_value`, row-major matrices without bias, outputs padded."""
+    pad = lambda n: -(-n // 16) * 16  # noqa: E731
+    h = np.concatenate([x, np.full((len(x), pad(x.shape[1]) - x.shape[1]), pad_value)], 1)
+    at = 0
+    for i, out in enumerate(widths):
+        rows = pad(out) if i == len(widths) - 1 else out
+        matrix = params[at:at + rows * h.shape[1]].reshape(rows, h.shape[1])
+        at += matrix.size
+        h = h @ matrix.T
+        if i < len(widths) - 1:
+            h = np.maximum(h, 0)
+    return h[:, :widths[-1]], at
+
+
+def torch_mlp(state, prefix, x, layers):
+    for i in range(layers):
+        x = x @ state[f"{prefix}{i}.weight"].T + state[f"{prefix}{i}.bias"]
+        if i < layers - 1:
+            x = np.maximum(x, 0)
+    return x
+
+
+def spec_field(state, implementation, points, viewdirs):
+    """rgb, σ of the nerfacto field and σ of each proposal network, float64, from the checkpoint's tensors."""
+    state = {k: v.double().numpy() for k, v in state.items()}
+    if implementation == "tcnn":
+        state = {k: v.astype(np.float16).astype(np.float64) if "params" in k else v for k, v in state.items()}
+    unit, inside = contract(points.astype(np.float64))
+    appearance = state["field.embedding_appearance.embedding.weight"].mean(0)
+    sh = spec_sh(viewdirs.astype(np.float64), implementation)
+    if implementation == "tcnn":
+        flat = state["field.mlp_base.model.params"]
+        features = spec_grid(unit, flat[64 * 16 + 16 * 64:].reshape(-1, 2), 8, 10, 256, implementation)
+        base, _ = tcnn_mlp(flat, features, (64, 16), 0.0)
+        head_in = np.concatenate([sh, base[:, 1:], np.broadcast_to(appearance, (len(sh), 32))], 1)
+        rgb, _ = tcnn_mlp(state["field.mlp_head.tcnn_encoding.params"], head_in, (64, 64, 3), 1.0)
+    else:
+        features = spec_grid(unit, state["field.mlp_base.model.0.hash_table"], 8, 10, 256, implementation)
+        base = torch_mlp(state, "field.mlp_base.model.1.layers.", features, 2)
+        head_in = np.concatenate([sh, base[:, 1:], np.broadcast_to(appearance, (len(sh), 32))], 1)
+        rgb = torch_mlp(state, "field.mlp_head.layers.", head_in, 3)
+    sigma = 0.01 * np.exp(base[:, 0]) * inside
+    proposals = []
+    for i, max_res in enumerate((64, 128)):
+        net = f"proposal_networks.{i}"
+        if implementation == "tcnn":
+            grid = spec_grid(unit, state[f"{net}.encoding.tcnn_encoding.params"].reshape(-1, 2), 5, 8, max_res, "tcnn")
+            raw, _ = tcnn_mlp(state[f"{net}.mlp_base.1.tcnn_encoding.params"], grid, (16, 1), 1.0)
+        else:
+            grid = spec_grid(unit, state[f"{net}.encoding.hash_table"], 5, 8, max_res, "torch")
+            raw = torch_mlp(state, f"{net}.mlp_base.1.layers.", grid, 2)
+        proposals.append(0.01 * np.exp(raw[:, 0]) * inside)
+    return 1 / (1 + np.exp(-rgb)), sigma, proposals
+
+
+def checkpoint_state(run):
+    from noisenerf.train.scene.import_nerfstudio import read_pipeline
+    return read_pipeline(run / "nerfstudio_models" / "step-000000099.ckpt")
+
+
+@pytest.fixture(scope="module", params=["torch", "tcnn"])
+def imported(request, tmp_path_factory):
+    """A synthetic run of each implementation, imported and exported through the command line."""
+    folder = tmp_path_factory.mktemp(f"ns_{request.param}")
+    run, data = write_nerfstudio_run(folder, request.param, seed=3, prefix="_model.module." if request.param == "tcnn"
+                                     else "_model.")
+    assert main(["import-nerfstudio", str(run), "-o", str(folder / "scene"), "--data", str(data)]) in (0, None)
+    assert main(["export", str(folder / "scene"), "-o", str(folder / "model.onnx")]) in (0, None)
+    return request.param, run, data, folder
+
+
+def test_layout_figures_of_nerfactos_defaults():
+    """The research notes' parameter counts: the default field's 12,199,312 (tcnn), its proposals' grids."""
+    from noisenerf.runtime.fields.nerfacto import grid_layout
+    from noisenerf.train.scene.import_nerfstudio import grid_scales
+    field = grid_layout("tcnn", grid_scales("tcnn", 16, 16, 2048), 19)
+    assert field.total_rows * 2 + 64 * 32 + 16 * 64 == 12_199_312
+    assert field.dense.tolist() == [1] * 5 + [0] * 11 and field.resolution[:5].tolist() == [16, 23, 31, 43, 59]
+    assert grid_layout("tcnn", grid_scales("tcnn", 5, 16, 128), 17).total_rows * 2 == 766_528
+    assert grid_layout("tcnn", grid_scales("tcnn", 5, 16, 256), 17).total_rows * 2 == 860_160
+    torch_grid = grid_layout("torch", grid_scales("torch", 16, 16, 2048), 19)
+    assert torch_grid.total_rows == 16 << 19 and not torch_grid.dense.any()
+    assert torch_grid.offset.tolist() == [level << 19 for level in range(16)]
+
+
+def test_field_equals_the_spec_through_onnxruntime(imported):
+    implementation, run, _, folder = imported
+    model = load_model(folder / "model.onnx")
+    rng = np.random.default_rng(0)
+    points = (rng.normal(size=(3000, 3)) * rng.choice([0.3, 2.0, 40.0], size=(3000, 1))).astype(np.float32)
+    viewdirs = rng.normal(size=(3000, 3)).astype(np.float32)
+    viewdirs /= np.linalg.norm(viewdirs, axis=1, keepdims=True)
+    rgb, sigma = model.field(points, viewdirs)
+    want_rgb, want_sigma, want_proposals = spec_field(checkpoint_state(run), implementation, points, viewdirs)
+    assert np.abs(rgb - want_rgb).max() < 2e-5
+    assert np.allclose(sigma, want_sigma, rtol=2e-4, atol=1e-9)
+    for i, want in enumerate(want_proposals):
+        assert np.allclose(model.field.proposal_density(i)(points), want, rtol=2e-4, atol=1e-9)
+
+
+def test_cameras_are_nerfstudios(imported):
+    """Frames sorted by file name, poses through the dataparser transform and scale, intrinsics as given."""
+    import json
+    _, run, data, folder = imported
+    model = load_model(folder / "model.onnx")
+    meta = json.loads((data / "transforms.json").read_text())
+    frames = sorted(meta["frames"], key=lambda f: f["file_path"])
+    parser = json.loads((run / "dataparser_transforms.json").read_text())
+    for camera, frame in zip(model.cameras, frames, strict=True):
+        pose = np.vstack([parser["transform"], [0, 0, 0, 1]]) @ np.array(frame["transform_matrix"])
+        pose[:3, 3] *= parser["scale"]
+        assert np.allclose(camera.matrix(), pose, atol=1e-6)
+        assert (camera.width, camera.height, camera.fx, camera.fy, camera.cx, camera.cy) == (12, 10, 11.0, 10.5, 6.2, 4.9)
+
+
+def test_ordinary_render_follows_the_proposal_sampler(imported):
+    """`noisenerf-reveal MODEL --view I`: onnxruntime's render equals the torch field's through the same
+    pipeline, and every pixel is the last-sample compositor's (in [0, 1], finite)."""
+    from noisenerf.runtime.render import render_view
+    from noisenerf.train.scene.render import numpy_field
+    from noisenerf.train.scene.scene import load_scene
+    _, _, _, folder = imported
+    model = load_model(folder / "model.onnx")
+    scene = load_scene(folder / "scene")
+    onnx_image, stats = render_view(model.cameras[2], model.render_config, model.field, None, proposals=model.proposals)
+    field = scene.render_field
+    networks = type(model.proposals)(model.proposals.sampling, [
+        lambda p, net=net: net(torch.from_numpy(p)).detach().numpy() for net in field.proposals])
+    torch_image, _ = render_view(model.cameras[2], model.render_config, numpy_field(field), None, proposals=networks)
+    assert stats.n_samples_evaluated == 12 * 10 * 48
+    assert np.abs(onnx_image - torch_image).max() < 1e-5
+    assert np.isfinite(onnx_image).all() and onnx_image.min() >= 0 and onnx_image.max() <= 1
+    result = run_reveal(folder / "model.onnx", "--view", "2", "-o", folder / "view2.png")
+    assert result.returncode == 0, result.stderr
+
+
+def test_a_photo_hidden_in_an_imported_run_reveals_exactly(imported, tmp_path, capfd):
+    _, _, _, folder = imported
+    rng = np.random.default_rng(5)
+    secret = write_png(tmp_path / "secret.png", rng.integers(0, 256, (6, 7, 3), dtype=np.uint8))
+    result = run_main(main, ["hide", folder / "scene", secret, "-o", tmp_path / "secret.nnrf", "--view", "4"], capfd)
+    assert result.code in (0, None), result.err
+    revealed = run_reveal(folder / "model.onnx", tmp_path / "secret.nnrf", "-o", tmp_path / "out.png")
+    assert revealed.returncode == 0 and "exact" in revealed.stdout, revealed.stdout + revealed.stderr
+
+
+# ---- hostile and unsupported run directories ---------------------------------------------------------
+
+def refused_import(tmp_path, capfd, run, data, message):
+    result = run_main(main, ["import-nerfstudio", run, "-o", tmp_path / "out", "--data", data], capfd)
+    assert_refused(result, tmp_path / "out", message)
+
+
+def test_a_config_that_would_run_code_runs_nothing(tmp_path, capfd):
+    marker = tmp_path / "ran"
+    run, data = write_nerfstudio_run(tmp_path, "torch", config_extra=(
+        f"hook: !!python/object/apply:os.system\n- touch {marker}\n"
+        f"other: !!python/object/new:subprocess.Popen\n  args: [[touch, {marker}]]\n"))
+    result = run_main(main, ["import-nerfstudio", run, "-o", tmp_path / "out", "--data", data], capfd)
+    assert result.code in (0, None) and not marker.exists(), result.err
+
+
+@pytest.mark.parametrize("case, message", [
+    ("pickle", "refused: it holds Python objects"),
+    ("truncated", "not a readable torch checkpoint"),
+    ("not a dict", "not a nerfstudio checkpoint (no pipeline state dict)"),
+    ("length", "field.mlp_base.model.params holds"),
+    ("shape", "the config implies"),
+    ("method", "a nerfacto-huge run"),
+    ("old keys", "a nerfstudio 0.3 checkpoint"),
+    ("distortion", "lens distortion is not reproduced"),
+    ("linear proposals", "a proposal network with a linear head is not reproduced"),
+])
+def test_hostile_and_unsupported_runs_are_refused_in_one_line(tmp_path, capfd, case, message):
+    implementation = "torch" if case == "shape" else "tcnn"
+    shapes = nerfstudio_layout(implementation)
+    if case == "length":
+        shapes["field.mlp_base.model.params"] = (shapes["field.mlp_base.model.params"][0] - 2,)
+    if case == "shape":
+        shapes["field.mlp_head.layers.0.weight"] = (64, 62)
+    if case == "old keys":
+        shapes = {"field.mlp_base_grid.tcnn_encoding.params": (8,), "field.mlp_base_mlp.tcnn_encoding.params": (8,)}
+    extra = {"method": {"method": "nerfacto-huge", "model": "other.BigModel"}}.get(case, {})
+    run, data = write_nerfstudio_run(tmp_path, implementation, shapes=shapes, **extra)
+    checkpoint = run / "nerfstudio_models" / "step-000000099.ckpt"
+    if case == "pickle":
+        torch.save({"pipeline": shutil.rmtree}, checkpoint)  # a global that is not a tensor: never resolved
+    if case == "truncated":
+        checkpoint.write_bytes(checkpoint.read_bytes()[:5000])
+    if case == "not a dict":
+        torch.save([1, 2, 3], checkpoint)
+    if case == "distortion":
+        transforms = data / "transforms.json"
+        transforms.write_text(transforms.read_text().replace('"k1": 0.0', '"k1": 0.02'))
+    if case == "linear proposals":
+        config = run / "config.yml"
+        config.write_text(config.read_text().replace("use_linear: false", "use_linear: true", 1))
+    refused_import(tmp_path, capfd, run, data, message)
