@@ -85,6 +85,60 @@ def fields(data: memoryview) -> Iterator[tuple[int, int, int | memoryview]]:
         yield number, wire, value
 
 
+def field_spans(data: memoryview) -> Iterator[tuple[int, memoryview, int | memoryview]]:
+    """The fields of one message with the bytes each occupies (key included): (number, span, value)."""
+    position = 0
+    for number, wire, value in fields(data):  # re-walk the keys to find where each field ends
+        start = position
+        _, position = read_varint(data, position)
+        if wire == VARINT:
+            _, position = read_varint(data, position)
+        elif wire in (FIXED64, FIXED32):
+            position += 8 if wire == FIXED64 else 4
+        else:
+            length, position = read_varint(data, position)
+            position += length
+        yield number, data[start:position], value
+
+
+def varint(value: int) -> bytes:
+    out = bytearray()
+    while True:
+        byte, value = value & 0x7F, value >> 7
+        out.append(byte | (0x80 if value else 0))
+        if not value:
+            return bytes(out)
+
+
+def pruned_model(file: "ModelFile", outputs: tuple[str, ...]) -> bytes:
+    """The model's bytes with only what computes `outputs`: the other outputs and every node none of them
+    needs removed (onnxruntime runs a whole graph whatever is fetched, and drops unused initializers itself).
+    The file has passed parse_model, so its fields are well formed."""
+    needed, kept = set(outputs), set()
+    for index in range(len(file.nodes) - 1, -1, -1):  # nodes are in topological order
+        if needed & set(file.nodes[index].outputs):
+            kept.add(index)
+            needed |= set(file.nodes[index].inputs)
+    graph = bytearray()
+    node_index = 0
+    data = memoryview(file.data)
+    model = bytearray()
+    for number, span, value in field_spans(data):
+        if number != 7:
+            model += span
+            continue
+        for inner, inner_span, item in field_spans(blob(value)):
+            if inner == 1:
+                node_index += 1
+                if node_index - 1 not in kept:
+                    continue
+            elif inner == 12 and read_port(blob(item)).name not in outputs:
+                continue
+            graph += inner_span
+        model += varint(7 << 3 | LENGTH) + varint(len(graph)) + graph
+    return bytes(model)
+
+
 def blob(value: int | memoryview) -> memoryview:
     """A length-delimited field's bytes, refusing a number where the schema has bytes or a message."""
     if not isinstance(value, memoryview):

@@ -7,7 +7,11 @@ and only then handed to onnxruntime as bytes.
 A model holds one network (outputs `rgb`, `sigma`) or, for a scene with a fine network, both: `rgb`,
 `sigma` are then the fine network (the render network, so models and bundles made before the coarse
 network was exported keep their meaning) and `rgb_coarse`, `sigma_coarse` the coarse one, on the same
-inputs. Each run computes only the outputs asked for.
+inputs; a nerfacto model adds its proposal networks' `sigma_proposal0`, …. Each run computes only the
+outputs asked for: onnxruntime's inference builds run every node of a graph whatever is fetched (its
+RunOptions.only_execute_path_to_fetches works in training builds only, microsoft/onnxruntime#16013), so
+each set of outputs gets a session of the graph pruned to it (runtime.onnx_file.pruned_model), checked
+as the whole was.
 """
 
 from __future__ import annotations
@@ -23,7 +27,7 @@ from noisenerf.runtime.cores import available_cores
 from noisenerf.runtime.errors import UserError
 from noisenerf.runtime.graph import COARSE_OUTPUT_NAMES, INPUT_NAMES, OUTPUT_NAMES, proposal_output
 from noisenerf.runtime.networks import NETWORKS, network_names, render_network
-from noisenerf.runtime.onnx_file import ModelFile, parse_model
+from noisenerf.runtime.onnx_file import ModelFile, parse_model, pruned_model
 
 DEVICES = {"cpu": "CPUExecutionProvider", "cuda": "CUDAExecutionProvider"}
 DEFAULT_CHUNK = 16384  # points per run: as fast as larger chunks on CPU, ~16 MB per 256-wide activation
@@ -109,19 +113,28 @@ class OnnxField:
                  chunk: int = DEFAULT_CHUNK):
         if chunk < 1:
             raise UserError(f"chunk must be at least 1 point, got {chunk}")
-        self.source = file.source
-        options, providers = session_options(threads), providers_for(device)
-        try:
-            self.session = ort.InferenceSession(file.data, options, providers=providers)
-        except Exception as error:  # onnxruntime's pybind errors share no base class but Exception
-            raise load_failure(self.source, error) from None
+        self.file, self.source = file, file.source
+        self.options, self.providers = session_options(threads), providers_for(device)
         self.noise_dims = declared_noise_dims(file)
-        has_fine = set(COARSE_OUTPUT_NAMES) <= {node.name for node in self.session.get_outputs()}
+        has_fine = set(COARSE_OUTPUT_NAMES) <= {port.name for port in file.outputs if port is not None}
         self.networks = network_names(has_fine)
         self.outputs = OUTPUT_NAMES
+        self.sessions: dict[tuple[str, ...], ort.InferenceSession] = {}  # shared by network()'s copies
+        self.session_for(self.outputs)  # a model onnxruntime cannot load fails here, at load
         self.run_options = ort.RunOptions()
-        self.run_options.only_execute_path_to_fetches = True  # the coarse outputs alone skip the fine network
         self.chunk = chunk
+
+    def session_for(self, outputs: tuple[str, ...]) -> ort.InferenceSession:
+        """A session of the graph pruned to `outputs` (onnxruntime evaluates every node of a graph whatever
+        is fetched: a fine network's model would run its coarse network too, a nerfacto model its proposal
+        networks), made once per set of outputs."""
+        if outputs not in self.sessions:
+            try:
+                self.sessions[outputs] = ort.InferenceSession(pruned_model(self.file, outputs), self.options,
+                                                              providers=self.providers)
+            except Exception as error:  # onnxruntime's pybind errors share no base class but Exception
+                raise load_failure(self.source, error) from None
+        return self.sessions[outputs]
 
     def network(self, name: str) -> "OnnxField":
         """The same session answering for the `coarse` or `fine` network: the render network is on the
@@ -171,7 +184,7 @@ class OnnxField:
     def run(self, outputs: list[str], feed: dict[str, np.ndarray], *shapes: tuple[int, ...]) -> list[np.ndarray]:
         """One onnxruntime run; a failing graph, or outputs of other shapes than `shapes`, is one UserError."""
         try:
-            results = self.session.run(outputs, feed, self.run_options)
+            results = self.session_for(tuple(outputs)).run(outputs, feed, self.run_options)
         except Exception as error:  # onnxruntime's pybind errors share no base class but Exception
             raise UserError(f"{self.source} failed to evaluate: {' '.join(str(error).split())[:200]}") from None
         if [result.shape for result in results] != list(shapes):

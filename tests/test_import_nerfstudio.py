@@ -281,3 +281,22 @@ def test_hostile_and_unsupported_runs_are_refused_in_one_line(tmp_path, capfd, c
         config = run / "config.yml"
         config.write_text(config.read_text().replace("use_linear: false", "use_linear: true", 1))
     refused_import(tmp_path, capfd, run, data, message)
+
+
+def test_each_set_of_outputs_runs_a_graph_pruned_to_it(imported):
+    """onnxruntime runs every node whatever is fetched; a proposal density runs its own network alone, and
+    equals the whole graph's output bit for bit."""
+    import onnxruntime as ort
+    from noisenerf.runtime.onnx_file import parse_model, pruned_model
+    from noisenerf.runtime.session import read_model_file
+    _, _, _, folder = imported
+    file = read_model_file(folder / "model.onnx")
+    pruned = parse_model(pruned_model(file, ("sigma_proposal0",)), "pruned")
+    assert [port.name for port in pruned.outputs] == ["sigma_proposal0"]
+    assert len(pruned.nodes) < len(file.nodes) / 2
+    assert not any("density_linears" in name or "proposals.1" in name for node in pruned.nodes for name in node.inputs)
+    rng = np.random.default_rng(1)
+    points = rng.normal(size=(500, 3)).astype(np.float32)
+    feed = {"points": points, "viewdirs": np.zeros_like(points), "noise": np.zeros((500, 32), np.float32)}
+    whole = ort.InferenceSession(file.data, providers=["CPUExecutionProvider"]).run(["sigma_proposal0"], feed)[0]
+    assert np.array_equal(load_model(folder / "model.onnx").field.proposal_density(0)(points), whole)
