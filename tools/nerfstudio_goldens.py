@@ -1,0 +1,313 @@
+"""Write golden numbers for the nerfacto (torch implementation) importer, computed by nerfstudio itself.
+
+NOT part of noisenerf and never run by CI.  Usage, with the venv described in
+``tools/nerfstudio_train_tiny.py`` (nerfstudio 1.1.5, CPU torch)::
+
+    /work/nsvenv/bin/python tools/nerfstudio_goldens.py RUN_DIR tests/goldens/nerfacto_torch
+
+RUN_DIR is a nerfstudio run directory (``.../nerfacto/<timestamp>`` holding
+``config.yml``, ``dataparser_transforms.json`` and ``nerfstudio_models/``).
+The run is loaded with nerfstudio's own ``eval_setup``; the only help it needs
+under torch >= 2.6 is an allowlist for the numpy scalars in the checkpoint's
+optimizer/scheduler state (``torch.load`` keeps ``weights_only=True``).  Every
+number written comes out of nerfstudio's modules (cameras, collider, proposal
+sampler, fields, renderers); nothing is recomputed here.
+
+Writes into OUT_DIR:
+  weights.safetensors  the checkpoint's ``pipeline`` tensors under ``_model.field.`` and
+                       ``_model.proposal_networks.`` (exact keys, float32; original dtypes in the metadata)
+  golden.safetensors   cameras, renders, per-ray proposal-sampler stages, field outputs at points
+  golden.json          versions, commands, seeds, frames, downscale, shapes, notes
+  config.yml, dataparser_transforms.json, transforms.json   copies (no images)
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+import sys
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+import nerfstudio_train_tiny  # noqa: E402  (installs the import-time stand-ins)
+
+PIXELS_YX = [(32, 32), (20, 40), (45, 25), (10, 10), (60, 3), (28, 50), (38, 31), (0, 63)]
+POINT_SEED = 1234
+N_POINTS = 64
+TRAIN_CAMERA_INDEX = 0  # index into nerfstudio's train dataset (sorted by file name)
+EVAL_CAMERA_INDEX = 0  # index into nerfstudio's eval dataset
+
+
+def _safe_globals():
+    import numpy as np
+
+    names = []
+    for modname in ("numpy._core.multiarray", "numpy.core.multiarray"):
+        try:
+            mod = __import__(modname, fromlist=["scalar"])
+            names.append(mod.scalar)
+        except Exception:  # pragma: no cover - depends on the numpy version
+            pass
+    names.append(np.dtype)
+    names.append(type(np.dtype(np.float64)))  # numpy.dtypes.Float64DType
+    return names
+
+
+def main() -> None:
+    import numpy as np
+    import torch
+    from safetensors.torch import save_file
+
+    run_dir = Path(sys.argv[1]).resolve()
+    out_dir = Path(sys.argv[2]).resolve()
+    out_dir.mkdir(parents=True, exist_ok=True)
+    torch.set_num_threads(nerfstudio_train_tiny.NUM_THREADS)
+
+    import nerfstudio
+    from nerfstudio.cameras.rays import Frustums, RaySamples
+    from nerfstudio.field_components.field_heads import FieldHeadNames
+    from nerfstudio.utils.eval_utils import eval_setup
+
+    with torch.serialization.safe_globals(_safe_globals()):
+        config, pipeline, ckpt_path, step = eval_setup(run_dir / "config.yml", test_mode="test")
+        raw = torch.load(ckpt_path, map_location="cpu", weights_only=True)
+    model = pipeline.model
+    model.eval()
+    dm = pipeline.datamanager
+    mcfg = config.pipeline.model
+
+    # ---- 1. weights ---------------------------------------------------------------------------
+    weights = {}
+    orig_dtypes = {}
+    for k, v in raw["pipeline"].items():
+        if k.startswith("_model.field.") or k.startswith("_model.proposal_networks."):
+            orig_dtypes[k] = str(v.dtype).replace("torch.", "")
+            weights[k] = v.detach().to(torch.float32).contiguous().clone()
+    save_file(weights, str(out_dir / "weights.safetensors"), metadata={"original_dtypes": json.dumps(orig_dtypes)})
+
+    # ---- 2. copies ------------------------------------------------------------------------------
+    shutil.copy(run_dir / "config.yml", out_dir / "config.yml")
+    shutil.copy(run_dir / "dataparser_transforms.json", out_dir / "dataparser_transforms.json")
+    data_path = Path(config.pipeline.datamanager.dataparser.data)
+    tj = data_path if data_path.suffix == ".json" else data_path / "transforms.json"
+    shutil.copy(tj, out_dir / "transforms.json")
+
+    # ---- 3. goldens -----------------------------------------------------------------------------
+    g: dict[str, torch.Tensor] = {}
+    train_files = [str(p) for p in dm.train_dataparser_outputs.image_filenames]
+    eval_files = [str(p) for p in dm.eval_dataparser_outputs.image_filenames]
+    cams = {
+        "train": (dm.train_dataset.cameras, TRAIN_CAMERA_INDEX, dm.train_dataset, train_files),
+        "eval": (dm.eval_dataset.cameras, EVAL_CAMERA_INDEX, dm.eval_dataset, eval_files),
+    }
+    cam_info = {}
+    for name, (cameras, idx, dataset, files) in cams.items():
+        cam = cameras[idx : idx + 1].to(model.device)
+        g[f"{name}_camera_to_worlds"] = cam.camera_to_worlds[0].float()
+        for attr in ("fx", "fy", "cx", "cy"):
+            g[f"{name}_{attr}"] = getattr(cam, attr)[0].float()
+        g[f"{name}_width"] = cam.width[0].long()
+        g[f"{name}_height"] = cam.height[0].long()
+        with torch.no_grad():
+            outputs = model.get_outputs_for_camera(cam)
+        rgb = outputs["rgb"].float()
+        g[f"{name}_render_rgb"] = rgb
+        g[f"{name}_render_accumulation"] = outputs["accumulation"].float()
+        g[f"{name}_render_depth"] = outputs["depth"].float()
+        gt = dataset.get_image_float32(idx)[..., :3].float()
+        mse = torch.mean((rgb - gt) ** 2).item()
+        cam_info[name] = {
+            "dataset_index": idx,
+            "file_path": Path(files[idx]).relative_to(data_path).as_posix(),
+            "camera_type": int(cam.camera_type[0].item()),
+            "distortion_params": cam.distortion_params[0].tolist() if cam.distortion_params is not None else None,
+            "render_mean_rgb": rgb.mean(dim=(0, 1)).tolist(),
+            "gt_mean_rgb": gt.mean(dim=(0, 1)).tolist(),
+            "psnr_vs_gt_db": -10.0 * float(np.log10(mse)),
+        }
+
+    # ---- per-ray stages for 8 pixels of the train camera ---------------------------------------
+    cameras, idx, _, _ = cams["train"]
+    cam = cameras[idx : idx + 1].to(model.device)
+    bundle_full = cam.generate_rays(camera_indices=0, keep_shape=True)
+    ys = torch.tensor([p[0] for p in PIXELS_YX])
+    xs = torch.tensor([p[1] for p in PIXELS_YX])
+    bundle = bundle_full[ys, xs]  # (8,) RayBundle
+    g["rays_pixel_yx"] = torch.tensor(PIXELS_YX, dtype=torch.int64)
+    g["rays_origins"] = bundle.origins.float()
+    g["rays_directions"] = bundle.directions.float()
+    g["rays_camera_indices"] = bundle.camera_indices.long()
+    with torch.no_grad():
+        bundle = model.collider(bundle)
+        g["rays_nears"] = bundle.nears.float()
+        g["rays_fars"] = bundle.fars.float()
+        ray_samples, weights_list, ray_samples_list = model.proposal_sampler(bundle, density_fns=model.density_fns)
+        for s, rs in enumerate(ray_samples_list):
+            g[f"stage{s}_starts"] = rs.frustums.starts[..., 0].float()
+            g[f"stage{s}_ends"] = rs.frustums.ends[..., 0].float()
+            g[f"stage{s}_spacing_starts"] = rs.spacing_starts[..., 0].float()
+            g[f"stage{s}_spacing_ends"] = rs.spacing_ends[..., 0].float()
+            g[f"stage{s}_prop{s}_density"] = model.density_fns[s](rs.frustums.get_positions())[..., 0].float()
+            g[f"stage{s}_weights"] = weights_list[s][..., 0].float()
+        g["final_starts"] = ray_samples.frustums.starts[..., 0].float()
+        g["final_ends"] = ray_samples.frustums.ends[..., 0].float()
+        g["final_spacing_starts"] = ray_samples.spacing_starts[..., 0].float()
+        g["final_spacing_ends"] = ray_samples.spacing_ends[..., 0].float()
+        fo = model.field.forward(ray_samples, compute_normals=False)
+        w = ray_samples.get_weights(fo[FieldHeadNames.DENSITY])
+        g["final_density"] = fo[FieldHeadNames.DENSITY][..., 0].float()
+        g["final_rgb"] = fo[FieldHeadNames.RGB].float()
+        g["final_weights"] = w[..., 0].float()
+        g["rays_rgb"] = model.renderer_rgb(rgb=fo[FieldHeadNames.RGB], weights=w).float()
+        g["rays_accumulation"] = model.renderer_accumulation(weights=w).float()
+        g["rays_depth"] = model.renderer_depth(weights=w, ray_samples=ray_samples).float()
+        # the same rays through nerfstudio's full forward (collider + get_outputs)
+        fwd = model.forward(ray_bundle=bundle_full[ys, xs])
+    rays_vs_forward = float((fwd["rgb"] - g["rays_rgb"]).abs().max())
+    rays_vs_render = float((g["train_render_rgb"][ys, xs] - g["rays_rgb"]).abs().max())
+
+    # ---- field outputs at random points ---------------------------------------------------------
+    gen = torch.Generator().manual_seed(POINT_SEED)
+    n_in, n_mid = 24, 24
+    n_far = N_POINTS - n_in - n_mid
+    p_in = torch.rand(n_in, 3, generator=gen) * 2.0 - 1.0
+    p_in[: n_in // 2] *= 0.3  # half of them near the object (lego spans ~±0.25 after the dataparser)
+    v = torch.randn(n_mid, 3, generator=gen)
+    v = v / v.abs().amax(dim=-1, keepdim=True)  # on the inf-norm unit sphere
+    p_mid = v * (1.0 + 3.0 * torch.rand(n_mid, 1, generator=gen))  # inf-norm in [1, 4)
+    u = torch.randn(n_far, 3, generator=gen)
+    u = u / u.norm(dim=-1, keepdim=True)
+    p_far = u * (10.0 ** (1.0 + 2.0 * torch.rand(n_far, 1, generator=gen)))  # |p| in [10, 1000)
+    points = torch.cat([p_in, p_mid, p_far]).float()
+    dirs = torch.randn(N_POINTS, 3, generator=gen)
+    dirs = (dirs / dirs.norm(dim=-1, keepdim=True)).float()
+    g["points"] = points
+    g["points_directions"] = dirs
+    with torch.no_grad():
+        rs = RaySamples(
+            frustums=Frustums(
+                origins=points,
+                directions=dirs,
+                starts=torch.zeros(N_POINTS, 1),
+                ends=torch.zeros(N_POINTS, 1),
+                pixel_area=torch.ones(N_POINTS, 1),
+            ),
+            camera_indices=torch.zeros(N_POINTS, 1, dtype=torch.long),
+        )
+        fo = model.field.forward(rs, compute_normals=False)
+        g["points_density"] = fo[FieldHeadNames.DENSITY].float()
+        g["points_rgb"] = fo[FieldHeadNames.RGB].float()
+        for i, fn in enumerate(model.density_fns):
+            g[f"points_prop{i}_density"] = fn(points).float()
+        # intermediate values of the nerfacto field, from its own sub-modules
+        field = model.field
+        contracted = (field.spatial_distortion(points) + 2.0) / 4.0
+        selector = ((contracted > 0.0) & (contracted < 1.0)).all(dim=-1)
+        contracted = contracted * selector[..., None]
+        g["points_contracted"] = contracted.float()
+        g["points_selector"] = selector.long()
+        enc = field.mlp_base.model[0] if hasattr(field.mlp_base, "model") else None
+        if enc is not None:
+            g["points_field_hash_features"] = enc(contracted).float()
+        h = field.mlp_base(contracted)
+        g["points_field_density_before_activation"] = h[..., :1].float()
+        g["points_field_geo_features"] = h[..., 1:].float()
+        from nerfstudio.fields.base_field import get_normalized_directions
+
+        g["points_field_sh"] = field.direction_encoding(get_normalized_directions(dirs)).float()
+        g["field_mean_appearance_embedding"] = field.embedding_appearance.mean(dim=0).float()
+
+    g = {k: (v.detach().contiguous().clone()) for k, v in g.items()}
+    for k, v in g.items():
+        assert v.dtype in (torch.float32, torch.int64), (k, v.dtype)
+    save_file(g, str(out_dir / "golden.safetensors"))
+
+    # ---- golden.json -----------------------------------------------------------------------------
+    import nerfacc
+    import torchmetrics
+
+    dp = dm.dataparser
+    train_log = run_dir.parents[2] / "ns_train_command.txt"  # written by nerfstudio_train_tiny.py
+    info = {
+        "generator": "tools/nerfstudio_goldens.py (calls nerfstudio; no nerfstudio code copied)",
+        "versions": {
+            "nerfstudio": nerfstudio.__version__ if hasattr(nerfstudio, "__version__") else _dist_version("nerfstudio"),
+            "torch": torch.__version__,
+            "numpy": np.__version__,
+            "nerfacc": getattr(nerfacc, "__version__", _dist_version("nerfacc")),
+            "torchmetrics": torchmetrics.__version__,
+            "python": sys.version.split()[0],
+        },
+        "commands": {
+            "train": train_log.read_text().strip() if train_log.exists() else None,
+            "goldens": " ".join(["python", "tools/nerfstudio_goldens.py", *sys.argv[1:]]),
+        },
+        "run_dir": str(run_dir),
+        "checkpoint": ckpt_path.name,
+        "checkpoint_step": int(step),
+        "seeds": {
+            "machine_seed": int(config.machine.seed),
+            "data_worker_seed": nerfstudio_train_tiny.WORKER_SEED,
+            "points_seed": POINT_SEED,
+            "torch_threads": nerfstudio_train_tiny.NUM_THREADS,
+        },
+        "dataparser": {
+            "downscale_factor": int(dp.downscale_factor),
+            "dataparser_scale": float(dm.train_dataparser_outputs.dataparser_scale),
+            "dataparser_transform": dm.train_dataparser_outputs.dataparser_transform.tolist(),
+            "scene_box_aabb": dm.train_dataparser_outputs.scene_box.aabb.tolist(),
+            "train_file_paths": [Path(f).relative_to(data_path).as_posix() for f in train_files],
+            "eval_file_paths": [Path(f).relative_to(data_path).as_posix() for f in eval_files],
+        },
+        "model": {
+            "implementation": mcfg.implementation,
+            "log2_hashmap_size": mcfg.log2_hashmap_size,
+            "num_levels": mcfg.num_levels,
+            "base_res": mcfg.base_res,
+            "max_res": mcfg.max_res,
+            "features_per_level": mcfg.features_per_level,
+            "hidden_dim": mcfg.hidden_dim,
+            "hidden_dim_color": mcfg.hidden_dim_color,
+            "appearance_embed_dim": mcfg.appearance_embed_dim,
+            "use_average_appearance_embedding": mcfg.use_average_appearance_embedding,
+            "average_init_density": mcfg.average_init_density,
+            "proposal_net_args_list": mcfg.proposal_net_args_list,
+            "num_proposal_samples_per_ray": list(mcfg.num_proposal_samples_per_ray),
+            "num_nerf_samples_per_ray": mcfg.num_nerf_samples_per_ray,
+            "proposal_initial_sampler": mcfg.proposal_initial_sampler,
+            "background_color": mcfg.background_color,
+            "near_plane_train": mcfg.near_plane,
+            "far_plane": mcfg.far_plane,
+            "collider_near_at_eval": float(g["rays_nears"].flatten()[0]),
+            "proposal_sampler_anneal_at_eval": float(model.proposal_sampler._anneal),
+            "camera_optimizer_mode": mcfg.camera_optimizer.mode,
+        },
+        "cameras": cam_info,
+        "rays": {
+            "camera": "train",
+            "pixels_yx": PIXELS_YX,
+            "pixel_center_offset": 0.5,
+            "max_abs_diff_vs_model_forward": rays_vs_forward,
+            "max_abs_diff_vs_full_render": rays_vs_render,
+        },
+        "points": {
+            "layout": f"{n_in // 2} in [-0.3,0.3]^3, {n_in - n_in // 2} in [-1,1]^3, {n_mid} with inf-norm in [1,4), {n_far} with |p| in [10,1000)",
+            "appearance": "eval mode: mean of the train appearance embeddings",
+        },
+        "tensors": {k: {"shape": list(v.shape), "dtype": str(v.dtype).replace("torch.", "")} for k, v in g.items()},
+        "weights": {k: {"shape": list(v.shape), "original_dtype": orig_dtypes[k]} for k, v in weights.items()},
+    }
+    (out_dir / "golden.json").write_text(json.dumps(info, indent=1, default=str) + "\n")
+    for f in out_dir.iterdir():
+        f.chmod(0o644)
+    print(json.dumps({"cameras": cam_info, "rays": info["rays"]}, indent=1))
+
+
+def _dist_version(name: str) -> str:
+    from importlib.metadata import version
+
+    return version(name)
+
+
+if __name__ == "__main__":
+    main()

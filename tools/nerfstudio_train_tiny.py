@@ -1,0 +1,336 @@
+"""Train a tiny nerfacto run with nerfstudio itself (CPU, torch implementation).
+
+NOT part of noisenerf and never run by CI.  It produces the real nerfstudio run
+directory from which ``tools/nerfstudio_goldens.py`` writes the golden files in
+``tests/goldens/nerfacto_torch/``.  Run it with a separate venv that holds
+nerfstudio 1.1.5 (see the golden's ``golden.json`` for the exact versions)::
+
+    python3.11 -m venv /work/nsvenv
+    /work/nsvenv/bin/pip install torch==2.13.0            # the CPU build
+    /work/nsvenv/bin/pip install --no-deps nerfstudio==1.1.5 nerfacc==0.5.2 viser==0.2.7
+    /work/nsvenv/bin/pip install numpy jaxtyping rich PyYAML tyro pillow imageio appdirs \
+        requests pyquaternion pathos torchmetrics tensorboard opencv-python-headless \
+        matplotlib safetensors websockets msgspec scikit-image scipy tqdm trimesh \
+        nodeenv psutil yourdfpy plyfile
+    /work/nsvenv/bin/python tools/nerfstudio_train_tiny.py \
+        --scene /work/shared/data/scenes/blender/lego --data /work/nsrun/data \
+        --outputs /work/nsrun/outputs  # 1000 iterations x 256 rays, ~7.5 min on 1 thread
+
+Step 1 writes a nerfstudio-data dataset (``transforms.json`` as ns-process-data
+writes it, OPENCV camera model with zero distortion, RGB PNGs composited on
+white, downscaled).  Step 2 runs nerfstudio's own ``ns-train`` entry point
+(``nerfstudio.scripts.train.entrypoint``) as
+``ns-train nerfacto --machine.device-type cpu --pipeline.model.implementation torch ...
+nerfstudio-data --data DIR``.
+
+No nerfstudio code is copied here.  Three import-time stand-ins are installed
+because nerfstudio imports these at module level although a CPU nerfacto run
+never needs them (research/nerfacto-import.md §7.7.1):
+
+* ``torchvision``: an empty module (only used for image dumps; the real wheel
+  would pull a CUDA torch);
+* ``nerfstudio.configs.method_configs``: a table holding only nerfstudio 1.1.5's
+  ``nerfacto`` entry, rebuilt from nerfstudio's own config classes with the same
+  values (the real table imports every method, gsplat's CUDA build among them);
+* torchmetrics' LPIPS backbone: AlexNet ``features`` with random weights instead
+  of the ImageNet download (LPIPS only scores eval images; the checkpoint
+  carries the same ``_model.lpips.*`` keys and shapes as a real run).
+
+Plus, for bit-reproducible runs: one torch thread, and the train-ray worker
+process (``ParallelDataManager``'s ``DataProcessor``, started with "spawn" and
+left unseeded by nerfstudio) is seeded with ``machine.seed`` before it samples.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib.machinery
+import json
+import math
+import os
+import sys
+import types
+from pathlib import Path
+
+NUM_THREADS = int(os.environ.get("NS_TINY_THREADS", "1"))
+WORKER_SEED = int(os.environ.get("NS_TINY_WORKER_SEED", "42"))
+
+
+def _stub_module(name: str) -> types.ModuleType:
+    mod = types.ModuleType(name)
+    mod.__spec__ = importlib.machinery.ModuleSpec(name, None)
+    sys.modules[name] = mod
+    return mod
+
+
+def _alexnet_features_random():
+    """torchvision's alexnet().features layout, random weights (no download)."""
+    from torch import nn
+
+    return nn.Sequential(
+        nn.Conv2d(3, 64, kernel_size=11, stride=4, padding=2),
+        nn.ReLU(inplace=True),
+        nn.MaxPool2d(kernel_size=3, stride=2),
+        nn.Conv2d(64, 192, kernel_size=5, padding=2),
+        nn.ReLU(inplace=True),
+        nn.MaxPool2d(kernel_size=3, stride=2),
+        nn.Conv2d(192, 384, kernel_size=3, padding=1),
+        nn.ReLU(inplace=True),
+        nn.Conv2d(384, 256, kernel_size=3, padding=1),
+        nn.ReLU(inplace=True),
+        nn.Conv2d(256, 256, kernel_size=3, padding=1),
+        nn.ReLU(inplace=True),
+        nn.MaxPool2d(kernel_size=3, stride=2),
+    )
+
+
+def _nerfacto_method_configs():
+    """nerfstudio 1.1.5's ``method_configs["nerfacto"]`` (configs/method_configs.py),
+    built from nerfstudio's own classes with the same values."""
+    from nerfstudio.cameras.camera_optimizers import CameraOptimizerConfig
+    from nerfstudio.configs.base_config import ViewerConfig
+    from nerfstudio.data.datamanagers.parallel_datamanager import ParallelDataManagerConfig
+    from nerfstudio.data.dataparsers.nerfstudio_dataparser import NerfstudioDataParserConfig
+    from nerfstudio.engine.optimizers import AdamOptimizerConfig
+    from nerfstudio.engine.schedulers import ExponentialDecaySchedulerConfig
+    from nerfstudio.engine.trainer import TrainerConfig
+    from nerfstudio.models.nerfacto import NerfactoModelConfig
+    from nerfstudio.pipelines.base_pipeline import VanillaPipelineConfig
+
+    nerfacto = TrainerConfig(
+        method_name="nerfacto",
+        steps_per_eval_batch=500,
+        steps_per_save=2000,
+        max_num_iterations=30000,
+        mixed_precision=True,
+        pipeline=VanillaPipelineConfig(
+            datamanager=ParallelDataManagerConfig(
+                dataparser=NerfstudioDataParserConfig(),
+                train_num_rays_per_batch=4096,
+                eval_num_rays_per_batch=4096,
+            ),
+            model=NerfactoModelConfig(
+                eval_num_rays_per_chunk=1 << 15,
+                average_init_density=0.01,
+                camera_optimizer=CameraOptimizerConfig(mode="SO3xR3"),
+            ),
+        ),
+        optimizers={
+            "proposal_networks": {
+                "optimizer": AdamOptimizerConfig(lr=1e-2, eps=1e-15),
+                "scheduler": ExponentialDecaySchedulerConfig(lr_final=0.0001, max_steps=200000),
+            },
+            "fields": {
+                "optimizer": AdamOptimizerConfig(lr=1e-2, eps=1e-15),
+                "scheduler": ExponentialDecaySchedulerConfig(lr_final=0.0001, max_steps=200000),
+            },
+            "camera_opt": {
+                "optimizer": AdamOptimizerConfig(lr=1e-3, eps=1e-15),
+                "scheduler": ExponentialDecaySchedulerConfig(lr_final=1e-4, max_steps=5000),
+            },
+        },
+        viewer=ViewerConfig(num_rays_per_chunk=1 << 15),
+        vis="viewer",
+    )
+    return {"nerfacto": nerfacto}, {
+        "nerfacto": "Recommended real-time model tuned for real captures. This model will be continually updated."
+    }
+
+
+_INSTALLED = False
+
+
+def install_standins() -> None:
+    """Install the import-time stand-ins (idempotent).  Runs at import of this
+    module, so the spawned data worker (which re-imports ``__main__``) gets them too."""
+    global _INSTALLED
+    if _INSTALLED:
+        return
+    _INSTALLED = True
+    import torch
+
+    torch.set_num_threads(NUM_THREADS)
+
+    # torchmetrics decides "torchvision available?" lazily; settle it (False) before the stub exists.
+    import torchmetrics.utilities.imports as tm_imports
+
+    bool(tm_imports._TORCHVISION_AVAILABLE)
+
+    if "torchvision" not in sys.modules:
+        tv = _stub_module("torchvision")
+        tv_utils = _stub_module("torchvision.utils")
+        tv.utils = tv_utils
+
+        def _no_image_dumps(*_a, **_k):
+            raise RuntimeError("torchvision stand-in: image dumps are not available")
+
+        tv_utils.save_image = _no_image_dumps
+        tv_utils.make_grid = _no_image_dumps
+
+    import torchmetrics.functional.image.lpips as tm_lpips_f
+    import torchmetrics.image.lpip as tm_lpips
+
+    tm_lpips_f._TORCHVISION_AVAILABLE = True
+    tm_lpips._TORCHVISION_AVAILABLE = True
+
+    def _get_tv_model_features(net: str, pretrained: bool = False):
+        if net != "alexnet":
+            raise RuntimeError(f"LPIPS stand-in only provides alexnet, not {net}")
+        return _alexnet_features_random()
+
+    tm_lpips_f._get_tv_model_features = _get_tv_model_features
+
+    # method_configs stand-in: only nerfacto.
+    if "nerfstudio.configs.method_configs" not in sys.modules:
+        import tyro
+
+        mc = _stub_module("nerfstudio.configs.method_configs")
+        methods, descriptions = _nerfacto_method_configs()
+        mc.method_configs = methods
+        mc.descriptions = descriptions
+        mc.all_methods = methods
+        mc.all_descriptions = descriptions
+        mc.AnnotatedBaseConfigUnion = tyro.conf.SuppressFixed[
+            tyro.conf.FlagConversionOff[
+                tyro.extras.subcommand_type_from_defaults(defaults=methods, descriptions=descriptions)
+            ]
+        ]
+        import nerfstudio.configs as ns_configs
+
+        ns_configs.method_configs = mc
+
+    # Seed the spawned train-ray worker (nerfstudio leaves it unseeded).
+    from nerfstudio.data.datamanagers import parallel_datamanager as pdm
+
+    if not getattr(pdm.DataProcessor.run, "_ns_tiny_seeded", False):
+        _orig_run = pdm.DataProcessor.run
+
+        def run(self):
+            import random
+
+            import numpy as np
+
+            torch.set_num_threads(NUM_THREADS)
+            random.seed(WORKER_SEED)
+            np.random.seed(WORKER_SEED)
+            torch.manual_seed(WORKER_SEED)
+            return _orig_run(self)
+
+        run._ns_tiny_seeded = True
+        pdm.DataProcessor.run = run
+
+
+# ---------------------------------------------------------------------------------------------
+# dataset
+
+
+def build_dataset(scene: Path, out: Path, n_frames: int, size: int) -> dict:
+    """lego train split (NeRF-Synthetic, RGBA, OpenGL c2w) -> nerfstudio-data dataset."""
+    import numpy as np
+    from PIL import Image
+
+    meta = json.loads((scene / "transforms_train.json").read_text())
+    frames_in = meta["frames"]
+    picks = [i * len(frames_in) // n_frames for i in range(n_frames)]
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "images").mkdir(exist_ok=True)
+    focal = 0.5 * size / math.tan(0.5 * float(meta["camera_angle_x"]))
+    frames = []
+    for k, i in enumerate(picks):
+        src = frames_in[i]
+        rel = src["file_path"]
+        path = scene / (rel if rel.endswith(".png") else rel + ".png")
+        rgba = np.asarray(Image.open(path).convert("RGBA"), dtype=np.float64) / 255.0
+        rgb = rgba[..., :3] * rgba[..., 3:] + (1.0 - rgba[..., 3:])  # composite on white
+        full = Image.fromarray(np.clip(np.round(rgb * 255.0), 0, 255).astype(np.uint8), "RGB")
+        small = full.resize((size, size), Image.Resampling.BOX)
+        name = f"frame_{k + 1:05d}.png"
+        small.save(out / "images" / name)
+        frames.append(
+            {
+                "file_path": f"images/{name}",
+                "transform_matrix": src["transform_matrix"],
+                "colmap_im_id": k + 1,
+                "source_file_path": rel,
+            }
+        )
+    transforms = {
+        "w": size,
+        "h": size,
+        "fl_x": focal,
+        "fl_y": focal,
+        "cx": size / 2.0,
+        "cy": size / 2.0,
+        "k1": 0.0,
+        "k2": 0.0,
+        "p1": 0.0,
+        "p2": 0.0,
+        "camera_model": "OPENCV",
+        "frames": frames,
+    }
+    (out / "transforms.json").write_text(json.dumps(transforms, indent=4))
+    return transforms
+
+
+install_standins()
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--scene", type=Path, default=Path("/work/shared/data/scenes/blender/lego"))
+    ap.add_argument("--data", type=Path, default=Path("/work/nsrun/data"))
+    ap.add_argument("--outputs", type=Path, default=Path("/work/nsrun/outputs"))
+    ap.add_argument("--experiment", default="lego64")
+    ap.add_argument("--timestamp", default=None, help="default: nerfstudio's own {yyyy-mm-dd_hhmmss}")
+    ap.add_argument("--frames", type=int, default=30)
+    ap.add_argument("--size", type=int, default=64)
+    ap.add_argument("--iters", type=int, default=1000)
+    ap.add_argument("--rays", type=int, default=256)
+    ap.add_argument("--log2-hashmap-size", type=int, default=12)
+    ap.add_argument("--prop-log2-hashmap-size", type=int, default=12)
+    ap.add_argument("--seed", type=int, default=42)
+    ap.add_argument("--skip-data", action="store_true")
+    ap.add_argument("--dry-run", action="store_true", help="print the ns-train command only")
+    args = ap.parse_args()
+
+    if not args.skip_data:
+        build_dataset(args.scene, args.data, args.frames, args.size)
+
+    ns_args = [
+        "ns-train",
+        "nerfacto",
+        "--machine.device-type", "cpu",
+        "--machine.seed", str(args.seed),
+        "--pipeline.model.implementation", "torch",
+        "--pipeline.model.log2-hashmap-size", str(args.log2_hashmap_size),
+        "--pipeline.model.proposal-net-args-list.0.log2-hashmap-size", str(args.prop_log2_hashmap_size),
+        "--pipeline.model.proposal-net-args-list.1.log2-hashmap-size", str(args.prop_log2_hashmap_size),
+        "--pipeline.datamanager.train-num-rays-per-batch", str(args.rays),
+        "--max-num-iterations", str(args.iters),
+        "--steps-per-save", str(args.iters),
+        "--steps-per-eval-batch", str(10 * args.iters),
+        "--steps-per-eval-image", str(10 * args.iters),
+        "--steps-per-eval-all-images", str(10 * args.iters),
+        "--vis", "tensorboard",
+        "--output-dir", str(args.outputs),
+        "--experiment-name", args.experiment,
+    ]
+    if args.timestamp:
+        ns_args += ["--timestamp", args.timestamp]
+    ns_args += ["nerfstudio-data", "--data", str(args.data)]
+    print("RUN:", " ".join(ns_args), flush=True)
+    if args.dry_run:
+        return
+    args.outputs.mkdir(parents=True, exist_ok=True)
+    # read by tools/nerfstudio_goldens.py for golden.json (kept outside nerfstudio's run directory)
+    (args.outputs / "ns_train_command.txt").write_text(
+        "python tools/nerfstudio_train_tiny.py " + " ".join(sys.argv[1:]) + "\n" + " ".join(ns_args) + "\n"
+    )
+    sys.argv = ns_args
+    from nerfstudio.scripts.train import entrypoint
+
+    entrypoint()
+
+
+if __name__ == "__main__":
+    main()
