@@ -148,6 +148,8 @@ def cmd_bench(args) -> None:
                          cluster_tile=args.cluster_tile, cluster_photo=size_argument(args.cluster_photo, "--cluster-photo"),
                          big_secret=size_argument(args.big_secret, "--big-secret"),
                          fields_minutes=args.fields_minutes, fields_resolution=args.fields_resolution,
+                         nerfstudio_run=args.nerfstudio_run, nerfstudio_data=args.nerfstudio_data,
+                         nerfstudio_golden=args.nerfstudio_golden,
                          device=str(resolve_device(args.device)),
                          experiments=tuple(args.only.split(",")) if args.only else None)
     command = "noisenerf " + " ".join(sys.argv[1:]) if sys.argv[0].endswith("noisenerf") else "noisenerf bench ..."
@@ -274,6 +276,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--big-secret", default="7680x4320", help="WxH of the secret the big_secret experiment hides and reveals")
     p.add_argument("--fields-minutes", type=float, default=15.0, help="fields: each field kind's fit, in minutes")
     p.add_argument("--fields-resolution", type=int, default=200, help="fields: the width the kinds are fitted at")
+    p.add_argument("--nerfstudio-run", help="nerfstudio: a nerfacto run directory to import")
+    p.add_argument("--nerfstudio-data", help="nerfstudio: its dataset folder (transforms.json)")
+    p.add_argument("--nerfstudio-golden", help="nerfstudio: tools/nerfstudio_goldens.py's folder for that run")
     p.add_argument("--only", help="comma-separated experiments, run with those they need (default: all)")
     add_device(p)
     p.add_argument("--stress", action="store_true", help="also run the full numerical stress suite")

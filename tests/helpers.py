@@ -437,3 +437,27 @@ def tcnn_sh(d: np.ndarray) -> np.ndarray:
         2.8906114426405538 * x * y * z, 0.45704579946446572 * y * (1 - 5 * z * z),
         0.3731763325901154 * z * (5 * z * z - 3), 0.45704579946446572 * x * (1 - 5 * z * z),
         1.4453057213202769 * z * (x * x - y * y), 0.59004358992664352 * x * (-x * x + 3 * y * y)], 1)
+
+
+NERFSTUDIO_GOLDENS = Path(__file__).parent / "goldens" / "nerfacto_torch"
+
+
+def nerfstudio_run_from_goldens(folder: Path) -> tuple[Path, Path]:
+    """The goldens' run (tests/goldens/nerfacto_torch, a run nerfstudio trained) rebuilt as nerfstudio wrote it:
+    its config.yml and dataparser_transforms.json as they are, the checkpoint's model tensors in a step-*.ckpt
+    with numpy-scalar optimizer state, its transforms.json. -> (run directory, data directory)."""
+    import shutil
+
+    import torch
+    from safetensors.numpy import load_file
+
+    run, data = folder / "run", folder / "data"
+    (run / "nerfstudio_models").mkdir(parents=True)
+    data.mkdir()
+    for name in ("config.yml", "dataparser_transforms.json"):
+        shutil.copy(NERFSTUDIO_GOLDENS / name, run / name)
+    shutil.copy(NERFSTUDIO_GOLDENS / "transforms.json", data / "transforms.json")
+    pipeline = {k: torch.from_numpy(v) for k, v in load_file(NERFSTUDIO_GOLDENS / "weights.safetensors").items()}
+    torch.save({"step": 549, "pipeline": pipeline, "optimizers": {"fields": {"param_groups": [{"lr": np.float64(1e-2)}]}},
+                "scalers": {}}, run / "nerfstudio_models" / "step-000000549.ckpt")
+    return run, data

@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from helpers import make_tiny_scene
+from helpers import NERFSTUDIO_GOLDENS, make_tiny_scene, nerfstudio_run_from_goldens
 from noisenerf.cli.bench import (EXPERIMENTS, REGISTRY, BenchConfig, BenchContext, Experiment, config, field_flops,
                                   run_bench, stress)
 from noisenerf.cli.bench.browser import RUNS, browser_missing
@@ -31,12 +31,14 @@ def inputs(tmp_path_factory):
     data = write_procedural_dataset(folder / "data", size=16, n_train=6, n_val=0, n_test=2)
     secret = np.random.default_rng(0).integers(0, 256, (12, 16, 3), dtype=np.uint8)
     write_image(folder / "secret.png", secret)
+    run, run_data = nerfstudio_run_from_goldens(folder / "nerfstudio")
     config = BenchConfig(scene=str(folder / "scene"), secret=str(folder / "secret.png"),
                          photos=(str(folder / "secret.png"),), small_width=12, paper_samples=3, paper_iters=60, ablation_samples=2,
                          twok_size=32, twok_tile=16, twok_rows=1, threads=(1,), payload_bytes=200, view_width=12,
                          contention_width=12, browser_size=32, browser_repeats=3, big_secret=(40, 24),
                          data=str(data), fields_minutes=0.2, fields_resolution=16, fields_curve_seconds=2.0,
-                         coverage_size=8,
+                         coverage_size=8, nerfstudio_run=str(run), nerfstudio_data=str(run_data),
+                         nerfstudio_golden=str(NERFSTUDIO_GOLDENS), nerfstudio_width=12,
                          experiments=tuple(name for name in EXPERIMENTS if name != "cluster"))  # Ray: test_cluster.py
     return folder, config
 
@@ -238,3 +240,14 @@ def test_big_secret_is_hidden_and_revealed_exactly_by_the_tools_with_their_memor
     assert (row["width"], row["height"], row["pixels"]) == (40, 24, 960)
     assert row["exact"] and row["hide_exact"] and row["tiles"] == 1
     assert row["driver_peak_mib"] > 0 and row["reveal_peak_mib"] > 0 and row["worker_peak_mib"] >= 0
+
+
+def test_nerfstudio_renders_as_nerfstudio_and_hides_exactly(report):
+    _, sections = report
+    rows = sections["nerfstudio"].rows
+    renders = [row for row in rows if row["row"] == "render"]
+    assert {row["split"] for row in renders} == {"train", "eval"}
+    assert all(row["max_difference"] < 1e-3 and row["equal_8bit"] > 0.99 for row in renders)
+    hides = [row for row in rows if row["row"] == "hide"]
+    assert {row["view"] for row in hides} == {10, 20} and all(row["exact"] for row in hides)
+    assert "Goal: within float32 noise" in "\n".join(sections["nerfstudio"].lines)

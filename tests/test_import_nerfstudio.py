@@ -8,14 +8,13 @@ from __future__ import annotations
 
 import math
 import shutil
-from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
 
 from helpers import (
-    assert_refused, nerfstudio_layout, run_main, run_reveal, tcnn_sh, write_nerfstudio_run, write_png,
+    NERFSTUDIO_GOLDENS, assert_refused, nerfstudio_layout, nerfstudio_run_from_goldens, run_main, run_reveal, tcnn_sh, write_nerfstudio_run, write_png,
 )
 from noisenerf.cli.main import main
 from noisenerf.runtime.model import load_model
@@ -305,7 +304,7 @@ def test_each_set_of_outputs_runs_a_graph_pruned_to_it(imported):
 
 # ---- nerfstudio's own numbers (a run nerfstudio 1.1.5 trained: tests/goldens/nerfacto_torch) ---------
 
-GOLDENS = Path(__file__).parent / "goldens" / "nerfacto_torch"
+GOLDENS = NERFSTUDIO_GOLDENS
 
 
 @pytest.fixture(scope="module")
@@ -316,15 +315,7 @@ def nerfstudio_trained(tmp_path_factory):
     import json
     from safetensors.numpy import load_file
     folder = tmp_path_factory.mktemp("nerfstudio_trained")
-    run, data = folder / "run", folder / "data"
-    (run / "nerfstudio_models").mkdir(parents=True)
-    data.mkdir()
-    for name in ("config.yml", "dataparser_transforms.json"):
-        shutil.copy(GOLDENS / name, run / name)
-    shutil.copy(GOLDENS / "transforms.json", data / "transforms.json")
-    pipeline = {k: torch.from_numpy(v) for k, v in load_file(GOLDENS / "weights.safetensors").items()}
-    torch.save({"step": 549, "pipeline": pipeline, "optimizers": {"fields": {"param_groups": [{"lr": np.float64(1e-2)}]}},
-                "scalers": {}}, run / "nerfstudio_models" / "step-000000549.ckpt")
+    run, data = nerfstudio_run_from_goldens(folder)
     assert main(["import-nerfstudio", str(run), "-o", str(folder / "scene"), "--data", str(data)]) in (0, None)
     assert main(["export", str(folder / "scene"), "-o", str(folder / "model.onnx")]) in (0, None)
     return load_model(folder / "model.onnx"), load_file(GOLDENS / "golden.safetensors"), \

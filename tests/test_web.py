@@ -2,12 +2,13 @@
 
 `write_fixtures` builds tiny scenes from seeds, hides secrets in them (every layout: compact with an
 escaped pixel, ray, sample; a fine network and the coarse one of a hierarchical scene; an NDC scene; a
-multi-tile bundle; a hash-grid field), exports the models, and writes beside each model.onnx and
+multi-tile bundle; a hash-grid field; nerfacto fields of both implementations, imported from synthetic
+nerfstudio runs), exports the models, and writes beside each model.onnx and
 secret.bundle what the Python runtime computes on them: per tile the rays (runtime.rays.camera_ray_batch),
 the expanded noise (the tile noise's `rows`), the rendered colours (runtime.reveal.render_tile), and the
 revealed 8-bit pixels, digest and exactness (runtime.reveal.reveal). Tampered copies carry the one-line
 message `noisenerf-reveal` prints for them. The manifest also holds the graphs runtime.fields derives for
-hash-grid architectures, and the messages refusing those out of the caps. Then `node --test` runs
+hash-grid and nerfacto architectures, and the messages refusing those out of the caps. Then `node --test` runs
 web/test/ with NOISENERF_WEB_FIXTURES pointing there: the JavaScript port must give the same pixels byte
 for byte, the same graphs and the same refusals.
 
@@ -32,7 +33,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from helpers import flip_first_float32, make_tiny_scene
+from helpers import flip_first_float32, make_tiny_scene, write_nerfstudio_run
 
 REPO = Path(__file__).resolve().parents[1]
 WEB = REPO / "web"
@@ -197,6 +198,31 @@ def swapped_xor(model):
     return model
 
 
+def dropped_output(name: str):
+    """A model whose graph no longer declares the output `name` (its nodes kept)."""
+    def edit(model):
+        kept = [port for port in model.graph.output if port.name != name]
+        del model.graph.output[:]
+        model.graph.output.extend(kept)
+        return model
+    return edit
+
+
+def renamed_output(name: str, new: str):
+    """A model whose output `name`, and the node computing it, are called `new`."""
+    def edit(model):
+        next(node for node in model.graph.node if name in node.output).output[0] = new
+        next(port for port in model.graph.output if port.name == name).name = new
+        return model
+    return edit
+
+
+def one_proposal(meta: dict) -> None:
+    """A nerfacto model's metadata stating its first proposal network alone."""
+    coarse = meta["architecture"]["coarse"]
+    coarse.update(proposals=coarse["proposals"][:1], sampler={**coarse["sampler"], "proposal_samples": [256]})
+
+
 def model_metadata_edit(edit):
     """Edit a model's noisenerf metadata (JSON), its graph and weights kept."""
     def apply(model):
@@ -206,6 +232,14 @@ def model_metadata_edit(edit):
         entry.value = json.dumps(meta)
         return model
     return model_edit(apply)
+
+
+def model_architecture(path: Path) -> dict:
+    """The architecture in a model file's noisenerf metadata."""
+    import onnx
+
+    entry = next(entry for entry in onnx.load(str(path)).metadata_props if entry.key == "noisenerf")
+    return json.loads(entry.value)["architecture"]
 
 
 def graph_golden(architecture: dict, noise_dims: int) -> dict:
@@ -274,6 +308,53 @@ def scales_golden() -> list:
             for scale in PER_LEVEL_SCALES]
 
 
+def nerfacto_architectures(imported: dict) -> tuple[list, list]:
+    """(nerfacto architectures whose graphs the JavaScript must derive exactly, architectures it must refuse with
+    Python's message): the imported runs' fields of both implementations (`imported`: implementation -> coarse
+    architecture) and variants (one proposal network, other SH degrees and widths, every level hashed or
+    dense, integer scales), then every check of runtime.fields.nerfacto, and proposal networks beside a fine one."""
+    tcnn, torch_field = imported["tcnn"], imported["torch"]
+    mlp = {"depth": 2, "width": 8, "skips": [1], "xyz_freqs": 2, "dir_freqs": 1, "use_viewdirs": True}
+
+    def coarse(field=tcnn, **change) -> dict:
+        return {"coarse": {**field, **change}, "fine": None}
+
+    def sampler(field=tcnn, **change) -> dict:
+        return {**field["sampler"], **change}
+
+    def proposal(field=tcnn, i=0, **change) -> list:
+        return [*field["proposals"][:i], {**field["proposals"][i], **change}, *field["proposals"][i + 1:]]
+
+    one = {"proposals": tcnn["proposals"][:1], "sampler": sampler(proposal_samples=[64])}
+    graphs = [coarse(), coarse(torch_field),
+              coarse(torch_field, sh_degree=3, geo_features=0, colour_layers=1, colour_hidden=5),
+              coarse(**one, log2_table=3, sh_degree=1),
+              coarse(scales=[0.0, 1.0, 2.5, 7.25], log2_table=12, features=1, density_scale=0.3),
+              coarse(torch_field, scales=[16, 23, 35], density_scale=1, proposals=torch_field["proposals"][::-1])]
+    without = {key: value for key, value in tcnn.items() if key != "sampler"}
+    refused = [coarse(implementation="cuda"), coarse(implementation=3), {"coarse": without, "fine": None},
+               coarse(proposals=[], sampler=sampler(proposal_samples=[])), coarse(scales=[255.0, 15.0], log2_table=12),
+               coarse(extra=1), coarse(scales="16"), coarse(scales=[]), coarse(scales=[15.0] * 33),
+               coarse(torch_field, scales=[0.5, 16.0]), coarse(scales=[-1.0]), coarse(scales=[2e6]),
+               coarse(scales=["1"]), coarse(features=9), coarse(log2_table=2), coarse(sh_degree=5),
+               coarse(density_scale=0), coarse(density_scale="0.01"), coarse(geo_features=-1),
+               coarse(proposals=tcnn["proposals"] * 3), coarse(proposals={"0": 1}),
+               coarse(proposals=[{key: v for key, v in tcnn["proposals"][0].items() if key != "hidden"}]),
+               coarse(proposals=proposal(hidden=0)), coarse(proposals=proposal(scales=[])),
+               coarse(torch_field, proposals=proposal(torch_field, scales=[16.0, 0.5])),
+               coarse(proposals=proposal(i=1, log2_table=25)),
+               coarse(sampler={key: v for key, v in tcnn["sampler"].items() if key != "near"}),
+               coarse(sampler=sampler(proposal_samples=[256])), coarse(sampler=sampler(near=5.0, far=1)),
+               coarse(sampler=sampler(far=2e9)), coarse(sampler=sampler(samples=0)),
+               coarse(sampler=sampler(proposal_samples=[0, 96])), coarse(sampler=sampler(histogram_padding=2.0)),
+               coarse(sampler=[1]),
+               coarse(torch_field, scales=[1000.0] * 32, log2_table=24, features=8),
+               {"coarse": tcnn, "fine": tcnn}, {"coarse": mlp, "fine": torch_field},
+               {"coarse": {**tcnn, "proposals": [], "sampler": sampler(proposal_samples=[])}, "fine": mlp},
+               {"coarse": {**mlp, "kind": "nerfacto"}, "fine": None}]
+    return graphs, refused
+
+
 def bundle_metadata_edit(edit):
     """Edit a bundle's JSON metadata (safetensors header), keeping its tensors."""
     def apply(data: bytes) -> bytes:
@@ -330,6 +411,18 @@ def recompressed(stream: bytes, dict_size: int) -> bytes:
                          filters=[{"id": lzma.FILTER_LZMA2, "dict_size": dict_size, "mf": lzma.MF_HC3}])
 
 
+def imported_nerfacto(root: Path, implementation: str):
+    """A synthetic nerfstudio run of this implementation (tests/helpers.write_nerfstudio_run, as
+    tests/test_import_nerfstudio.py writes it), imported as `noisenerf import-nerfstudio` imports it -> the scene."""
+    from noisenerf.train.scene.import_nerfstudio import import_nerfstudio
+
+    folder = root / "nerfstudio" / implementation
+    folder.mkdir(parents=True)
+    run, data = write_nerfstudio_run(folder, implementation, seed=3,
+                                     prefix="_model.module." if implementation == "tcnn" else "_model.")
+    return import_nerfstudio(run, folder / "scene", data=data)
+
+
 def write_fixtures(root: Path) -> dict:
     """Every fixture under root, and root/manifest.json describing them."""
     import torch
@@ -338,7 +431,7 @@ def write_fixtures(root: Path) -> dict:
     from noisenerf.train.hide.settings import PaperSettings
     from noisenerf.train.hide.plan import HideConfig
     from noisenerf.train.hide.run import hide
-    from test_model_graph import appended_node, changed_opset
+    from test_model_graph import appended_node, changed_opset, removed_node
 
     cpu = torch.device("cpu")
     rng = np.random.default_rng(7)
@@ -346,7 +439,9 @@ def write_fixtures(root: Path) -> dict:
     scenes = {"plain": make_tiny_scene(seed=0), "fine": make_tiny_scene(seed=3, fine=True),
               "ndc": make_tiny_scene(seed=1, ndc=True),
               "wide": make_tiny_scene(seed=0, width=64, depth=4),  # tests/test_reference.py's payload scene
-              "hashgrid": make_tiny_scene(seed=2, kind="hashgrid")}
+              "hashgrid": make_tiny_scene(seed=2, kind="hashgrid"),
+              **{f"nerfacto_{implementation}": imported_nerfacto(root, implementation)
+                 for implementation in ("tcnn", "torch")}}
     paper = (PaperSettings(iters=4, record_at=(4,)),)
     cases = {  # name -> scene, secret, hide config
         "compact_tiles": ("plain", secret, HideConfig(tile_size=16)),
@@ -359,6 +454,9 @@ def write_fixtures(root: Path) -> dict:
         "ndc_compact": ("ndc", secret[:8, :12], HideConfig(tile_size=16)),
         "hashgrid_compact": ("hashgrid", secret[:8, :12], HideConfig(tile_size=16)),
         "hashgrid_ray": ("hashgrid", secret[:6, :8], HideConfig(layout="ray", tile_size=16, view=2, seed=5)),
+        # the defaults, as `noisenerf hide SCENE secret.png -o b.nnrf --view 4` hides in an imported run
+        "nerfacto_tcnn": ("nerfacto_tcnn", secret[:6, :7], HideConfig(view=4)),
+        "nerfacto_torch": ("nerfacto_torch", secret[:6, :7], HideConfig(view=4)),
     }
     manifest = {"fixtures": {}, "tampered": []}
     threads = torch.get_num_threads()
@@ -454,11 +552,41 @@ def write_fixtures(root: Path) -> dict:
             lambda meta: meta["architecture"]["coarse"].update(per_level_scale=9.0))),
         tamper(root, "hashgrid_compact", "hashgrid_kind", edit_model=model_metadata_edit(
             lambda meta: meta["architecture"]["coarse"].update(kind="triplane"))),
+        # nerfacto: float constants (a proposal grid's scales, σ's density scale, the torch SH's negated rows), the
+        # tables (the fingerprint), a node more or fewer, a proposal output dropped or renamed, and metadata that
+        # derives another graph or none
+        *(tamper(root, f"nerfacto_{implementation}", f"nerfacto_{implementation}_{name}",
+                 edit_model=changed_initializer(lambda initializer, pick=pick: initializer == pick))
+          for implementation, name, pick in (
+              ("tcnn", "scale", "coarse.proposals.1.grid.scale"), ("tcnn", "density_scale", "density.scale"),
+              ("torch", "sh_signs", "viewdirs.halved.sh.matrix.4"), ("torch", "table", "coarse.proposals.0.table"))),
+        tamper(root, "nerfacto_tcnn", "nerfacto_appended_node", edit_model=model_edit(appended_node)),
+        tamper(root, "nerfacto_torch", "nerfacto_removed_node", edit_model=model_edit(removed_node)),
+        tamper(root, "nerfacto_tcnn", "nerfacto_dropped_proposal",
+               edit_model=model_edit(dropped_output("sigma_proposal1"))),
+        tamper(root, "nerfacto_torch", "nerfacto_renamed_proposal",
+               edit_model=model_edit(renamed_output("sigma_proposal0", "sigma_proposal2"))),
+        tamper(root, "nerfacto_torch", "nerfacto_implementation", edit_model=model_metadata_edit(
+            lambda meta: meta["architecture"]["coarse"].update(implementation="tcnn"))),
+        tamper(root, "nerfacto_tcnn", "nerfacto_meta_density_scale", edit_model=model_metadata_edit(
+            lambda meta: meta["architecture"]["coarse"].update(density_scale=0.02))),
+        tamper(root, "nerfacto_tcnn", "nerfacto_one_proposal", edit_model=model_metadata_edit(one_proposal)),
+        tamper(root, "nerfacto_torch", "nerfacto_near_far", edit_model=model_metadata_edit(
+            lambda meta: meta["architecture"]["coarse"]["sampler"].update(near=2000.0))),
+        tamper(root, "nerfacto_tcnn", "nerfacto_beside_fine", edit_model=model_metadata_edit(
+            lambda meta: meta.update(architecture={**meta["architecture"], "fine": meta["architecture"]["coarse"]},
+                                     hierarchy={"n_coarse": 64, "n_importance": 64}))),
     ]
     graphs, refused = hashgrid_architectures()
     noise_dims = scenes["hashgrid"].render_field.config.noise_dims
     manifest["graphs"] = [graph_golden(architecture, noise_dims) for architecture in graphs + refused]
     assert ["message" in graph for graph in manifest["graphs"]] == [False] * len(graphs) + [True] * len(refused)
+    graphs, refused = nerfacto_architectures({implementation: model_architecture(
+        root / "scenes" / f"nerfacto_{implementation}.onnx")["coarse"] for implementation in ("tcnn", "torch")})
+    nerfacto = [graph_golden(architecture, scenes["nerfacto_tcnn"].render_field.config.noise_dims)
+                for architecture in graphs + refused]
+    assert ["message" in graph for graph in nerfacto] == [False] * len(graphs) + [True] * len(refused)
+    manifest["graphs"] += nerfacto
     manifest["scales"] = scales_golden()
     (root / "manifest.json").write_text(json.dumps(manifest, indent=1))
     return manifest

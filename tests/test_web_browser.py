@@ -2,7 +2,8 @@
 `noisenerf-reveal` reveals, byte for byte, and refuses what it refuses with the same line.
 
 Through `window.noisenerf.reveal` (the page's API, run in its Web Worker): the demo's two-tile secret (the 8-bit
-pixels of both PNGs equal), the demo's sealed note (its bytes equal), a wrong passphrase and a tampered sealed
+pixels of both PNGs equal), a secret hidden in an imported nerfstudio nerfacto run (its proposal networks in the
+graph the page checks), the demo's sealed note (its bytes equal), a wrong passphrase and a tampered sealed
 bundle (the CLI's message). Through the page's controls: the sealed note saved under a chosen name, the secret's
 PNG downloaded, a bad bundle refused with one message and nothing downloaded.
 
@@ -24,7 +25,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from helpers import flip_first_float32, run_reveal
+from helpers import flip_first_float32, run_reveal, write_nerfstudio_run, write_png
 from noisenerf.cli.bench.browser import CHROMIUM, WEB_DIST
 
 WEB = WEB_DIST.parent
@@ -81,6 +82,25 @@ def demo(tmp_path_factory) -> Path:
     return folder
 
 
+def noisenerf(*args) -> None:
+    result = subprocess.run([sys.executable, "-m", "noisenerf.cli.main", *map(str, args)], capture_output=True,
+                            text=True, timeout=600)
+    assert result.returncode == 0, result.stderr[-3000:]
+
+
+@pytest.fixture(scope="module")
+def nerfacto(tmp_path_factory) -> Path:
+    """A synthetic nerfstudio nerfacto run (tiny-cuda-nn's layout) through `noisenerf import-nerfstudio`, `export`
+    and `hide --view 4` of a small random secret: model.onnx, secret.bundle."""
+    folder = tmp_path_factory.mktemp("browser_nerfacto")
+    run, data = write_nerfstudio_run(folder, "tcnn", seed=3, prefix="_model.module.")
+    noisenerf("import-nerfstudio", run, "-o", folder / "scene", "--data", data)
+    noisenerf("export", folder / "scene", "-o", folder / "model.onnx")
+    secret = write_png(folder / "secret.png", np.random.default_rng(5).integers(0, 256, (6, 7, 3), dtype=np.uint8))
+    noisenerf("hide", folder / "scene", secret, "-o", folder / "secret.bundle", "--view", "4")
+    return folder
+
+
 REVEAL = """async ([model, bundle, passphrase]) => {
   const decode = (text) => Uint8Array.from(atob(text), (c) => c.charCodeAt(0));
   const encode = (bytes) => { let s = ""; for (let i = 0; i < bytes.length; i += 32768) s += String.fromCharCode(...bytes.subarray(i, i + 32768)); return btoa(s); };
@@ -132,6 +152,16 @@ def test_the_demo_secret_is_the_clis_pixels(page, demo, tmp_path):
     assert np.array_equal(png_pixels(got["bytes"], tmp_path), want)
     print(f"demo secret: browser reveal {got['seconds']:.3f} s, noisenerf-reveal (process, load included) "
           f"{python_seconds:.3f} s, its own report {report['seconds']} s (render {report['timings']['render']} s)")
+
+
+def test_a_nerfacto_secret_is_the_clis_pixels(page, nerfacto, tmp_path):
+    cli = run_reveal(nerfacto / "model.onnx", nerfacto / "secret.bundle", "-o", tmp_path / "cli.png", "--json")
+    assert cli.returncode == 0, cli.stderr
+    assert json.loads(cli.stdout)["exact"] is True
+    got = browser_reveal(page, nerfacto / "model.onnx", nerfacto / "secret.bundle")
+    assert got.get("kind") == "image" and got["exact"] is True, got.get("error")
+    assert (got["width"], got["height"]) == (7, 6)
+    assert np.array_equal(png_pixels(got["bytes"], tmp_path), png_pixels((tmp_path / "cli.png").read_bytes(), tmp_path))
 
 
 def test_the_sealed_note_is_the_clis_bytes(page, demo, tmp_path):

@@ -44,5 +44,9 @@ class BenchConfig:
     fields_resolution: int = 200  # px wide: the fields experiment fits each kind on `data` at this width
     fields_minutes: float = 15.0  # each kind's fit, in training minutes
     fields_curve_seconds: float = 60.0  # a test-PSNR point every this many seconds of it
+    nerfstudio_run: str | None = None  # the nerfstudio experiment's nerfacto run directory
+    nerfstudio_data: str | None = None  # its dataset (transforms.json)
+    nerfstudio_golden: str | None = None  # tools/nerfstudio_goldens.py's folder for that run: nerfstudio's renders
+    nerfstudio_width: int = 48  # the photos hidden in it (its cameras may be small)
     experiments: tuple[str, ...] | None = None  # --only's names; None: every experiment (registry.selected)
     seed: int = 0

@@ -10,8 +10,8 @@ from typing import Any, Callable, Mapping
 
 from noisenerf.runtime.errors import UserError
 
-from noisenerf.cli.bench import (big_secret, browser, cluster, coverage, exact_cost, exact_scale, fields, paper,
-                                 payload, reliability)
+from noisenerf.cli.bench import (big_secret, browser, cluster, coverage, exact_cost, exact_scale, fields, nerfstudio,
+                                 paper, payload, reliability)
 from noisenerf.cli.bench.context import BenchContext, Measured, Section
 
 
@@ -67,6 +67,8 @@ REGISTRY = (
                big_secret.describe_big_secret),
     Experiment("fields", "Field kinds: the MLP and the hash grid, fitted alike, hidden in alike", fields.measure_fields,
                fields.describe_fields, fields.plot_fields),
+    Experiment("nerfstudio", "A nerfstudio run imported: its renders against nerfstudio's, secrets hidden in it",
+               nerfstudio.measure_nerfstudio, nerfstudio.describe_nerfstudio),
 )
 EXPERIMENTS = tuple(experiment.name for experiment in REGISTRY)
 

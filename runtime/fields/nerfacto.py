@@ -66,6 +66,8 @@ class NerfactoKind:
                    **checked_grid(config, implementation, f"{what} network"), **checked_mlps(config, what),
                    "density_scale": checked_float(config["density_scale"], f"{what} density_scale", 1e-12, 1e12)}
         proposals = checked_list(config["proposals"], f"{what} proposals", most=MAX_PROPOSAL_NETWORKS)
+        if not proposals:
+            raise UserError(f"the {what} network needs a proposal network (its sampler has a stage per network)")
         checked["proposals"] = [checked_proposal(proposal, implementation, f"{what} proposal network {i}")
                                 for i, proposal in enumerate(proposals)]
         checked["sampler"] = checked_sampler(config["sampler"], len(proposals), what)
@@ -115,10 +117,11 @@ def checked_grid(config: dict, implementation: str, what: str) -> dict:
     if not scales:
         raise UserError(f"the {what}'s grid needs at least one level")
     lowest = 1.0 if implementation == "torch" else 0.0
+    values = [float(np.float32(checked_float(v, f"{what} scales", lowest, MAX_HASH_RESOLUTION - 2))) for v in scales]
+    if any(finer < coarser for coarser, finer in zip(values, values[1:])):
+        raise UserError(f"the {what}'s scales must not decrease from level to level")  # dense levels come first
     return {"features": checked_int(config["features"], f"{what} features", 1, MAX_HASH_FEATURES),
-            "log2_table": checked_int(config["log2_table"], f"{what} log2_table", 3, MAX_LOG2_TABLE),
-            "scales": [float(np.float32(checked_float(v, f"{what} scales", lowest, MAX_HASH_RESOLUTION - 2)))
-                       for v in scales]}
+            "log2_table": checked_int(config["log2_table"], f"{what} log2_table", 3, MAX_LOG2_TABLE), "scales": values}
 
 
 def checked_proposal(config, implementation: str, what: str) -> dict:

@@ -10,6 +10,9 @@ export const OUTPUT_NAMES = ["rgb", "sigma"];
 export const COARSE_OUTPUT_NAMES = ["rgb_coarse", "sigma_coarse"];
 export const BATCH = "n";
 
+/** proposal_output: the output of a scene's proposal network `index` (density only; src/fields/nerfacto.js). */
+export const proposalOutput = (index) => `sigma_proposal${index}`;
+
 /** A graph input or output: name, shape (BATCH for the free batch axis), element type. */
 export const port = (name, shape, elemType = FLOAT) => ({ name, shape, elemType });
 

@@ -19,6 +19,7 @@ export const MAX_HASH_LEVELS = 32;
 export const MAX_HASH_FEATURES = 8;
 export const MAX_LOG2_TABLE = 24;
 export const MAX_TABLE_VALUES = 2 ** 28;
+export const MAX_PROPOSAL_NETWORKS = 4;
 export const MAX_HASH_RESOLUTION = 2 ** 20;
 export const MAX_GRID_RESOLUTION = 512;
 export const MAX_CAMERAS = 100_000;
@@ -33,10 +34,14 @@ export function checkedInt(value, what, low, high) {
   return Number(value);
 }
 
-// Python prints the bounds as given, and every bound runtime/ passes is a float: 0.0, 1e-06, 1000000000.0, inf
-function boundText(x) { return Number.isFinite(x) ? repr(new PyFloat(x)) : (x > 0 ? "inf" : "-inf"); }
+// Python prints the bounds as given: a float (0.0, 1e-06, 1000000000.0, inf) as a number here, an int bound (the
+// nerfacto kind's MAX_HASH_RESOLUTION - 2) as a BigInt
+function boundText(x) {
+  if (typeof x === "bigint") return String(x);
+  return Number.isFinite(x) ? repr(new PyFloat(x)) : (x > 0 ? "inf" : "-inf");
+}
 
-/** checked_float: a finite number in [low, high] (an int or a PyFloat). */
+/** checked_float: a finite number in [low, high] (an int or a PyFloat; a bound is a float, or an int as a BigInt). */
 export function checkedFloat(value, what, low = -Infinity, high = Infinity) {
   if (!(isInt(value) || value instanceof PyFloat)) throw new UserError(`${what} must be a number, got ${reprCut(value, 40)}`);
   const number = value instanceof PyFloat ? value.value : Number(value);

@@ -38,11 +38,13 @@ export function readVarint(data, position) {
   throw new WireError("varint longer than 10 bytes");
 }
 
-/** The fields of one message: [number, wire type, value (number | bigint | Uint8Array)], in file order. */
+/** The fields of one message: [number, wire type, value (number | bigint | Uint8Array), start, end], in file order
+ * (start..end: the bytes the field occupies, key included). */
 export function* fields(data) {
   let position = 0;
   const size = data.length;
   while (position < size) {
+    const start = position;
     let key;
     [key, position] = readVarint(data, position);
     key = BigInt(key);
@@ -64,7 +66,23 @@ export function* fields(data) {
     } else {
       throw new WireError(`unsupported wire type ${wire}`);
     }
-    yield [number, wire, value];
+    yield [number, wire, value, start, position];
+  }
+}
+
+/** field_spans: the fields of one message with the bytes each occupies (key included): [number, span, value]. */
+export function* fieldSpans(data) {
+  for (const [number, , value, start, end] of fields(data)) yield [number, data.subarray(start, end), value];
+}
+
+/** varint: a non-negative integer (below 2^53) as a base-128 varint. */
+export function varint(value) {
+  const out = [];
+  for (;;) {
+    const byte = value % 128;
+    value = Math.floor(value / 128);
+    out.push(byte | (value ? 0x80 : 0));
+    if (!value) return Uint8Array.from(out);
   }
 }
 
@@ -269,4 +287,39 @@ export function parseModel(data, source) {
   }
   return { data, source, metadataProps: props, initializers, nodes, inputs: ports[11], outputs: ports[12], opsets,
     irVersion, unexpected };
+}
+
+/** pruned_model: the model's bytes with only what computes `outputs`: the other outputs and every node none of them
+ * needs removed (onnxruntime-web runs a whole graph whatever is fetched, and drops unused initializers itself). The
+ * file has passed parseModel, so its fields are well formed. The kept fields are copied once, into the result. */
+export function prunedModel(file, outputs) {
+  const needed = new Set(outputs), kept = new Set(), wanted = new Set(outputs);
+  for (let index = file.nodes.length - 1; index >= 0; index--) { // nodes are in topological order
+    if (file.nodes[index].outputs.some((name) => needed.has(name))) {
+      kept.add(index);
+      for (const name of file.nodes[index].inputs) needed.add(name);
+    }
+  }
+  const parts = [];
+  let nodeIndex = 0;
+  for (const [number, span, value] of fieldSpans(file.data)) {
+    if (number !== 7) {
+      parts.push(span);
+      continue;
+    }
+    const graph = [];
+    for (const [inner, innerSpan, item] of fieldSpans(value)) {
+      if (inner === 1 && !kept.has(nodeIndex++)) continue;
+      if (inner === 12 && !wanted.has(readPort(item)?.name)) continue;
+      graph.push(innerSpan);
+    }
+    parts.push(varint((7 << 3) | LENGTH), varint(graph.reduce((n, part) => n + part.length, 0)), ...graph);
+  }
+  const model = new Uint8Array(parts.reduce((n, part) => n + part.length, 0));
+  let at = 0;
+  for (const part of parts) {
+    model.set(part, at);
+    at += part.length;
+  }
+  return model;
 }

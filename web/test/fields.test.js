@@ -1,7 +1,8 @@
 // The field kinds (src/fields/) against the graphs the Python runtime derives (runtime/fields): tests/test_web.py
 // writes field_graph(architecture) as JSON for hash grids and their variants (fine, beside an MLP, other widths,
-// degrees and level layouts) and Python's message for architectures out of the caps. The JavaScript must derive
-// the same nodes, constants (values to the bit), weights, ports and opset, and refuse with the same line.
+// degrees and level layouts), for imported nerfacto fields of both implementations and their variants (proposal
+// networks, SH conventions, dense or hashed levels), and Python's message for architectures out of the caps. The
+// JavaScript must derive the same nodes, constants (values to the bit), weights, ports and opset, and refuse with the same line.
 
 import { test } from "node:test";
 import assert from "node:assert/strict";

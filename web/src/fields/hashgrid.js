@@ -7,7 +7,10 @@
 // another. Opset 18 (BitwiseXor, BitwiseAnd).
 //
 // Float32 constants are numpy's values to the bit (Math.fround wherever numpy rounds); the level scales are double
-// products rounded once to float32 (level_scales), so every machine and this port agree.
+// products rounded once to float32 (level_scales), so every machine and this port agree. The interpolation
+// (interpolatedFeatures, with its cell offset), the level layout (layoutLevels), the SH (sphericalHarmonics, of any
+// directions, rows optionally negated) and the two MLPs (checkedMlps, fieldMlps) are shared with the nerfacto kind
+// (src/fields/nerfacto.js), as runtime/fields/hashgrid.py shares them.
 
 import { UserError, formatG } from "../errors.js";
 import {
@@ -26,8 +29,8 @@ const DEGREE3 = [[0, 0, 0, 1, 1, 2, 3, 3, 4, 5], [0, 1, 2, 1, 2, 2, 1, 2, 2, 2]]
 const MONOMIALS = 19;
 const f32 = Math.fround;
 // a constant of these values (nested rows flattened, numpy's C order)
-const int64 = (builder, name, shape, values) => builder.constant(name, "int64", shape, values.flat());
-const float32 = (builder, name, shape, values) => builder.constant(name, "float32", shape, values.flat());
+export const int64 = (builder, name, shape, values) => builder.constant(name, "int64", shape, values.flat());
+export const float32 = (builder, name, shape, values) => builder.constant(name, "float32", shape, values.flat());
 
 /** The real spherical harmonics of degree 4 (tiny-cuda-nn's order and signs) over the 19 monomials and a constant
  * term: SH(d) = M·m(d) + c, float64 products rounded to float32. -> rows of 19, 16 constants. */
@@ -56,16 +59,21 @@ function levelScales(levels, baseResolution, perLevelScale) {
   return scales;
 }
 
-/** grid_levels: tiny-cuda-nn's level layout, per level l: scale (levelScales), vertices a side ceil(scale) + 1,
- * rows min(res³ rounded up to 8, 2^log2_table), first row, dense (1) where res³ fits the rows. */
+/** grid_levels: tiny-cuda-nn's level layout of scales N_min·b^l − 1 (levelScales). */
 export function gridLevels(levels, log2Table, baseResolution, perLevelScale) {
-  const scale = levelScales(levels, baseResolution, perLevelScale);
+  return layoutLevels(levelScales(levels, baseResolution, perLevelScale), log2Table);
+}
+
+/** layout_levels: the tables of levels at these float32 scales, per level l: scale, vertices a side ceil(scale) + 1,
+ * rows min(res³ rounded up to 8, 2^log2_table), first row, dense (1) where res³ fits the rows; or, `allHashed`
+ * (nerfstudio's torch grid), 2^log2_table hashed rows every level. */
+export function layoutLevels(scale, log2Table, allHashed = false) {
   const resolution = scale.map((s) => Math.ceil(s) + 1);
   const table = 2n ** BigInt(log2Table);
   const cells = resolution.map((r) => BigInt(r) ** 3n); // up to 2^60: exact as int64 is
-  const rows = cells.map((c) => Number((c + 7n) / 8n * 8n < table ? (c + 7n) / 8n * 8n : table));
+  const rows = cells.map((c) => Number(allHashed || (c + 7n) / 8n * 8n >= table ? table : (c + 7n) / 8n * 8n));
   const offset = rows.map((_, l) => rows.slice(0, l).reduce((a, b) => a + b, 0));
-  const dense = cells.map((c, l) => (c <= BigInt(rows[l]) ? 1 : 0));
+  const dense = cells.map((c, l) => (!allHashed && c <= BigInt(rows[l]) ? 1 : 0));
   return { scale, resolution, rows, offset, dense, totalRows: rows.reduce((a, b) => a + b, 0) };
 }
 
@@ -81,7 +89,6 @@ export const HASHGRID = {
   checked(config, what) {
     if (!hasExactly(config, KEYS)) throw new UserError(`the ${what} network's architecture must have exactly ${[...KEYS].sort().join(", ")}`);
     const int = (key, low, high) => checkedInt(config[key], `${what} ${key}`, low, high);
-    const width = (key, low = 1) => int(key, low, MAX_FIELD_WIDTH);
     const checked = {
       kind: this.name,
       levels: int("levels", 1, MAX_HASH_LEVELS),
@@ -89,10 +96,7 @@ export const HASHGRID = {
       log2_table: int("log2_table", 3, MAX_LOG2_TABLE),
       base_resolution: int("base_resolution", 1, MAX_HASH_RESOLUTION),
       per_level_scale: checkedFloat(config.per_level_scale, `${what} per_level_scale`, 1.0, 8.0),
-      density_hidden: width("density_hidden"), geo_features: width("geo_features", 0),
-      sh_degree: int("sh_degree", 1, MAX_SH_DEGREE),
-      colour_hidden: width("colour_hidden"),
-      colour_layers: int("colour_layers", 1, MAX_FIELD_DEPTH),
+      ...checkedMlps(config, what),
       aabb: checkedList(config.aabb, "aabb", 6).map((v) => checkedFloat(v, `${what} aabb`, -1e9, 1e9)),
     };
     if (![0, 1, 2].every((a) => checked.aabb[a] < checked.aabb[a + 3])) {
@@ -107,37 +111,57 @@ export const HASHGRID = {
     return checked;
   },
 
+  proposalSampler() {
+    return null;
+  },
+
   segments(config) {
     return [segment("position", config.levels * config.features), segment("direction", config.sh_degree ** 2)];
   },
 
   build(builder, prefix, config, rgb, sigma) {
-    const [position, direction] = this.segments(config);
     const features = gridFeatures(builder, prefix, config);
-    const [grid, sh] = builder.noisyPair(features, sphericalHarmonics(builder, config.sh_degree), () => (
-      int64(builder, `${prefix}.split.noise`, [2], [position.dims, direction.dims])));
-    const hidden = builder.add("Relu", [builder.linear(prefix, "density_linears.0", grid, position.dims,
-      config.density_hidden)], `${prefix}.density_hidden`);
-    const trunk = builder.linear(prefix, "density_linears.1", hidden, config.density_hidden, 1 + config.geo_features);
-    let density, h;
-    if (config.geo_features) {
-      const split = int64(builder, `${prefix}.split.trunk`, [2], [1, config.geo_features]);
-      const [raw, geo] = builder.split(trunk, split, [`${prefix}.raw_density`, `${prefix}.geo`]);
-      density = raw;
-      h = builder.add("Concat", [sh, geo], `${prefix}.head`, { axis: 1 });
-    } else [density, h] = [trunk, sh];
-    let fanIn = direction.dims + config.geo_features;
-    for (let i = 0; i < config.colour_layers; i++) {
-      h = builder.add("Relu", [builder.linear(prefix, `colour_linears.${i}`, h, fanIn, config.colour_hidden)], `${prefix}.colour${i}`);
-      fanIn = config.colour_hidden;
-    }
-    const rawRgb = builder.linear(prefix, `colour_linears.${config.colour_layers}`, h, fanIn, 3);
-    builder.add("Sigmoid", [rawRgb], rgb);
+    const density = fieldMlps(builder, prefix, config, this.segments(config), features,
+      sphericalHarmonics(builder, config.sh_degree), rgb);
     const cap = float32(builder, "density.exponent_cap", [1], [DENSITY_EXPONENT_CAP]);
     const capped = builder.add("Min", [density, cap], `${prefix}.capped_density`);
     builder.add("Squeeze", [builder.add("Exp", [capped], `${prefix}.sigma`), int64(builder, "axes.1", [1], [1])], sigma);
   },
 };
+
+/** checked_mlps: the widths of a hash-grid field's two MLPs and its SH degree, within the caps. */
+export function checkedMlps(config, what) {
+  const int = (key, low, high) => checkedInt(config[key], `${what} ${key}`, low, high);
+  const width = (key, low = 1) => int(key, low, MAX_FIELD_WIDTH);
+  return { density_hidden: width("density_hidden"), geo_features: width("geo_features", 0),
+    sh_degree: int("sh_degree", 1, MAX_SH_DEGREE), colour_hidden: width("colour_hidden"),
+    colour_layers: int("colour_layers", 1, MAX_FIELD_DEPTH) };
+}
+
+/** field_mlps: noise on [grid features ‖ SH], the density MLP to [raw density ‖ geometric feature], the colour MLP
+ * on [noisy SH ‖ geometric feature] to the sigmoid `rgb` output. -> the raw density (n, 1). */
+export function fieldMlps(builder, prefix, config, [position, direction], features, sh, rgb) {
+  const [grid, noisySh] = builder.noisyPair(features, sh, () => (
+    int64(builder, `${prefix}.split.noise`, [2], [position.dims, direction.dims])));
+  const hidden = builder.add("Relu", [builder.linear(prefix, "density_linears.0", grid, position.dims,
+    config.density_hidden)], `${prefix}.density_hidden`);
+  const trunk = builder.linear(prefix, "density_linears.1", hidden, config.density_hidden, 1 + config.geo_features);
+  let density, h;
+  if (config.geo_features) {
+    const split = int64(builder, `${prefix}.split.trunk`, [2], [1, config.geo_features]);
+    const [raw, geo] = builder.split(trunk, split, [`${prefix}.raw_density`, `${prefix}.geo`]);
+    density = raw;
+    h = builder.add("Concat", [noisySh, geo], `${prefix}.head`, { axis: 1 });
+  } else [density, h] = [trunk, noisySh];
+  let fanIn = direction.dims + config.geo_features;
+  for (let i = 0; i < config.colour_layers; i++) {
+    h = builder.add("Relu", [builder.linear(prefix, `colour_linears.${i}`, h, fanIn, config.colour_hidden)], `${prefix}.colour${i}`);
+    fanIn = config.colour_hidden;
+  }
+  const rawRgb = builder.linear(prefix, `colour_linears.${config.colour_layers}`, h, fanIn, 3);
+  builder.add("Sigmoid", [rawRgb], rgb);
+  return density;
+}
 
 /** corner_grid: the 8 corners' combinations of per-axis pairs (n, L, 3, 2) (entry 0: the cell's lower vertex, 1:
  * its upper), axis d broadcast along its own dimension of (n, L, 2, 2, 2), corner i = 4·b_z + 2·b_y + b_x. -> the
@@ -175,19 +199,31 @@ function hashedIndex(builder, name, lower, log2Table) {
   cornersShape(builder)], `${name}.index`);
 }
 
-/** The interpolated hash-grid features of `points` -> (n, L·F), level-major, the corners built from per-axis pairs
- * (a dense index is the lower corner's plus a constant per corner; a hash the XOR of one primed coordinate per axis). */
+/** grid_axes: the axis constants a grid's nodes use, added before the grid's own constants (the file's order). */
+export const gridAxes = (builder) => Object.fromEntries([1, 2, 3].map((k) => [k, int64(builder, `axes.${k}`, [1], [k])]));
+
+/** grid_features: the interpolated hash-grid features of `points` in the scene box -> (n, L·F), level-major. */
 function gridFeatures(builder, prefix, config) {
-  const levels = configLevels(config), name = `${prefix}.grid`, L = config.levels;
+  const name = `${prefix}.grid`, axes = gridAxes(builder);
   const lo = config.aabb.slice(0, 3).map(f32), hi = config.aabb.slice(3).map(f32);
-  const axes = Object.fromEntries([1, 2, 3].map((k) => [k, int64(builder, `axes.${k}`, [1], [k])]));
   const unit = builder.add("Div", [builder.add("Sub", ["points", float32(builder, `${prefix}.aabb.lo`, [3], lo)], `${name}.shifted`),
     float32(builder, `${prefix}.aabb.extent`, [3], hi.map((v, i) => f32(v - lo[i])))], `${name}.unit`);
   const inside = builder.add("Min", [builder.add("Max", [unit, float32(builder, "float.0", [1], [0])], `${name}.above`),
     float32(builder, "float.1", [1], [1])], `${name}.inside`);
-  const scaled = builder.add("Mul", [builder.add("Unsqueeze", [inside, axes[1]], `${name}.x`),
+  return interpolatedFeatures(builder, name, `${prefix}.table`, inside, configLevels(config), config.features,
+    config.log2_table, axes, 0.5);
+}
+
+/** interpolated_features: trilinearly interpolated features of unit-cube points `unit` (n, 3) from the weight `table`
+ * laid out by `levels` -> (n, L·F), level-major. The cell is that of scale_l·x + cellOffset (tiny-cuda-nn's 0.5;
+ * nerfstudio's torch grid: 0). The corners are built from per-axis pairs (a dense index is the lower corner's plus a
+ * constant per corner; a hash the XOR of one primed coordinate per axis). */
+export function interpolatedFeatures(builder, name, table, unit, levels, features, log2Table, axes, cellOffset) {
+  const L = levels.rows.length;
+  const scaled = builder.add("Mul", [builder.add("Unsqueeze", [unit, axes[1]], `${name}.x`),
     float32(builder, `${name}.scale`, [L, 1], levels.scale)], `${name}.scaled`);
-  const position = builder.add("Add", [scaled, float32(builder, "float.0.5", [1], [0.5])], `${name}.position`);
+  const position = !cellOffset ? scaled : builder.add("Add", [scaled, float32(builder, "float.0.5", [1], [cellOffset])],
+    `${name}.position`);
   const cell = builder.add("Floor", [position], `${name}.cell`); // (n, L, 3)
   const fraction = builder.add("Unsqueeze", [builder.add("Sub", [position, cell], `${name}.fraction`), axes[3]],
     `${name}.fraction4`); // (n, L, 3, 1)
@@ -200,11 +236,11 @@ function gridFeatures(builder, prefix, config) {
       [`${name}.dense.lower`, `${name}.hashed.lower`], 1);
   }
   const indices = [...(denseLevels ? [denseIndex(builder, `${name}.dense`, denseLower, levels, [0, denseLevels])] : []),
-    ...(hashedLevels ? [hashedIndex(builder, `${name}.hashed`, hashedLower, config.log2_table)] : [])];
+    ...(hashedLevels ? [hashedIndex(builder, `${name}.hashed`, hashedLower, log2Table)] : [])];
   const joined = indices.length === 1 ? indices[0] : builder.add("Concat", indices, `${name}.level_index`, { axis: 1 });
   const index = builder.add("Add", [joined, int64(builder, `${name}.offset`, [L, 1], levels.offset)], `${name}.index`);
-  builder.weights.set(`${prefix}.table`, [levels.totalRows, config.features]);
-  const values = builder.add("Gather", [`${prefix}.table`, index], `${name}.values`, { axis: 0 }); // (n, L, 8, F)
+  builder.weights.set(table, [levels.totalRows, features]);
+  const values = builder.add("Gather", [table, index], `${name}.values`, { axis: 0 }); // (n, L, 8, F)
   const factors = builder.add("Concat", [builder.add("Sub", [float32(builder, "float.1", [1], [1]), fraction], `${name}.rest`),
     fraction], `${name}.factors`, { axis: 3 }); // (n, L, 3, 2)
   const [wx, wy, wz] = cornerGrid(builder, `${name}.weight`, factors);
@@ -215,19 +251,24 @@ function gridFeatures(builder, prefix, config) {
   return builder.add("Reshape", [summed, int64(builder, "shape.flat", [2], [0, -1])], `${name}.features`);
 }
 
-/** SH of `viewdirs` up to `degree` -> (n, degree²): shMatrix over the monomials, by one Gemm. */
-function sphericalHarmonics(builder, degree) {
-  const name = `sh.${degree}`, monomials = "sh.monomials";
+/** spherical_harmonics: SH of `directions` (n, 3) up to `degree` -> (n, degree²): shMatrix over the monomials, by
+ * one Gemm; `signs` (16 of ±1) multiplies its rows (nerfstudio's torch SH, src/fields/nerfacto.js). */
+export function sphericalHarmonics(builder, degree, directions = "viewdirs", signs = null) {
+  const prefix = directions === "viewdirs" ? "sh" : `${directions}.sh`;
+  const name = `${prefix}.${degree}`, monomials = `${prefix}.monomials`;
   if (builder.computed(name)) return name;
   if (!builder.computed(monomials)) { // shared by every degree
     const gather = (x, index, out) => builder.add("Gather", [x, int64(builder, `sh.index.${out}`, [index.length], index)],
-      `sh.${out}`, { axis: 1 });
-    const degree2 = builder.add("Mul", [gather("viewdirs", DEGREE2[0], "a2"), gather("viewdirs", DEGREE2[1], "b2")], "sh.deg2");
-    const degree3 = builder.add("Mul", [gather(degree2, DEGREE3[0], "a3"), gather("viewdirs", DEGREE3[1], "b3")], "sh.deg3");
-    builder.add("Concat", ["viewdirs", degree2, degree3], monomials, { axis: 1 });
+      `${prefix}.${out}`, { axis: 1 });
+    const degree2 = builder.add("Mul", [gather(directions, DEGREE2[0], "a2"), gather(directions, DEGREE2[1], "b2")], `${prefix}.deg2`);
+    const degree3 = builder.add("Mul", [gather(degree2, DEGREE3[0], "a3"), gather(directions, DEGREE3[1], "b3")], `${prefix}.deg3`);
+    builder.add("Concat", [directions, degree2, degree3], monomials, { axis: 1 });
   }
-  const [matrix, constant] = shMatrix();
+  let [matrix, constant] = shMatrix();
+  if (signs !== null) { // float32 times ±1: exact (0 becomes −0, as in numpy)
+    [matrix, constant] = [matrix.map((row, i) => row.map((v) => v * signs[i])), constant.map((v, i) => v * signs[i])];
+  }
   const rows = degree ** 2;
-  return builder.add("Gemm", [monomials, float32(builder, `sh.matrix.${degree}`, [rows, MONOMIALS], matrix.slice(0, rows)),
-    float32(builder, `sh.constant.${degree}`, [rows], constant.slice(0, rows))], name, { transB: 1 });
+  return builder.add("Gemm", [monomials, float32(builder, `${prefix}.matrix.${degree}`, [rows, MONOMIALS], matrix.slice(0, rows)),
+    float32(builder, `${prefix}.constant.${degree}`, [rows], constant.slice(0, rows))], name, { transB: 1 });
 }

@@ -1,14 +1,16 @@
 // Mirrors runtime/fields/__init__.py: the field kinds a scene's networks may be, one registered kind per
 // architecture family (a network whose architecture names no "kind" is an `mlp`). A kind owns its architecture's
 // keys and caps (`checked`, with Python's messages), its noise segments (`segments`), its part of the graph
-// (`build`) and the opset that part needs; `fieldGraph` composes a model's networks into the one graph
-// check_graph (src/graph.js) binds the model file to.
+// (`build`) and the opset that part needs, and its proposal sampler (`proposalSampler`: null for a field rendered
+// with the scene's own sampling; nerfacto's proposal networks are outputs sigma_proposal0, …); `fieldGraph` composes
+// a model's networks into the one graph check_graph (src/graph.js) binds the model file to.
 
 import { UserError, repr } from "../errors.js";
 import { isJsonObject } from "../json.js";
-import { COARSE_OUTPUT_NAMES, OUTPUT_NAMES, BATCH, GraphBuilder, port } from "../graph.js";
+import { COARSE_OUTPUT_NAMES, OUTPUT_NAMES, BATCH, GraphBuilder, port, proposalOutput } from "../graph.js";
 import { MLP } from "./mlp.js";
 import { HASHGRID } from "./hashgrid.js";
+import { NERFACTO } from "./nerfacto.js";
 
 export const DEFAULT_KIND = "mlp";
 
@@ -21,7 +23,7 @@ export const hasExactly = (config, keys) => isJsonObject(config) && Object.keys(
 
 /** Every registered kind by name (built on each call, as Python's: the kinds import this module). */
 export function fieldKinds() {
-  return Object.fromEntries([MLP, HASHGRID].map((kind) => [kind.name, kind]));
+  return Object.fromEntries([MLP, HASHGRID, NERFACTO].map((kind) => [kind.name, kind]));
 }
 
 /** field_kind: the kind an architecture names (an `mlp` where it names none); an unknown one is refused. */
@@ -34,15 +36,10 @@ export function fieldKind(config, what) {
   return kinds[name];
 }
 
-/** noise_dims: values per noise vector of one network's architecture, its segments' sum. */
-export function noiseDims(config, what) {
-  const kind = fieldKind(config, what);
-  return kind.segments(kind.checked(config, what)).reduce((sum, { dims }) => sum + dims, 0);
-}
-
 /** field_graph: the graph of a model with this architecture ({coarse, fine: … | null}) and noise width: outputs
  * rgb, sigma of the render network (the fine one where there is one), then rgb_coarse, sigma_coarse beside a fine
- * network; the opset is the highest its kinds need. Refuses an architecture out of the caps (UserError). */
+ * network, then sigma_proposal0, … of the render network's proposal networks; the opset is the highest its kinds
+ * need. Refuses an architecture out of the caps, or proposal networks beside a fine network (UserError). */
 export function fieldGraph(architecture, noiseWidth) {
   const builder = new GraphBuilder();
   const kinds = {}, checked = {};
@@ -55,6 +52,11 @@ export function fieldGraph(architecture, noiseWidth) {
     kinds.coarse.build(builder, "coarse", checked.coarse, ...COARSE_OUTPUT_NAMES);
     outputs.push(port("rgb_coarse", [BATCH, 3]), port("sigma_coarse", [BATCH]));
   }
+  const samplers = Object.fromEntries(Object.entries(kinds).map(([name, kind]) => [name, kind.proposalSampler(checked[name])]));
+  if (Object.values(samplers).some((sampler) => sampler !== null) && Object.hasOwn(checked, "fine")) {
+    throw new UserError("a network with proposal networks cannot be beside a fine network");
+  }
+  if (samplers.coarse !== null) outputs.push(...samplers.coarse.proposal_samples.map((_, i) => port(proposalOutput(i), [BATCH])));
   const inputs = [port("points", [BATCH, 3]), port("viewdirs", [BATCH, 3]), port("noise", [BATCH, noiseWidth])];
   return { nodes: builder.nodes, constants: builder.constants, weights: builder.weights, inputs, outputs,
     opset: Math.max(...Object.values(kinds).map((kind) => kind.opset)) };
