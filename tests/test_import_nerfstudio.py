@@ -336,7 +336,8 @@ def test_field_outputs_are_nerfstudios(nerfstudio_trained):
 
 def test_proposal_sampler_is_nerfstudios(nerfstudio_trained):
     """The field's bins on nerfstudio's own rays (float32 noise, amplified where a CDF is steep: measured
-    5.9e-5 relative), the field at nerfstudio's own samples, and the composited colour (measured 3.8e-6)."""
+    5.9e-5 relative), the field at nerfstudio's own samples, and the composited colour (measured 3.8e-6 and
+    2.9e-5 on two runs: the bins' noise moves the samples)."""
     from noisenerf.runtime.proposal import midpoints, proposal_edges, render_proposal_rays
     from noisenerf.runtime.rays import RayBatch
     model, golden, _, _ = nerfstudio_trained
@@ -348,7 +349,7 @@ def test_proposal_sampler_is_nerfstudios(nerfstudio_trained):
     _, sigma = model.field(theirs.reshape(-1, 3), np.repeat(golden["rays_directions"], starts.shape[1], 0))
     assert np.allclose(sigma.reshape(8, -1), golden["final_density"].reshape(8, -1), rtol=1e-4, atol=1e-9)
     colours, _ = render_proposal_rays(rays, model.field, model.proposals)
-    assert np.abs(colours - golden["rays_rgb"]).max() < 2e-5
+    assert np.abs(colours - golden["rays_rgb"]).max() < 1e-4
 
 
 @pytest.mark.parametrize("split", ["train", "eval"])

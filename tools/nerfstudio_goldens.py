@@ -38,6 +38,24 @@ TRAIN_CAMERA_INDEX = 0  # index into nerfstudio's train dataset (sorted by file 
 EVAL_CAMERA_INDEX = 0  # index into nerfstudio's eval dataset
 
 
+NOTES = [
+    "Frames: nerfstudio's nerfstudio-data parser argsorts frames by image file name before the train/eval split "
+    "(eval_mode 'fraction', train_split_fraction 0.9: i_train = linspace(0, n-1, ceil(0.9 n)).astype(int), "
+    "eval = the rest); here the file order equals the sorted order.",
+    "Cameras: c2w_ns = dataparser_transform (3x4) @ c2w_file (4x4), then the translation column times scale; "
+    "OpenGL camera axes; rays through pixel centres (+0.5), y flipped, z = -1, rotated, normalised; origins = c2w_ns[:, 3].",
+    "Collider at eval: near 0 (NearFarCollider reset_near_plane; training used 0.05), far 1000.",
+    "Proposal sampler at eval: deterministic, anneal exponent 1.0 (the training anneal is not saved).",
+    "Field at eval: appearance input = mean of the train appearance embeddings for every camera; "
+    "the camera optimizer's pose_adjustment is ignored at eval.",
+    "Direction input of the torch SH: (d + 1) / 2 fed to nerfstudio's SH polynomial as is (no remap to [-1, 1]).",
+    "Points outside the open (0,1)^3 after contraction ((p+2)/4) are zeroed before the hash grid and get density 0.",
+    "Compositing: sum w*rgb + (1 - sum w) * rgb_of_last_sample, then clamp to [0, 1] at eval; deltas are bin widths.",
+    "weights.safetensors holds float32 copies; original dtypes (int64 for max_res/num_levels/log2_hashmap_size) are in "
+    "its metadata 'original_dtypes' and in golden.json 'weights'.",
+]
+
+
 def _safe_globals():
     import numpy as np
 
@@ -249,7 +267,8 @@ def main() -> None:
             "machine_seed": int(config.machine.seed),
             "data_worker_seed": nerfstudio_train_tiny.WORKER_SEED,
             "points_seed": POINT_SEED,
-            "torch_threads": nerfstudio_train_tiny.NUM_THREADS,
+            "torch_threads_goldens": nerfstudio_train_tiny.NUM_THREADS,
+            "torch_threads_training": "see commands.train (NS_TINY_THREADS, default 1)",
         },
         "dataparser": {
             "downscale_factor": int(dp.downscale_factor),
@@ -282,6 +301,16 @@ def main() -> None:
             "proposal_sampler_anneal_at_eval": float(model.proposal_sampler._anneal),
             "camera_optimizer_mode": mcfg.camera_optimizer.mode,
         },
+        "dataset": {
+            "transforms_json": "transforms.json (copy; images not kept)",
+            "frames_in_file_order": [
+                {"file_path": f["file_path"], "source": f.get("source_file_path")}
+                for f in json.loads(tj.read_text())["frames"]
+            ],
+            "built_by": "tools/nerfstudio_train_tiny.py build_dataset: NeRF-Synthetic lego train split, "
+            "frames i*100//30, RGBA composited on white at 800 px, PIL BOX-downscaled to 64 px, RGB PNG",
+        },
+        "notes": NOTES,
         "cameras": cam_info,
         "rays": {
             "camera": "train",

@@ -7,14 +7,20 @@ nerfstudio 1.1.5 (see the golden's ``golden.json`` for the exact versions)::
 
     python3.11 -m venv /work/nsvenv
     /work/nsvenv/bin/pip install torch==2.13.0            # the CPU build
-    /work/nsvenv/bin/pip install --no-deps nerfstudio==1.1.5 nerfacc==0.5.2 viser==0.2.7
+    /work/nsvenv/bin/pip install --no-deps nerfstudio==1.1.5 nerfacc==0.5.2 viser==0.2.7 \
+        pytorch_msssim tensorly splines
+    BUILD_NO_CUDA=1 /work/nsvenv/bin/pip install --no-deps --no-build-isolation gsplat==1.4.0
     /work/nsvenv/bin/pip install numpy jaxtyping rich PyYAML tyro pillow imageio appdirs \
         requests pyquaternion pathos torchmetrics tensorboard opencv-python-headless \
         matplotlib safetensors websockets msgspec scikit-image scipy tqdm trimesh \
-        nodeenv psutil yourdfpy plyfile
+        nodeenv psutil yourdfpy plyfile rawpy
     /work/nsvenv/bin/python tools/nerfstudio_train_tiny.py \
         --scene /work/shared/data/scenes/blender/lego --data /work/nsrun/data \
         --outputs /work/nsrun/outputs  # 1000 iterations x 256 rays, ~7.5 min on 1 thread
+
+(The viewer, splatfacto and process_data modules are imported by the trainer at
+module level: viser, gsplat (python only), pytorch_msssim, tensorly, splines and
+rawpy are only there to satisfy those imports.)
 
 Step 1 writes a nerfstudio-data dataset (``transforms.json`` as ns-process-data
 writes it, OPENCV camera model with zero distortion, RGB PNGs composited on

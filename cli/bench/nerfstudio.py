@@ -1,9 +1,11 @@
 """The `nerfstudio` experiment: a nerfstudio nerfacto run imported, its ordinary renders against nerfstudio's
 own eval renders of the same cameras (a goldens folder written by tools/nerfstudio_goldens.py from that run),
-then the bench's photos hidden in it at two cameras and revealed through onnxruntime.
+then the bench's photos hidden in it at two cameras and the coverage experiment's hard secrets at every camera,
+revealed through onnxruntime.
 
 Rows (nerfstudio.csv): "import" (seconds to import and export), "render" (one golden camera: our render's
-difference from nerfstudio's) and "hide" (one photo at one view, as the fields experiment's).
+difference from nerfstudio's), "hide" (one photo at one view, as the fields experiment's) and "coverage"
+(the hard secrets at every camera of the run, as the coverage experiment's).
 """
 
 from __future__ import annotations
@@ -19,6 +21,7 @@ from noisenerf.runtime.api import render
 from noisenerf.runtime.model import load_model
 from noisenerf.train.scene.scene import load_scene
 
+from noisenerf.cli.bench import coverage
 from noisenerf.cli.bench.context import BenchContext, Measured
 from noisenerf.cli.bench.fields import hide_rows, median_of
 
@@ -66,6 +69,9 @@ def measure_nerfstudio(context: BenchContext) -> Measured:
                                         config=dataclasses.replace(config, view_width=config.nerfstudio_width))
     cameras = len(scene_context.scene.config.cameras)
     rows += hide_rows(scene_context, "nerfacto", (cameras // 3, 2 * cameras // 3))[0]
+    secrets = coverage.hard_secrets(config.coverage_size, scene_context.scene.config.render.background, seed=config.seed)
+    mosaic = {"every hard secret": np.concatenate(list(secrets.values()), axis=1)}
+    rows += [{"row": "coverage", **row} for row in coverage.sweep(scene_context, mosaic, range(cameras), "nerfacto run")]
     return Measured(rows)
 
 
@@ -94,4 +100,9 @@ def describe_nerfstudio(context: BenchContext, measured: Measured) -> list[str]:
               f"| {median_of(rows, 'nerfacto', 'bytes_per_pixel'):.2f} | {ratio:.2f} | "
               f"{median_of(rows, 'nerfacto', 'escaped'):.0f} | {median_of(rows, 'nerfacto', 'hide_seconds'):.2f} | "
               f"{median_of(rows, 'nerfacto', 'reveal_seconds'):.3f} | {sum(row['exact'] for row in hides)} / {len(hides)} |"]
+    covered = [row for row in rows if row["row"] == "coverage"]
+    exact, pixels = sum(row["exact_pixels"] for row in covered), sum(row["pixels"] for row in covered)
+    lines += ["", f"Every hard secret ({config.coverage_size}² each, side by side) at every one of the run's "
+                  f"{len(covered)} cameras: {exact:,} of {pixels:,} pixels exact: "
+                  f"**{'met' if exact == pixels else 'not met'}**."]
     return lines
