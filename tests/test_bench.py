@@ -250,6 +250,7 @@ def test_nerfstudio_renders_as_nerfstudio_and_hides_exactly(report):
     assert all(row["max_difference"] < 1e-3 and row["equal_8bit"] > 0.99 for row in renders)
     hides = [row for row in rows if row["row"] == "hide"]
     assert {row["view"] for row in hides} == {10, 20} and all(row["exact"] for row in hides)
+    assert browser_missing() is not None or all(row["browser_exact"] is True for row in hides)
     assert "Goal: within float32 noise" in "\n".join(sections["nerfstudio"].lines)
     covered = [row for row in rows if row["row"] == "coverage"]
     assert len(covered) == 30 and all(row["exact_pixels"] == row["pixels"] for row in covered)

@@ -253,6 +253,7 @@ def test_a_config_that_would_run_code_runs_nothing(tmp_path, capfd):
     ("shape", "the config implies"),
     ("method", "a nerfacto-huge run"),
     ("old keys", "a nerfstudio 0.3 checkpoint"),
+    ("oldest keys", "a nerfstudio 0.1–0.2 checkpoint"),
     ("distortion", "lens distortion is not reproduced"),
     ("linear proposals", "a proposal network with a linear head is not reproduced"),
 ])
@@ -265,6 +266,8 @@ def test_hostile_and_unsupported_runs_are_refused_in_one_line(tmp_path, capfd, c
         shapes["field.mlp_head.layers.0.weight"] = (64, 62)
     if case == "old keys":
         shapes = {"field.mlp_base_grid.tcnn_encoding.params": (8,), "field.mlp_base_mlp.tcnn_encoding.params": (8,)}
+    if case == "oldest keys":
+        shapes = {"field.mlp_base.params": (8,), "field.mlp_head.params": (8,)}
     extra = {"method": {"method": "nerfacto-huge", "model": "other.BigModel"}}.get(case, {})
     run, data = write_nerfstudio_run(tmp_path, implementation, shapes=shapes, **extra)
     checkpoint = run / "nerfstudio_models" / "step-000000099.ckpt"

@@ -1,6 +1,6 @@
 """The `nerfstudio` experiment: a nerfstudio nerfacto run imported, its ordinary renders against nerfstudio's
 own eval renders of the same cameras (a goldens folder written by tools/nerfstudio_goldens.py from that run),
-then the bench's photos hidden in it at two cameras and the coverage experiment's hard secrets at every camera,
+then the bench's photos hidden in it at two cameras (revealed through onnxruntime and in the page) and the coverage experiment's hard secrets at every camera,
 revealed through onnxruntime.
 
 Rows (nerfstudio.csv): "import" (seconds to import and export), "render" (one golden camera: our render's
@@ -23,7 +23,7 @@ from noisenerf.train.scene.scene import load_scene
 
 from noisenerf.cli.bench import coverage
 from noisenerf.cli.bench.context import BenchContext, Measured
-from noisenerf.cli.bench.fields import hide_rows, median_of
+from noisenerf.cli.bench.fields import browser_results, hide_rows, median_of
 
 RENDER_GOAL = 1e-3  # our ordinary render's largest difference from nerfstudio's eval render (float32 noise)
 
@@ -68,7 +68,9 @@ def measure_nerfstudio(context: BenchContext) -> Measured:
                                         model=load_model(folder / "model.onnx"),
                                         config=dataclasses.replace(config, view_width=config.nerfstudio_width))
     cameras = len(scene_context.scene.config.cameras)
-    rows += hide_rows(scene_context, "nerfacto", (cameras // 3, 2 * cameras // 3))[0]
+    hides, bundles = hide_rows(scene_context, "nerfacto", (cameras // 3, 2 * cameras // 3))
+    in_browser = browser_results(scene_context, bundles)
+    rows += [{**row, "browser_seconds": None, "browser_exact": None, **in_browser.get(row["name"], {})} for row in hides]
     secrets = coverage.hard_secrets(config.coverage_size, scene_context.scene.config.render.background, seed=config.seed)
     mosaic = {"every hard secret": np.concatenate(list(secrets.values()), axis=1)}
     rows += [{"row": "coverage", **row} for row in coverage.sweep(scene_context, mosaic, range(cameras), "nerfacto run")]
@@ -96,10 +98,12 @@ def describe_nerfstudio(context: BenchContext, measured: Measured) -> list[str]:
     ratio = np.median([row["bundle_bytes"] / row["png_bytes"] for row in hides])
     lines += ["", f"Photos ({config.nerfstudio_width} px wide) hidden with the defaults at two of the run's cameras "
                   "(a third and two thirds round), medians:", "",
-              "| bytes/px | bundle ÷ PNG | escaped | hide s | reveal s (onnxruntime) | exact |", "|---|---|---|---|---|---|",
+              "| bytes/px | bundle ÷ PNG | escaped | hide s | reveal s (onnxruntime) | reveal s (browser) | "
+              "exact (onnxruntime, browser) |", "|---|---|---|---|---|---|---|",
               f"| {median_of(rows, 'nerfacto', 'bytes_per_pixel'):.2f} | {ratio:.2f} | "
               f"{median_of(rows, 'nerfacto', 'escaped'):.0f} | {median_of(rows, 'nerfacto', 'hide_seconds'):.2f} | "
-              f"{median_of(rows, 'nerfacto', 'reveal_seconds'):.3f} | {sum(row['exact'] for row in hides)} / {len(hides)} |"]
+              f"{median_of(rows, 'nerfacto', 'reveal_seconds'):.3f} | {median_of(rows, 'nerfacto', 'browser_seconds'):.3f} | "
+              f"{sum(row['exact'] for row in hides)}, {sum(row['browser_exact'] is True for row in hides)} / {len(hides)} |"]
     covered = [row for row in rows if row["row"] == "coverage"]
     exact, pixels = sum(row["exact_pixels"] for row in covered), sum(row["pixels"] for row in covered)
     lines += ["", f"Every hard secret ({config.coverage_size}² each, side by side) at every one of the run's "
