@@ -8,9 +8,10 @@ secret.bundle what the Python runtime computes on them: per tile the rays (runti
 the expanded noise (the tile noise's `rows`), the rendered colours (runtime.reveal.render_tile), and the
 revealed 8-bit pixels, digest and exactness (runtime.reveal.reveal). Tampered copies carry the one-line
 message `noisenerf-reveal` prints for them. The manifest also holds the graphs runtime.fields derives for
-hash-grid and nerfacto architectures, and the messages refusing those out of the caps. Then `node --test` runs
-web/test/ with NOISENERF_WEB_FIXTURES pointing there: the JavaScript port must give the same pixels byte
-for byte, the same graphs and the same refusals.
+hash-grid and nerfacto architectures, and the messages refusing those out of the caps, and the models of a fine
+network's and nerfacto scenes pruned to each set of outputs a session fetches (runtime.onnx_file.pruned_model,
+under pruned/). Then `node --test` runs web/test/ with NOISENERF_WEB_FIXTURES pointing there: the JavaScript
+port must give the same pixels byte for byte, the same graphs, the same pruned models and the same refusals.
 
 Run by hand: `python tests/test_web.py DIR` writes the fixtures into DIR (then `npm test` in web/ with
 NOISENERF_WEB_FIXTURES=DIR).
@@ -355,6 +356,32 @@ def nerfacto_architectures(imported: dict) -> tuple[list, list]:
     return graphs, refused
 
 
+PRUNED = {  # scene -> the sets of outputs a session fetches from its model (runtime.session.OnnxField.session_for)
+    "nerfacto_tcnn": (("rgb", "sigma"), ("sigma_proposal0",), ("sigma_proposal1",)),
+    "nerfacto_torch": (("rgb", "sigma"),),
+    "fine": (("rgb", "sigma"), ("rgb_coarse", "sigma_coarse")),
+    "plain": (("rgb", "sigma"),),  # every output: the model's own bytes
+}
+
+
+def pruned_goldens(root: Path) -> list:
+    """runtime.onnx_file.pruned_model of the scenes' models (root/scenes) to each set of outputs in PRUNED, written
+    under root/pruned: the bytes the JavaScript's prunedModel must give, with their node counts."""
+    from noisenerf.runtime.onnx_file import parse_model, pruned_model
+
+    (root / "pruned").mkdir()
+    goldens = []
+    for scene, output_sets in PRUNED.items():
+        whole = parse_model((root / "scenes" / f"{scene}.onnx").read_bytes(), scene)
+        for outputs in output_sets:
+            name = f"pruned/{scene}.{'.'.join(outputs)}.onnx"
+            (root / name).write_bytes(pruned_model(whole, outputs))
+            goldens.append({"model": f"scenes/{scene}.onnx", "outputs": list(outputs), "file": name,
+                            "nodes": len(parse_model((root / name).read_bytes(), name).nodes),
+                            "whole_nodes": len(whole.nodes)})
+    return goldens
+
+
 def bundle_metadata_edit(edit):
     """Edit a bundle's JSON metadata (safetensors header), keeping its tensors."""
     def apply(data: bytes) -> bytes:
@@ -588,6 +615,7 @@ def write_fixtures(root: Path) -> dict:
     assert ["message" in graph for graph in nerfacto] == [False] * len(graphs) + [True] * len(refused)
     manifest["graphs"] += nerfacto
     manifest["scales"] = scales_golden()
+    manifest["pruned"] = pruned_goldens(root)
     (root / "manifest.json").write_text(json.dumps(manifest, indent=1))
     return manifest
 

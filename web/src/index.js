@@ -1,14 +1,16 @@
 // The stable API: `await reveal({model, bundle, passphrase})`, the browser's `noisenerf-reveal` (cli/reveal.py run):
 // the bundle is read and checked first, a sealed one's tag checked under the passphrase, then the model (graph and
-// fingerprint), then the bundle against the model, then every tile renders; a payload is opened from the revealed
-// pixels (cli/reveal.py write_payload). Every refusal is an Error (UserError) with the CLI's one-line message.
+// fingerprint) on the whole file, then the bundle against the model and every tile's network, then every tile
+// renders (onnxruntime-web given only the checked graph pruned to those networks' outputs); a payload is opened
+// from the revealed pixels (cli/reveal.py write_payload). Every refusal is an Error (UserError) with the CLI's
+// one-line message.
 
 import { sha256 as sha256Of } from "@noble/hashes/sha2.js";
 import { bytesToHex } from "@noble/hashes/utils.js";
 import { UserError } from "./errors.js";
 import { loadBundle } from "./bundle.js";
 import { checkModel, checkBundle } from "./model.js";
-import { LocalRenderer, revealBundle } from "./reveal.js";
+import { LocalRenderer, bundleNetworks, revealBundle } from "./reveal.js";
 import { encodePng } from "./png.js";
 import { INEXACT, openPayload, sealOf } from "./payload.js";
 import { NO_PASSPHRASE, NOT_SEALED, passphraseBytes, unsealKeys } from "./sealing.js";
@@ -26,8 +28,10 @@ export async function inspectBundle(bundle) {
  * model, bundle: Uint8Array; passphrase: string or Uint8Array (sealed bundles only: given for an unsealed one, it is
  *   refused, as a sealed bundle stripped of its seal would be revealed as its ciphertext).
  * onProgress({stage: "kdf" | "render", done, total}), optional.
- * openRenderer(model, networks) -> a renderer of chunks (src/reveal.js's LocalRenderer, this thread, by default;
- *   src/pool.js's FieldPool renders them in Web Workers), released when the reveal ends.
+ * openRenderer(model, networks, needed) -> a renderer of chunks (src/reveal.js's LocalRenderer, this thread, by
+ *   default; src/pool.js's FieldPool renders them in Web Workers), released when the reveal ends: `model` the checked
+ *   model's bytes, `networks` its networks, `needed` those the bundle's tiles render through (a session each, of
+ *   the graph pruned to that network's outputs).
  * -> {kind: "image", bytes (PNG), name, width, height, exact, sha256, pixels}
  *  | {kind: "file", bytes, name (the payload's own, or null), width, height (the secret's), exact: true, sha256 (of
  *     the bytes), sealed}; a sealed image payload comes back as kind "image" with its PNG.
@@ -48,7 +52,7 @@ export async function reveal({ model, bundle, passphrase = null, onProgress = nu
   const total = secret.tiles.reduce((n, tile) => n + tile.rect[2] * tile.rect[3], 0);
   let done = 0;
   const progress = onProgress && ((rays) => onProgress({ stage: "render", done: (done += rays), total }));
-  const renderer = await openRenderer(model, checked.networks);
+  const renderer = await openRenderer(model, checked.networks, bundleNetworks(secret, checked.networks));
   let revealed;
   try {
     revealed = await revealBundle(secret, checked.metadata.renderConfig, renderer, checked.networks, progress);

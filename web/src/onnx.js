@@ -1,5 +1,7 @@
 // Mirrors runtime/onnx_file.py: what a model file holds, read from the protobuf wire format (onnxruntime-web
-// exposes neither metadata_props nor initializers). Field numbers from onnx.proto, as in the Python module:
+// exposes neither metadata_props nor initializers), and the model's bytes pruned to the outputs a session fetches
+// (prunedModel: onnxruntime-web, like every inference build, runs every node whatever is fetched). Field numbers
+// from onnx.proto, as in the Python module:
 //   ModelProto ir_version 1, graph 7, opset_import 8 (domain 1, version 2), metadata_props 14 (key 1, value 2),
 //              training_info 20, functions 25
 //   GraphProto node 1, initializer 5, input 11, output 12, sparse_initializer 15
@@ -86,6 +88,17 @@ export function varint(value) {
   }
 }
 
+/** Byte arrays joined into one new array. */
+function concatenated(parts) {
+  const bytes = new Uint8Array(parts.reduce((n, part) => n + part.length, 0));
+  let at = 0;
+  for (const part of parts) {
+    bytes.set(part, at);
+    at += part.length;
+  }
+  return bytes;
+}
+
 function blob(value, wire) {
   if (!(value instanceof Uint8Array) || wire !== LENGTH) throw new WireError("a number where bytes or a message belong");
   return value;
@@ -133,11 +146,8 @@ export function readTensor(data) {
   if (dims.some((d) => typeof d === "bigint" && d >= 2n ** 63n)) throw new WireError("negative tensor dimension");
   let floatData = null;
   if (floats.length) {
-    const total = floats.reduce((n, f) => n + f.length, 0);
-    const bytes = new Uint8Array(total);
-    let at = 0;
-    for (const f of floats) { bytes.set(f, at); at += f.length; }
-    floatData = new Float32Array(bytes.buffer, 0, total / 4);
+    const bytes = concatenated(floats);
+    floatData = new Float32Array(bytes.buffer, 0, bytes.length / 4);
   }
   const int64Data = integers.length ? integers.map((v) => BigInt.asIntN(64, BigInt(v))) : null;
   return { name, dataType, dims: dims.map(Number), rawData: raw, floatData, int64Data, external };
@@ -315,11 +325,5 @@ export function prunedModel(file, outputs) {
     }
     parts.push(varint((7 << 3) | LENGTH), varint(graph.reduce((n, part) => n + part.length, 0)), ...graph);
   }
-  const model = new Uint8Array(parts.reduce((n, part) => n + part.length, 0));
-  let at = 0;
-  for (const part of parts) {
-    model.set(part, at);
-    at += part.length;
-  }
-  return model;
+  return concatenated(parts);
 }

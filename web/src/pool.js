@@ -1,17 +1,20 @@
 // Chunks rendered in parallel: a pool of workers (Web Workers in the page, worker_threads in Node's tests), each
-// with its own onnxruntime-web session of one thread, each chunk rendered whole in one worker (rays, noise, the
-// field, compositing: src/reveal.js's renderChunk). WASM threads would need a cross-origin isolated page, which a
-// page opened from disk never is, and scale worse than separate sessions on separate chunks (docs/bench/browser).
+// with its own onnxruntime-web sessions of one thread (one per network, of the graph pruned to its outputs: pruned
+// once, here, and only the pruned bytes sent, one network at a time), each chunk rendered whole in one worker (rays,
+// noise, the field, compositing: src/reveal.js's renderChunk). WASM threads would need a cross-origin isolated page,
+// which a page opened from disk never is, and scale worse than separate sessions on separate chunks
+// (docs/bench/browser).
 //
 // The driver's side is FieldPool, a renderer (slots, render, release) like LocalRenderer; the worker's is
 // fieldWorker. They speak over endpoints {post(message, transfer), listen(onMessage, onError), terminate()}.
 
 import * as ort from "onnxruntime-web";
 import { UserError } from "./errors.js";
-import { LocalRenderer } from "./reveal.js";
+import { LocalRenderer, OnnxField, prunedNetworks } from "./reveal.js";
 
 /** The worker's side: a handler of the driver's messages, {id, type: "init", wasmBinary?} | {id, type: "open",
- * model, networks} | {id, type: "chunk", job} | {id, type: "close"} -> Promise<[reply, transfer]>, the reply
+ * networks} (a renderer with no session yet) | {id, type: "session", network, model} (the model pruned to the
+ * network's outputs) | {id, type: "chunk", job} | {id, type: "close"} -> Promise<[reply, transfer]>, the reply
  * {id, result} or {id, error, userError}. Messages are answered one at a time, in order. */
 export function fieldWorker() {
   let renderer = null, queue = Promise.resolve();
@@ -26,7 +29,12 @@ export function fieldWorker() {
         const old = renderer;
         renderer = null;
         await old?.release();
-        renderer = await LocalRenderer.open(data.model, data.networks);
+        renderer = new LocalRenderer(new OnnxField(data.networks));
+        return [{ id, result: null }, []];
+      }
+      if (type === "session") {
+        if (renderer === null) throw new Error("no model is open in this worker");
+        await renderer.field.open(data.network, data.model);
         return [{ id, result: null }, []];
       }
       if (type === "chunk") {
@@ -53,7 +61,8 @@ export function fieldWorker() {
 }
 
 /** The driver's side over started workers' endpoints: `await FieldPool.start(endpoints, wasmBinary)`, then per
- * reveal `await pool.open(model, networks)` (the renderer), `pool.release()`; `terminate()` ends the workers. */
+ * reveal `await pool.open(model, networks, needed)` (the renderer), `pool.release()`; `terminate()` ends the
+ * workers. */
 export class FieldPool {
   static async start(endpoints, wasmBinary = null) {
     const pool = new FieldPool(endpoints);
@@ -104,16 +113,28 @@ export class FieldPool {
     });
   }
 
-  /** A session of the model in every worker; the pool is then the reveal's renderer. If any worker fails to
-   * open one, those opened are closed and the first failure thrown. */
-  async open(model, networks) {
-    const opened = await Promise.allSettled(this.workers.map((worker) => this.call(worker, { type: "open", model, networks })));
-    const failure = opened.find((result) => result.status === "rejected");
-    if (failure) {
+  /** A session per network `needed` (all the model's by default) in every worker, of the graph pruned to that
+   * network's outputs; the pool is then the reveal's renderer. The model is pruned here once per network and the
+   * pruned bytes sent to every worker before the next network's are made: a worker is sent no more than it runs. If
+   * any worker fails to open one, those opened are closed and the first failure thrown. */
+  async open(model, networks, needed = networks) {
+    try {
+      await this.each({ type: "open", networks });
+      for (const [network, pruned] of prunedNetworks(model, networks, needed)) {
+        await this.each({ type: "session", network, model: pruned });
+      }
+    } catch (error) {
       await this.release();
-      throw failure.reason;
+      throw error;
     }
     return this;
+  }
+
+  /** A message to every worker; once all have answered, the first failure is thrown. */
+  async each(message) {
+    const answers = await Promise.allSettled(this.workers.map((worker) => this.call(worker, message)));
+    const failure = answers.find((result) => result.status === "rejected");
+    if (failure) throw failure.reason;
   }
 
   /** A chunk (src/reveal.js's chunkJob) to the worker with the fewest waiting; its own stored values are

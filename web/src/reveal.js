@@ -1,13 +1,17 @@
 // Mirrors runtime/reveal.py (render_tile, tile_field, reveal), with runtime/render.py's chunking (rays_per_chunk,
 // render_in_chunks), runtime/marching.py's front-to-back march (16 samples at a time, early_stop 0: only rays
 // whose transmittance is exactly 0 stop), runtime/networks.py's render network, and runtime/session.py's points
-// per onnxruntime run (DEFAULT_CHUNK). A chunk of rays holds its own noise only: memory is bounded by the chunk.
+// per onnxruntime run (DEFAULT_CHUNK) and its sessions: one per network, of the graph pruned to that network's
+// outputs (onnxruntime-web runs every node of a graph whatever is fetched: a fine network's model would run its
+// coarse network too, a nerfacto model its proposal networks). A chunk of rays holds its own noise only: memory is
+// bounded by the chunk.
 
 import * as ort from "onnxruntime-web";
 import { sha256 } from "@noble/hashes/sha2.js";
 import { bytesToHex } from "@noble/hashes/utils.js";
 import { UserError, repr, tuple } from "./errors.js";
 import { OUTPUT_NAMES, COARSE_OUTPUT_NAMES, INPUT_NAMES } from "./graph.js";
+import { parseModel, prunedModel } from "./onnx.js";
 import { cameraRayBatch } from "./camera.js";
 import { samplePositions, sampleAlong } from "./sampling.js";
 import { compositeRays, opticalDepth, pairwiseSum, toUint8 } from "./compositing.js";
@@ -22,22 +26,51 @@ const MARCH_SAMPLES = 16;
 export const renderNetwork = (names) => (names.includes("fine") ? "fine" : "coarse");
 export const raysPerChunk = (nSamples, mostRays = CHUNK_RAYS) => Math.max(1, Math.min(mostRays, Math.floor(CHUNK_SAMPLES / nSamples)));
 
-/** An onnxruntime-web session over the model's bytes, answering for one network (its outputs). */
+/** The outputs network `name` answers on (runtime/session.py's OnnxField.network): the render network's rgb, sigma,
+ * the other's rgb_coarse, sigma_coarse. */
+export const networkOutputs = (networks, name) =>
+  (name === renderNetwork(networks) ? OUTPUT_NAMES : COARSE_OUTPUT_NAMES);
+
+/** [network, the model's bytes pruned to its outputs] for each of `needed` (of the model's `networks`), made one at
+ * a time as they are asked for, so that one pruned copy is held at once beside the model. */
+export function* prunedNetworks(model, networks, needed = networks) {
+  const file = parseModel(model, "model.onnx");
+  for (const network of needed) yield [network, prunedModel(file, networkOutputs(networks, network))];
+}
+
+/** OnnxField: onnxruntime-web sessions, one per network (session_for), each of the graph pruned to that network's
+ * outputs; `create` opens one for each of the networks `needed` (all the model's by default). */
 export class OnnxField {
-  static async create(modelBytes, networks) {
-    const session = await ort.InferenceSession.create(modelBytes, { executionProviders: ["wasm"] });
-    return new OnnxField(session, networks);
+  static async create(model, networks, needed = networks) {
+    const field = new OnnxField(networks);
+    try {
+      for (const [network, pruned] of prunedNetworks(model, networks, needed)) await field.open(network, pruned);
+    } catch (error) {
+      await field.release();
+      throw error;
+    }
+    return field;
   }
-  constructor(session, networks) {
-    this.session = session;
+  constructor(networks) {
     this.networks = networks;
+    this.sessions = new Map(); // network -> session
   }
-  outputsOf(name) {
-    return name === renderNetwork(this.networks) ? OUTPUT_NAMES : COARSE_OUTPUT_NAMES;
+  /** A session of `model` (the graph pruned to the network's outputs: prunedNetworks) answering for `network`.
+   * onnxruntime's own logging is silenced, as runtime/session.py's is (a pruned graph's unused initializers would
+   * each be a warning); a failure is thrown. */
+  async open(network, model) {
+    const session = await ort.InferenceSession.create(model, { executionProviders: ["wasm"], logSeverityLevel: 4 });
+    await this.sessions.get(network)?.release?.();
+    this.sessions.set(network, session);
+  }
+  session(network) {
+    const session = this.sessions.get(network);
+    if (session === undefined) throw new Error(`no session answers for the ${network} network`);
+    return session;
   }
   /** points (m·3), viewdirs (m·3), noise (m·dims) -> {rgb (m·3), sigma (m)}, DEFAULT_CHUNK points per run. */
   async evaluate(network, points, viewdirs, noise, m, dims) {
-    const [rgbName, sigmaName] = this.outputsOf(network);
+    const [rgbName, sigmaName] = networkOutputs(this.networks, network);
     const rgb = new Float32Array(m * 3), sigma = new Float32Array(m);
     for (let start = 0; start < m; start += DEFAULT_CHUNK) {
       const n = Math.min(DEFAULT_CHUNK, m - start);
@@ -48,7 +81,7 @@ export class OnnxField {
       };
       let result;
       try {
-        result = await this.session.run(feeds, [rgbName, sigmaName]);
+        result = await this.session(network).run(feeds, [rgbName, sigmaName]);
       } catch (error) {
         throw new UserError(`model.onnx failed to evaluate: ${String(error.message ?? error).split(/\s+/).join(" ").slice(0, 200)}`);
       }
@@ -57,6 +90,12 @@ export class OnnxField {
       for (const tensor of Object.values(result)) tensor.dispose?.();
     }
     return { rgb, sigma };
+  }
+  /** Every session closed. */
+  async release() {
+    const sessions = [...this.sessions.values()];
+    this.sessions.clear();
+    await Promise.all(sessions.map((session) => session.release?.()));
   }
 }
 
@@ -117,11 +156,11 @@ export async function renderChunk(job, field) {
   return compositeRays(sigmas, rgbs, deltas, m, tVals.length, config.background);
 }
 
-/** Chunks rendered in this thread on one onnxruntime-web session, one at a time (a renderer: slots, render,
- * release; src/pool.js's FieldPool is the other, over Web Workers). */
+/** Chunks rendered in this thread on its onnxruntime-web sessions (one per network `needed`: OnnxField), one at a
+ * time (a renderer: slots, render, release; src/pool.js's FieldPool is the other, over Web Workers). */
 export class LocalRenderer {
-  static async open(modelBytes, networks) {
-    return new LocalRenderer(await OnnxField.create(modelBytes, networks));
+  static async open(model, networks, needed = networks) {
+    return new LocalRenderer(await OnnxField.create(model, networks, needed));
   }
   constructor(field) {
     this.field = field;
@@ -134,8 +173,8 @@ export class LocalRenderer {
     return rendered;
   }
   async release() {
-    await this.queue; // chunks already queued finish (or fail) before their session goes
-    await this.field.session.release?.();
+    await this.queue; // chunks already queued finish (or fail) before their sessions go
+    await this.field.release();
   }
 }
 
@@ -168,6 +207,13 @@ export function tileNetwork(tile, networks) {
     throw new UserError(`bundle tile at ${repr(tuple(tile.rect[0], tile.rect[1]))} needs the ${name} network; this model has only ${networks.join(" and ")}`);
   }
   return name;
+}
+
+/** The networks a bundle's tiles render through (every tile's checked: tileNetwork), in the model's order: the
+ * sessions a reveal needs. */
+export function bundleNetworks(bundle, networks) {
+  const chosen = new Set(bundle.tiles.map((tile) => tileNetwork(tile, networks)));
+  return networks.filter((name) => chosen.has(name));
 }
 
 /** reveal: every tile rendered, quantised as it comes and stitched, the SHA-256 checked -> {pixels, exact, sha256}.

@@ -1,5 +1,5 @@
 // A FieldPool of Node worker_threads (./field-worker.js): the library's parallel renderer in Node, as the page's
-// worker pool is in the browser. `reveal({model, bundle, openRenderer: (m, n) => pool.open(m, n)})`.
+// worker pool is in the browser. `reveal({model, bundle, openRenderer: (...args) => pool.open(...args)})`.
 import { Worker } from "node:worker_threads";
 import { FieldPool } from "../pool.js";
 

@@ -1,6 +1,6 @@
 // The page's Web Worker, in one of two roles by its name (src/page/page.js starts both). The reveal worker runs the
 // reveal library (src/index.js) so that the page stays responsive, rendering through a pool of field workers
-// (src/pool.js): this same script, one onnxruntime-web session each, joined to the reveal worker by MessagePorts.
+// (src/pool.js): this same script, onnxruntime-web sessions of their own, joined to the reveal worker by MessagePorts.
 // The reveal worker's messages in: {id, type: "init", wasmBinary?} | {id, type: "pool", ports} | {type:
 // "fieldFailed", index, message} | {id, type: "inspect", bundle} | {id, type: "reveal", model, bundle,
 // passphrase}. Out: {id, type: "progress", progress} | {id, type: "done", result} | {id, type: "error", message,
@@ -40,9 +40,9 @@ async function handle({ id, type, ...data }) {
     } else if (type === "reveal") {
       const result = await reveal({ model: data.model, bundle: data.bundle, passphrase: data.passphrase,
         onProgress: (progress) => self.postMessage({ id, type: "progress", progress }),
-        openRenderer: (model, networks) => {
+        openRenderer: (model, networks, needed) => {
           if (pool === null) throw new Error("the reveal's workers are not started");
-          return pool.open(model, networks);
+          return pool.open(model, networks, needed);
         } });
       const transfer = [result.bytes.buffer, result.pixels?.buffer].filter(Boolean);
       self.postMessage({ id, type: "done", result }, [...new Set(transfer)]);
