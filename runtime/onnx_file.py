@@ -132,8 +132,8 @@ def pruned_model(file: "ModelFile", outputs: tuple[str, ...]) -> bytes:
                 node_index += 1
                 if node_index - 1 not in kept:
                     continue
-            elif inner == 12 and read_port(blob(item)).name not in outputs:
-                continue
+            elif inner == 12 and getattr(read_port(blob(item)), "name", None) not in outputs:
+                continue  # another output (or one that is no tensor port: checked models have none)
             graph += inner_span
         model += varint(7 << 3 | LENGTH) + varint(len(graph)) + graph
     return bytes(model)
