@@ -157,6 +157,17 @@ def checked_pixels(secret) -> np.ndarray:
     return np.ascontiguousarray(pixels)
 
 
+def import_nerfstudio(run: PathLike, output: PathLike, *, data: PathLike | None = None) -> dict:
+    """Import a nerfstudio nerfacto run directory (config.yml, dataparser_transforms.json,
+    nerfstudio_models/) as the scene folder `output`; `data`: the dataset holding transforms.json (default:
+    the path the run recorded). -> what `noisenerf import-nerfstudio --json` prints."""
+    from noisenerf.train.scene.import_nerfstudio import import_nerfstudio as import_run
+
+    scene = import_run(Path(run), Path(output), data=Path(data) if data is not None else None)
+    return {"scene": str(output), "fingerprint": scene.fingerprint(), "implementation": scene.config.coarse.implementation,
+            "cameras": len(scene.config.cameras)}
+
+
 def export_model(scene: PathLike, output: PathLike, *, force: bool = True) -> dict:
     """Export a scene folder's frozen fields to one ONNX file with a `noise` input port; written only once
     onnx.checker, the torch-against-onnxruntime probe and the fingerprint check pass. -> export's report."""

@@ -62,14 +62,12 @@ def cmd_import(args) -> None:
 
 
 def cmd_import_nerfstudio(args) -> None:
-    from noisenerf.train.scene.import_nerfstudio import import_nerfstudio
+    from noisenerf import api
 
-    scene = import_nerfstudio(Path(args.run_dir), Path(args.output), data=Path(args.data) if args.data else None)
-    config = scene.config.coarse
-    emit({"scene": args.output, "fingerprint": scene.fingerprint(), "implementation": config.implementation,
-          "cameras": len(scene.config.cameras)}, args.json,
-         [f"scene: {args.output} (nerfacto, {config.implementation} implementation, {len(scene.config.cameras)} "
-          "cameras in nerfstudio's frame order)", f"fingerprint: {scene.fingerprint()}"])
+    report = api.import_nerfstudio(args.run_dir, args.output, data=args.data)
+    emit(report, args.json, [f"scene: {args.output} (nerfacto, {report['implementation']} implementation, "
+                             f"{report['cameras']} cameras in nerfstudio's frame order)",
+                             f"fingerprint: {report['fingerprint']}"])
 
 
 def cmd_hide(args) -> None:

@@ -389,3 +389,13 @@ def test_photos_hidden_in_nerfstudios_run_reveal_exactly(nerfstudio_trained, sha
         assert result.code in (0, None), result.err
         revealed = run_reveal(folder / "model.onnx", bundle, "-o", tmp_path / f"{view}_out.png")
         assert revealed.returncode == 0 and "exact" in revealed.stdout, revealed.stdout + revealed.stderr
+
+
+def test_the_python_api_imports_as_the_command_line_does(tmp_path):
+    import noisenerf
+    run, data = write_nerfstudio_run(tmp_path, "torch", seed=3)
+    report = noisenerf.import_nerfstudio(run, tmp_path / "scene", data=data)
+    assert (report["implementation"], report["cameras"]) == ("torch", 7)
+    with pytest.raises(noisenerf.UserError, match="not a nerfstudio run directory"):
+        noisenerf.import_nerfstudio(tmp_path / "nothing", tmp_path / "other", data=data)
+    assert not (tmp_path / "other").exists()
