@@ -101,9 +101,9 @@ PRESETS = {
 }
 DEFAULT_PRESETS = {"mlp": "small", "hashgrid": "hashgrid"}  # the preset `--field KIND` fits with
 # the kind new fits take without --field or --preset: on lego at 200 px in 15 minutes on 2 cores it scores
-# 2.9 dB above the small preset, keys are no larger and every camera takes every hard secret
+# 2.8 dB above the small preset, keys are no larger and every camera takes every hard secret
 # (README "Field kinds"); the MLP stays the choice for a smaller model file (0.6 MB against 13 MB) and
-# faster reveals (~2×)
+# faster reveals (~2.4×)
 DEFAULT_FIELD = "hashgrid"
 
 
