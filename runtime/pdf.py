@@ -50,12 +50,19 @@ def sample_pdf(bins: np.ndarray, weights: np.ndarray, n_samples: int) -> np.ndar
     pdf = weights / weights.sum(axis=-1, keepdims=True, dtype=np.float32)
     cdf = np.concatenate([np.zeros_like(pdf[:, :1]), np.cumsum(pdf, axis=-1, dtype=np.float32)], axis=-1)
     u = np.linspace(0.0, 1.0, n_samples, dtype=np.float32)
-    index = np.zeros((cdf.shape[0], n_samples), dtype=np.int64)  # searchsorted(cdf, u, right=True) per ray
-    for column in cdf.T:  # one bin edge at a time: memory (n_rays, n_samples), not times n_bins
-        index += column[:, None] <= u
-    below, above = np.maximum(index - 1, 0), np.minimum(index, cdf.shape[-1] - 1)
-    cdf_below, cdf_above = (np.take_along_axis(cdf, i, axis=1) for i in (below, above))
-    bin_below, bin_above = (np.take_along_axis(bins, i, axis=1) for i in (below, above))
+    cdf_below, cdf_above, bin_below, bin_above = bracketing(cdf, bins, u)
     denom = cdf_above - cdf_below
     denom = np.where(denom < 1e-5, np.float32(1.0), denom)
     return (bin_below + (u - cdf_below) / denom * (bin_above - bin_below)).astype(np.float32)
+
+
+def bracketing(cdf: np.ndarray, bins: np.ndarray, u: np.ndarray) -> tuple[np.ndarray, ...]:
+    """The CDF values and bin edges either side of each u: searchsorted(cdf, u, right=True) per ray, its index
+    and the one below clipped to the edges. cdf, bins: (n_rays, m + 1), u: (k,) -> four (n_rays, k) arrays:
+    cdf below, cdf above, bin below, bin above."""
+    index = np.zeros((cdf.shape[0], u.shape[0]), dtype=np.int64)
+    for column in cdf.T:  # one edge at a time: memory (n_rays, k), not times m
+        index += column[:, None] <= u
+    below, above = np.maximum(index - 1, 0), np.minimum(index, cdf.shape[-1] - 1)
+    return (*(np.take_along_axis(cdf, i, axis=1) for i in (below, above)),
+            *(np.take_along_axis(bins, i, axis=1) for i in (below, above)))

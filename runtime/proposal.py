@@ -21,6 +21,7 @@ import numpy as np
 
 from noisenerf.runtime.compositing import composite, render_weights
 from noisenerf.runtime.field_callbacks import FieldFn
+from noisenerf.runtime.pdf import bracketing
 from noisenerf.runtime.rays import RayBatch
 
 DensityFn = Callable[[np.ndarray], np.ndarray]  # points (n, 3) -> σ (n,)
@@ -94,12 +95,7 @@ def pdf_bins(bins: np.ndarray, weights: np.ndarray, n: int, padding: float) -> n
     cdf = np.concatenate([np.zeros_like(cdf[:, :1]), cdf], axis=-1)
     edges = n + 1
     u = (np.linspace(0.0, 1.0 - 1.0 / edges, edges, dtype=np.float32) + np.float32(1.0 / (2 * edges))).astype(np.float32)
-    index = np.zeros((cdf.shape[0], edges), dtype=np.int64)  # searchsorted(cdf, u, right) per ray, a column at a time
-    for column in cdf.T:
-        index += column[:, None] <= u
-    below, above = np.clip(index - 1, 0, bins.shape[-1] - 1), np.clip(index, 0, bins.shape[-1] - 1)
-    cdf_below, cdf_above = (np.take_along_axis(cdf, i, axis=1) for i in (below, above))
-    bin_below, bin_above = (np.take_along_axis(bins, i, axis=1) for i in (below, above))
+    cdf_below, cdf_above, bin_below, bin_above = bracketing(cdf, bins, u)
     with np.errstate(divide="ignore", invalid="ignore"):
         t = np.clip(np.nan_to_num((u - cdf_below) / (cdf_above - cdf_below), nan=0.0, posinf=0.0, neginf=0.0), 0, 1)
     return (bin_below + t.astype(np.float32) * (bin_above - bin_below)).astype(np.float32)

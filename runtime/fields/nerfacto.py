@@ -88,18 +88,12 @@ class NerfactoKind:
     def build(self, builder: GraphBuilder, prefix: str, config: dict, rgb: str, sigma: str) -> None:
         axes = grid_axes(builder)
         unit, selector = contracted_unit(builder, prefix)
-        features = interpolated_features(
-            builder, f"{prefix}.grid", f"{prefix}.table", unit, grid_layout(config["implementation"], config["scales"],
-                                                                            config["log2_table"]),
-            config["features"], config["log2_table"], axes, cell_offset=cell_offset(config["implementation"]))
+        features = grid_on(builder, prefix, unit, config["implementation"], config, axes)
         density = field_mlps(builder, prefix, config, self.segments(config), features, field_sh(builder, config), rgb)
         activated_density(builder, prefix, config, density, selector, sigma)
         for i, proposal in enumerate(config["proposals"]):
             name = f"{prefix}.proposals.{i}"
-            features = interpolated_features(
-                builder, f"{name}.grid", f"{name}.table", unit, grid_layout(config["implementation"], proposal["scales"],
-                                                                             proposal["log2_table"]),
-                proposal["features"], proposal["log2_table"], axes, cell_offset=cell_offset(config["implementation"]))
+            features = grid_on(builder, name, unit, config["implementation"], proposal, axes)
             dims = len(proposal["scales"]) * proposal["features"]
             hidden = builder.add("Relu", (builder.linear(name, "linears.0", features, dims, proposal["hidden"]),),
                                  f"{name}.hidden")
@@ -109,6 +103,14 @@ class NerfactoKind:
 
 def cell_offset(implementation: str) -> float:
     return 0.5 if implementation == "tcnn" else 0.0
+
+
+def grid_on(builder: GraphBuilder, name: str, unit: str, implementation: str, grid: dict, axes: dict[int, str]) -> str:
+    """The features of network `name`'s grid (features, log2_table, scales) of the run's implementation at the
+    contracted points `unit` -> (n, L·F)."""
+    return interpolated_features(builder, f"{name}.grid", f"{name}.table", unit,
+                                 grid_layout(implementation, grid["scales"], grid["log2_table"]), grid["features"],
+                                 grid["log2_table"], axes, cell_offset=cell_offset(implementation))
 
 
 def checked_grid(config: dict, implementation: str, what: str) -> dict:

@@ -178,6 +178,11 @@ class HashGridField(nn.Module):
                             }.items():
             self.register_buffer(name, torch.from_numpy(value), persistent=False)
         self.register_sh(config.direction_dims)
+        self.add_mlps(config)
+
+    def add_mlps(self, config) -> None:
+        """The density MLP (grid features -> [raw density ‖ geometric feature]) and the colour MLP
+        ([SH ‖ geometric feature] -> raw colour), freshly initialised."""
         self.density_linears = nn.ModuleList([nn.Linear(config.position_dims, config.density_hidden),
                                               nn.Linear(config.density_hidden, 1 + config.geo_features)])
         widths = [config.direction_dims + config.geo_features] + [config.colour_hidden] * config.colour_layers

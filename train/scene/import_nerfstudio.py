@@ -40,6 +40,7 @@ import yaml
 
 from noisenerf.runtime.camera import Camera
 from noisenerf.runtime.errors import UserError
+from noisenerf.runtime.fields.nerfacto import grid_layout
 from noisenerf.runtime.files import check_output_directory, parse_json
 from noisenerf.runtime.occupancy import OccupancyGrid
 from noisenerf.runtime.render import RenderConfig
@@ -304,9 +305,8 @@ def tcnn_mlp(params: FlatParams, fan_in: int, width: int, layers: int, fan_out: 
     return result
 
 
-def grid_rows(config_scales, implementation: str, log2_table: int) -> int:
-    from noisenerf.runtime.fields.nerfacto import grid_layout
-    return grid_layout(implementation, config_scales, log2_table).total_rows
+def grid_rows(scales, implementation: str, log2_table: int) -> int:
+    return grid_layout(implementation, scales, log2_table).total_rows
 
 
 def field_state(state: dict, config: NerfactoConfig, settings: NerfactoSettings, source: str

@@ -97,6 +97,11 @@ def contracted_unit(points: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     return unit * selector, selector
 
 
+def scaled_exp(raw: torch.Tensor, scale: float) -> torch.Tensor:
+    """nerfacto's density activation, σ = scale·exp(min(raw, cap)) (runtime.fields.nerfacto.activated_density)."""
+    return scale * torch.exp(torch.clamp_max(raw, DENSITY_EXPONENT_CAP))
+
+
 class ProposalNetwork(nn.Module):
     """σ of a proposal network at points (n, 3) -> (n,)."""
 
@@ -111,7 +116,7 @@ class ProposalNetwork(nn.Module):
     def forward(self, points: torch.Tensor) -> torch.Tensor:
         unit, selector = contracted_unit(points)
         raw = self.linears[1](torch.relu(self.linears[0](self.grid(self.table, unit))))
-        return (self.density_scale * torch.exp(torch.clamp_max(raw, DENSITY_EXPONENT_CAP)) * selector)[:, 0]
+        return (scaled_exp(raw, self.density_scale) * selector)[:, 0]
 
 
 class NerfactoField(HashGridField):
@@ -124,10 +129,7 @@ class NerfactoField(HashGridField):
         self.table = nn.Parameter(torch.zeros(levels.total_rows, config.features))
         self.grid = GridEncoding(levels, config.log2_table, config.features, cell_offset(config.implementation))
         self.register_sh(config.direction_dims, TORCH_SH_SIGNS if config.implementation == "torch" else None)
-        self.density_linears = nn.ModuleList([nn.Linear(config.position_dims, config.density_hidden),
-                                              nn.Linear(config.density_hidden, 1 + config.geo_features)])
-        widths = [config.direction_dims + config.geo_features] + [config.colour_hidden] * config.colour_layers
-        self.colour_linears = nn.ModuleList([nn.Linear(a, b) for a, b in zip(widths, widths[1:] + [3])])
+        self.add_mlps(config)
         self.proposals = nn.ModuleList([ProposalNetwork(p, config.implementation, config.density_scale)
                                         for p in config.proposals])
 
@@ -139,8 +141,7 @@ class NerfactoField(HashGridField):
         return super().spherical_harmonics(viewdirs if self.config.implementation == "tcnn" else (viewdirs + 1) / 2)
 
     def density_of(self, raw: torch.Tensor) -> torch.Tensor:
-        """σ = density_scale·exp(min(raw, cap))."""
-        return self.config.density_scale * torch.exp(torch.clamp_max(raw, DENSITY_EXPONENT_CAP))
+        return scaled_exp(raw, self.config.density_scale)
 
     def raw_density_at(self, density: float) -> float:
         return math.log(density / self.config.density_scale)
