@@ -1,12 +1,13 @@
-"""Same seed, same inputs → the same bytes as the references in tests/reference/.
+"""Same seed, same inputs → the same artifacts as the references in tests/reference/.
 
 The references were first written by main at e98c111, before train/ was split into layers (issue 9),
 and are rewritten (`python tests/test_reference.py`) only by a change that means to alter what is
-written, whose commit says why: last when the paper's method came to skip dead samples (issue 24: its
-bundles record the two new settings; their noise stayed bit-identical, the other files byte-identical).
-`exact_compact.bundle` is the small exact bundle itself, and `digests.json` holds the SHA-256 of every
-artifact below (bundles of each method and layout, a plain and a sealed payload, a fitted scene's files
-and an exported ONNX file). Each artifact is rebuilt here from seeds alone and must match byte for byte.
+written, whose commit says why. `digests.json` holds, for every bundle (each method and layout, a plain
+and a sealed payload), the SHA-256 of each of its tensors and its metadata as data (the settings it
+records, tiles, cameras), and the SHA-256 of every other artifact (a fitted scene's files and an exported
+ONNX file). Each artifact is rebuilt here from seeds alone: a bundle's noise must match byte for byte and
+its metadata must equal the reference's as parsed JSON, so a setting renamed or dropped is a readable
+difference in the reference, not a different digest; the other files must match byte for byte.
 Torch runs one thread, so the bytes do not depend on the machine's core count. They do depend on the float
 kernels the CPU takes (vector width and FMA use differ between an AVX2 and an AVX-512 machine, and between
 vendors' library paths), so the references are kept per kind of machine, `tests/reference/VENDOR-CAPABILITY/`
@@ -27,6 +28,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from safetensors import safe_open
 
 from helpers import make_tiny_scene  # run as a script, this file's folder is sys.path[0]
 
@@ -109,8 +111,31 @@ def build_artifacts(folder: Path) -> dict[str, Path]:
     return artifacts
 
 
-def sha256(path: Path) -> str:
-    return hashlib.sha256(path.read_bytes()).hexdigest()
+BUNDLES = ("exact_compact.bundle", "exact_ray.bundle", "paper_sample.bundle", "paper_text_ray.bundle",
+           "payload.bundle", "sealed.bundle")
+FILES = ("scene/weights.safetensors", "scene/scene.json", "scene/occupancy.safetensors", "model.onnx")
+
+
+def sha256(data: bytes) -> str:
+    return hashlib.sha256(data).hexdigest()
+
+
+def bundle_record(path: Path) -> dict:
+    """A bundle as the references keep it: its tensors' digests (dtype, shape and bytes) and its metadata, the
+    bundle's JSON parsed (a seal's MAC is a hex string)."""
+    from noisenerf.runtime.bundle import METADATA_KEY
+
+    with safe_open(path, "np") as file:
+        metadata = {key: json.loads(value) if key == METADATA_KEY else value for key, value in file.metadata().items()}
+        tensors = {name: sha256(f"{value.dtype.str} {value.shape}".encode() + value.tobytes())
+                   for name in file.keys() for value in [file.get_tensor(name)]}
+    return {"tensors": tensors, "metadata": metadata}
+
+
+def records(artifacts: dict[str, Path]) -> dict:
+    """What digests.json holds for these artifacts."""
+    return {"torch": torch.__version__, "bundles": {name: bundle_record(artifacts[name]) for name in BUNDLES},
+            "sha256": {name: sha256(artifacts[name].read_bytes()) for name in FILES}}
 
 
 @pytest.fixture(scope="module")
@@ -123,34 +148,35 @@ def artifacts(tmp_path_factory):
 
 
 @pytest.fixture(scope="module")
-def digests(artifacts):
+def reference(artifacts):
     return json.loads((REFERENCE / "digests.json").read_text())
 
 
-def test_the_small_exact_bundle_is_byte_identical_to_the_reference_file(artifacts):
-    assert artifacts["exact_compact.bundle"].read_bytes() == (REFERENCE / "exact_compact.bundle").read_bytes()
+@pytest.mark.parametrize("name", BUNDLES)
+def test_bundle_noise_is_byte_identical_to_the_reference(artifacts, reference, name):
+    assert bundle_record(artifacts[name])["tensors"] == reference["bundles"][name]["tensors"]
 
 
-@pytest.mark.parametrize("name", ["exact_compact.bundle", "exact_ray.bundle", "paper_sample.bundle",
-                                  "paper_text_ray.bundle", "payload.bundle", "sealed.bundle",
-                                  "scene/weights.safetensors", "scene/scene.json", "scene/occupancy.safetensors"])
-def test_artifact_matches_the_reference_digest(artifacts, digests, name):
-    assert sha256(artifacts[name]) == digests["sha256"][name]
+@pytest.mark.parametrize("name", BUNDLES)
+def test_bundle_metadata_equals_the_reference_as_data(artifacts, reference, name):
+    assert bundle_record(artifacts[name])["metadata"] == reference["bundles"][name]["metadata"]
 
 
-def test_onnx_file_matches_the_reference_digest(artifacts, digests):
-    if torch.__version__ != digests["torch"]:
-        pytest.skip(f"the ONNX reference was exported by torch {digests['torch']}, this is {torch.__version__}")
-    assert sha256(artifacts["model.onnx"]) == digests["sha256"]["model.onnx"]
+@pytest.mark.parametrize("name", ["scene/weights.safetensors", "scene/scene.json", "scene/occupancy.safetensors"])
+def test_artifact_matches_the_reference_digest(artifacts, reference, name):
+    assert sha256(artifacts[name].read_bytes()) == reference["sha256"][name]
+
+
+def test_onnx_file_matches_the_reference_digest(artifacts, reference):
+    if torch.__version__ != reference["torch"]:
+        pytest.skip(f"the ONNX reference was exported by torch {reference['torch']}, this is {torch.__version__}")
+    assert sha256(artifacts["model.onnx"].read_bytes()) == reference["sha256"]["model.onnx"]
 
 
 if __name__ == "__main__":  # writes the references (see the module docstring for when)
     import tempfile
 
     with tempfile.TemporaryDirectory() as tmp:
-        built = build_artifacts(Path(tmp))
         REFERENCE.mkdir(exist_ok=True)
-        (REFERENCE / "exact_compact.bundle").write_bytes(built["exact_compact.bundle"].read_bytes())
-        (REFERENCE / "digests.json").write_text(json.dumps(
-            {"torch": torch.__version__, "sha256": {name: sha256(path) for name, path in built.items()}},
-            indent=1) + "\n")
+        (REFERENCE / "digests.json").write_text(json.dumps(records(build_artifacts(Path(tmp))), indent=1,
+                                                           sort_keys=True) + "\n")
