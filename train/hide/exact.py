@@ -377,7 +377,7 @@ def restart(problem: ChunkProblem, state: Refinement, stuck: torch.Tensor) -> No
     if from_donor.any():
         start[from_donor] = donor_noise(stuck[from_donor], finished_pixels, problem.goal, state.params,
                                         problem.generator, settings.donors * state.restarts[stuck[from_donor]])
-    spread = torch.where(from_donor[:, None], spread, spread + settings.kick)
+    spread = torch.where(from_donor[:, None], spread, spread + settings.restart_spread)
     jitter = torch.randn(start.shape, generator=problem.generator).to(start.device)
     state.params[stuck] = problem.judged(start + spread * jitter, state.storage_phase)
     state.outputs[stuck] = problem.outputs(stuck, state.params[stuck])

@@ -39,15 +39,12 @@ class ExactSettings:
     step_scales: tuple[float, ...] = (1.0, 0.5, 0.25)
     restart_after: int = 8
     donors: int = 4  # the k-th restart starts from one of the 4k finished pixels nearest in target colour
-    kick: float = 1.0  # spread of a random restart around zero noise (restart); the name bundles record
+    restart_spread: float = 1.0  # spread of a random restart around zero noise (restart)
     jitter: float = 0.1  # added to a pixel's restart point per restart it has had
     seed_stride: int = 16  # every seed_stride-th pixel is solved first and warm-starts the others
     chord_steps: int = 3  # warm-started pixels first step with their seed's Jacobian (chord_start)
     lattice_radius: int = 1  # integer lattices: free coefficients tried within ± this many steps (round_to_lattice)
     lattice_tries: int = 2  # integer lattices: best-predicted lattice points rendered per pixel
-    # not a setting: bundles record that finished pixels leave the batch (ChunkProblem.batch), as they
-    # did when it could be switched off
-    retire: bool = dataclasses.field(default=True, init=False)
 
     def __post_init__(self):
         if self.lattice_tries < 1 or self.lattice_radius < 0 or self.chord_steps < 0:
