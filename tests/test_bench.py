@@ -15,12 +15,14 @@ from noisenerf.cli.bench import (EXPERIMENTS, REGISTRY, BenchConfig, BenchContex
                                   run_bench, stress)
 from noisenerf.cli.bench.browser import RUNS, browser_missing
 from noisenerf.cli.bench.context import Measured
+from noisenerf.cli.bench.keys import far_views
 from noisenerf.cli.bench.registry import selected
 from noisenerf.cli.bench.report import verdict
 from noisenerf.cli.bench.run import stress_section
 from noisenerf.runtime.errors import UserError
 from noisenerf.runtime.images import write_image
 from noisenerf.train.scene.procedural import write_procedural_dataset
+from noisenerf.train.scene.scene import load_scene
 
 
 @pytest.fixture(scope="module")
@@ -75,6 +77,20 @@ def test_views_spread_around_the_scene_and_contention_is_measured(report):
     layouts = {r["layout"]: r["file_bytes_per_pixel"] for r in sections["bundle_size"].rows}
     assert layouts["compact"] < layouts["ray"] < layouts["sample"]
     assert all("psnr" in r for r in sections["bundle_size"].rows if r["method"] == "paper")  # error_vs_time's noise
+
+
+def test_keys_are_measured_against_the_secrets_own_png_and_webp_at_the_farthest_cameras(report, inputs):
+    _, sections = report
+    rows, config = sections["keys"].rows, inputs[1]
+    cameras = load_scene(config.scene).config.cameras
+    assert [r["view"] for r in rows] == [config.view, *far_views(cameras, config.view, 2)] and len(rows) == 3
+    facing = np.array([camera.matrix()[:3, 2] / np.linalg.norm(camera.matrix()[:3, 2]) for camera in cameras])
+    cosines = facing @ facing[config.view]
+    assert max(cosines[r["view"]] for r in rows[1:]) <= np.sort(cosines)[1] + 1e-9  # no other camera turns farther
+    for row in rows:
+        assert row["onnx_exact"]
+        assert row["over_png"] == pytest.approx(row["bytes_per_pixel"] / row["png_bytes_per_pixel"])
+        assert row["webp_bytes_per_pixel"] is None or 0 < row["webp_bytes_per_pixel"]
 
 
 def test_browser_reveals_the_bytes_python_reveals_or_says_why_it_could_not(report):

@@ -1,6 +1,8 @@
 """The exact solver's steps between phases (lattice candidates, entering a compact tile's integer lattice,
 the chord warm start), its settings' checks, and the local executor's worker processes chunks are spread over."""
 
+import dataclasses
+
 import numpy as np
 import pytest
 import torch
@@ -8,7 +10,7 @@ import torch
 from helpers import make_tiny_scene
 from noisenerf.cli.demo import DEMO_VIEW
 from noisenerf.runtime.errors import UserError
-from noisenerf.train.hide.compact import LIFT_MARGIN, lift_density, solver_view, tile_space
+from noisenerf.train.hide.compact import LIFT_MARGIN, colour_bins_per_unit, lift_density, solver_view, tile_space
 from noisenerf.train.hide.exact import (ChunkProblem, NoiseSpace, chord_start, damped_step,
                                         lattice_candidates, refine,
                                         residuals, round_to_lattice)
@@ -53,14 +55,15 @@ def test_singular_jacobians_give_plain_rounding():
 @pytest.fixture(scope="module")
 def compact_view():
     """The problem of a 16×12 secret's view of the demo scene in a compact space, and its float-phase
-    solution. The space's integer steps are 1/4, 4x the default's, so plain rounding misses many pixels' bins."""
+    solution. The space's integer steps move a colour by about a quarter bin (the default), and six coefficients
+    rounded at once miss many pixels' bins."""
     scene = load_scene(DEMO_SCENE)
     secret = procedural_secret(16, 12)
     config = HideConfig(view=DEMO_VIEW, tile_size=16)
     view = SecretView(scene.coarse, plan(scene, secret, config).tiles[0], scene.config.render, CPU)
     pixels = torch.tensor(secret.reshape(-1, 3))
     exact = ExactSettings()
-    space = tile_space(view, pixels, CompactSettings(coefficient_range=8192.0), exact, torch.int16, seed=0)
+    space = tile_space(view, pixels, CompactSettings(), exact, torch.int16, seed=0)
     problem = ChunkProblem(view, torch.arange(view.n_rays), pixels, space, exact, torch.Generator().manual_seed(0))
     converged, done = refine(problem, space.zeros(view.n_rays, view.noise_dims, CPU), storage_phase=False)
     return problem, converged[done], done
@@ -88,6 +91,19 @@ def test_a_compact_tile_lifts_its_density_once_and_moves_only_the_view_direction
     branch = solver_view(view, space)
     assert isinstance(branch, BranchView)
     assert solver_view(view, NoiseSpace(torch.float16)) is view  # full noise: the whole field
+
+
+def test_each_coefficient_steps_a_colour_by_about_step_bins(compact_view):
+    """The tile's lattice is stretched per coefficient: over the tile's rays (the basis chose it from a sample
+    of them), one integer step of each coefficient moves the median ray's largest channel by ~¼ bin
+    (step_bins' default), though the principal directions move colours by very different amounts."""
+    problem = compact_view[0]
+    view, space = solver_view(problem.secret_view, problem.space), problem.space
+    per_step = colour_bins_per_unit(view, space)
+    assert space.scale == 1.0 and per_step.shape == (CompactSettings().coefficients,)
+    np.testing.assert_allclose(per_step.numpy(), CompactSettings().step_bins, rtol=0.25)
+    unstretched = colour_bins_per_unit(view, dataclasses.replace(space, basis=space.basis / space.basis.norm(dim=0)))
+    assert float(unstretched.max() / unstretched.min()) > 2.0
 
 
 def test_lift_density_reaches_its_margin_on_every_sampled_ray(compact_view):

@@ -10,8 +10,8 @@ from typing import Any, Callable, Mapping
 
 from noisenerf.runtime.errors import UserError
 
-from noisenerf.cli.bench import (big_secret, browser, cluster, coverage, exact_cost, exact_scale, fields, nerfstudio,
-                                 paper, payload, reliability)
+from noisenerf.cli.bench import (big_secret, browser, cluster, coverage, exact_cost, exact_scale, fields, keys,
+                                 nerfstudio, paper, payload, reliability)
 from noisenerf.cli.bench.context import BenchContext, Measured, Section
 
 
@@ -51,6 +51,7 @@ REGISTRY = (
                exact_cost.describe_skipping),
     Experiment("bundle_size", "Bundle size", exact_cost.measure_bundle_size, exact_cost.describe_bundle_size,
                needs=("error_vs_time",)),  # it stores the paper's noise from there as float32 and float16
+    Experiment("keys", "Keys against the secret's own coding", keys.measure_keys, keys.describe_keys),
     Experiment("photos", "Real photos at native size", exact_scale.measure_photos, exact_scale.describe_photos),
     Experiment("views", "Hide time across views and photos", exact_scale.measure_views, exact_scale.describe_views,
                exact_scale.plot_views),

@@ -6,7 +6,8 @@ varies in few directions. Per tile, from a seeded sample of its pixels:
 - offset o (dims,): its γ(x) part one vector that lifts every sampled ray's density (lift_density), its
   γ(d) part the mean of the sample's noise solved in γ(d) alone with that γ(x) fixed (BranchView);
 - basis B (dims, k): the top-k principal directions of that solved γ(d) noise around o, zero in γ(x);
-- scale: one integer step of a coefficient, coefficient_range / the dtype's largest integer.
+- scale: 1; each column of B is stretched so that one integer step of its coefficient moves a colour
+  by about CompactSettings.step_bins 8-bit bins (stepped): a step far finer than a bin only costs bits.
 
 Each pixel's noise is o + (q · scale) Bᵀ with q (k,) int16 (or int8); the exact solver works in that
 space (train/hide/exact.NoiseSpace) and judges only lattice points, as the ray layout judges only float16
@@ -27,17 +28,18 @@ from __future__ import annotations
 
 import dataclasses
 
-import numpy as np
 import torch
 
 from noisenerf.train.hide.secret_view import BranchView, SecretView
-from noisenerf.train.hide.exact import INTEGER_LIMITS, ChunkProblem, NoiseSpace, is_lifted, raw_floors, solve_exact
+from noisenerf.train.hide.exact import ChunkProblem, NoiseSpace, is_lifted, raw_floors, solve_exact
 from noisenerf.train.hide.settings import CompactSettings, ExactSettings
 
 def in_basis(exact: ExactSettings, settings: CompactSettings) -> ExactSettings:
     """The exact solver's settings for a solve in a compact basis: at most max_iters per phase (the few
-    pixels a basis cannot reach escape sooner), its float phase stopping at tolerance_bins."""
-    return dataclasses.replace(exact, max_iters=settings.max_iters, tolerance_bins=settings.tolerance_bins)
+    pixels a basis cannot reach escape sooner), its float phase stopping at tolerance_bins, seeds every
+    seed_stride pixels."""
+    return dataclasses.replace(exact, max_iters=settings.max_iters, tolerance_bins=settings.tolerance_bins,
+                               seed_stride=settings.seed_stride)
 
 
 def principal_basis(noise: torch.Tensor, k: int) -> tuple[torch.Tensor, torch.Tensor]:
@@ -105,21 +107,41 @@ def tile_space(secret_view: SecretView, pixels: torch.Tensor, settings: CompactS
     offset and basis come from the sample solved in the full noise."""
     generator = torch.Generator().manual_seed(seed)
     sample = torch.randperm(secret_view.n_rays, generator=generator)[:settings.basis_pixels].to(pixels.device)
-    scale = float(np.float32(settings.coefficient_range / INTEGER_LIMITS[storage]))
+    part = secret_view.subset(sample)
     if secret_view.field.config.has_view_branch:
-        part = secret_view.subset(sample)
         xyz_noise = lift_density(part, exact.density_floor)
         branch = BranchView(part, xyz_noise)
         lifted_floor = raw_floors(branch.field, exact.density_floor)[1]
         if float(is_lifted(branch.density, lifted_floor).float().mean()) >= MIN_LIFTED:
-            return direction_basis(branch, pixels[sample], xyz_noise, settings, exact, storage, scale, generator)
+            space = direction_basis(branch, pixels[sample], xyz_noise, settings, exact, generator)
+            return stepped(branch, space, settings.step_bins, storage)
     solved = solve_exact(ChunkProblem(secret_view, sample, pixels[sample], NoiseSpace(torch.float32), exact, generator))
     offset, basis = principal_basis(solved.params, settings.coefficients)
-    return NoiseSpace(storage, basis, offset, scale)
+    return stepped(part, NoiseSpace(torch.float32, basis, offset), settings.step_bins, storage)
+
+
+def colour_bins_per_unit(view: SecretView | BranchView, space: NoiseSpace) -> torch.Tensor:
+    """How far a unit of each basis coordinate moves the view's colours at the offset, in 8-bit bins: the
+    largest channel's |∂sigmoid(raw colour)/∂coordinate| · 255, the median over the view's rays. -> (k,)."""
+    index = torch.arange(view.n_rays, device=space.offset.device)
+    outputs, jac = view.outputs_and_jacobian(index, space.expand(space.zeros(view.n_rays, view.noise_dims,
+                                                                             space.offset.device)))
+    colour = torch.sigmoid(outputs[:, :3])
+    slope = (colour * (1 - colour))[:, :, None] * space.chain(jac)[:, :3]  # (rays, 3, k)
+    return 255.0 * slope.abs().amax(1).median(0).values
+
+
+def stepped(view: SecretView | BranchView, space: NoiseSpace, step_bins: float, storage: torch.dtype) -> NoiseSpace:
+    """A float basis space as the tile's integer lattice: each column stretched so that one step of its
+    coefficient moves a colour by about step_bins (colour_bins_per_unit over the basis sample `view`), the
+    scale 1. A column that moves no colour (a zero one) stays as it is."""
+    per_unit = colour_bins_per_unit(view, space)
+    stretch = torch.where(per_unit > 0, step_bins / per_unit.clamp_min(1e-30), 1.0)
+    return NoiseSpace(storage, (space.basis * stretch).contiguous(), space.offset, 1.0)
 
 
 def direction_basis(branch: BranchView, pixels: torch.Tensor, xyz_noise: torch.Tensor, settings: CompactSettings,
-                    exact: ExactSettings, storage: torch.dtype, scale: float, generator: torch.Generator) -> NoiseSpace:
+                    exact: ExactSettings, generator: torch.Generator) -> NoiseSpace:
     """tile_space's γ(d) basis from a sample's BranchView and pixels (s, 3): the principal directions of
     the sample's solved noise, found twice. The solved pixels the first basis cannot bring to their
     colours (mostly the darkest) count missed_weight times in the second, which turns the basis towards
@@ -132,16 +154,15 @@ def direction_basis(branch: BranchView, pixels: torch.Tensor, xyz_noise: torch.T
     first = direction_space(torch.float32, xyz_noise, *principal_basis(solved.params[solved.done], k))
     trial = solve_exact(ChunkProblem(branch, every, pixels, first, in_basis(exact, settings), generator))
     weights = torch.where(trial.done, 1, settings.missed_weight) * solved.done
-    return direction_space(storage, xyz_noise, *principal_basis(solved.params.repeat_interleave(weights, 0), k),
-                           scale)
+    return direction_space(torch.float32, xyz_noise, *principal_basis(solved.params.repeat_interleave(weights, 0), k))
 
 
-def direction_space(storage: torch.dtype, xyz_noise: torch.Tensor, dir_offset: torch.Tensor, dir_basis: torch.Tensor,
-                    scale: float = 1.0) -> NoiseSpace:
+def direction_space(storage: torch.dtype, xyz_noise: torch.Tensor, dir_offset: torch.Tensor,
+                    dir_basis: torch.Tensor) -> NoiseSpace:
     """A NoiseSpace whose noise leaves γ(x) at xyz_noise (xyz_dims,): offset [xyz_noise ‖ dir_offset (dir_dims,)],
     basis [0 ‖ dir_basis (dir_dims, k)]."""
     return NoiseSpace(storage, torch.cat([dir_basis.new_zeros(len(xyz_noise), dir_basis.shape[1]), dir_basis]),
-                      torch.cat([xyz_noise, dir_offset]), scale)
+                      torch.cat([xyz_noise, dir_offset]))
 
 
 def solver_view(secret_view: SecretView, space: NoiseSpace) -> SecretView | BranchView:

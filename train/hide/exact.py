@@ -17,11 +17,10 @@ Two phases: the first solves in float32 until every channel sits within `toleran
 centre; the second rounds to the storage dtype and polishes, judging only storable noise, until every
 channel rounds to its 8-bit value with `margin_bins` to spare (far more than the torch ↔ onnxruntime
 disagreement). Between the phases, a compact tile's integer lattice (each of its 6 coefficients in
-steps of CompactSettings.coefficient_range / 32767) is entered by round_to_lattice, a search among nearby
-lattice points predicted by the Jacobian: one lattice step can move a colour by more than a bin, so plain
-rounding would leave many pixels to LM on the lattice, which costs far more Jacobians than rendering a
-few predicted points. In a compact tile's γ(d) basis (compact.py) steps move colours less, so a small
-radius and few tries suffice.
+steps that move a colour by about CompactSettings.step_bins) is entered by round_to_lattice, a search
+among nearby lattice points predicted by the Jacobian: the steps of six coefficients together can move a
+colour by more than a bin, so plain rounding would leave many pixels to LM on the lattice, which costs far
+more Jacobians than rendering a few predicted points.
 
 A solve is one ChunkProblem, what stays fixed over it (the view and its pixels, the noise space,
 settings, generator and counts), which every step takes; what Levenberg–Marquardt changes from one
@@ -80,7 +79,7 @@ class NoiseSpace:
     """The unknowns of a chunk's pixels, `params` (m, P), and how they become noise (m, 1, dims).
 
     Full space (basis None): the params are the noise itself, stored in a float dtype (P = dims).
-    Basis space: noise = offset + params Bᵀ with B (dims, k) orthonormal columns. With a float storage
+    Basis space: noise = offset + params Bᵀ with B (dims, k) (a compact tile's: orthogonal columns, stretched). With a float storage
     dtype the params are rounded to it (a compact tile's basis is found in float32); with an integer one
     (a compact tile) the params are q · scale for integers q, so `store` rounds them to the integer lattice.
     Expanding exactly as the reveal does (runtime.layouts.expand_coefficients: one float32 multiply, then

@@ -55,9 +55,13 @@ class ExactSettings:
 class CompactSettings:
     key: ClassVar[str] = "compact"  # where bundles record these settings
     coefficients: int = 6  # k per pixel
-    # largest storable |coefficient|: int16 steps of 1/16 (int8: 2048/127). Coarser steps cost fewer bytes
-    # until the lattice misses colours: 1/16 costs less than 1/32 at about as many escapes, 1/8 lets many escape
-    coefficient_range: float = 2048.0
+    # how far one integer step of a coefficient moves a colour, in 8-bit bins (the median over the basis
+    # sample, tile_space): coarser steps cost fewer bytes per coefficient until the lattice misses colours
+    step_bins: float = 0.25
+    # every seed_stride-th pixel is solved first and warm-starts the others (ExactSettings.seed_stride); in a
+    # basis 1: every pixel starts at the offset, so solutions stay near it rather than scattered around
+    # seeds' noise, and code smaller
+    seed_stride: int = 1
     # a seeded sample of a tile's pixels whose solved noise chooses its offset and basis: a smaller sample's
     # basis lets many more pixels escape, which costs more bytes and time than solving the sample
     basis_pixels: int = 1024
@@ -66,6 +70,9 @@ class CompactSettings:
     missed_weight: int = 16  # weight of the sample pixels a first basis misses, in the second (tile_space)
 
     def __post_init__(self):
+        if not self.step_bins > 0 or self.seed_stride < 1:
+            raise UserError(f"step_bins must be positive and seed_stride at least 1, got {self.step_bins} and "
+                            f"{self.seed_stride}")
         if self.missed_weight < 1:
             raise UserError(f"missed_weight must be at least 1, got {self.missed_weight}")
         if not 1 <= self.coefficients <= MAX_COMPACT_COEFFICIENTS:
