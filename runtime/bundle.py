@@ -1,9 +1,10 @@
 """The secret bundle: the key a recipient gets. safetensors (never pickle): noise tensors + JSON metadata.
 
     tensors   tile_0000, tile_0001, …   noise per tile, in one of three layouts (runtime/layouts.py): "ray"
-              and "sample" store float noise under tile_NNNN; "compact" (format 2, the exact method's default)
-              stores tile_NNNN, the xz stream of its coefficients, with tile_NNNN_basis, _offset, _escapes and
-              _escape_noise, and the tile's "scale" in the metadata.
+              and "sample" store float noise under tile_NNNN; "compact" (format 2 on, the exact method's default)
+              stores tile_NNNN, the xz stream of its coefficients, with tile_NNNN_basis, _offset, _escapes,
+              _escape_noise (and from format 3 _branch_escapes, _branch_escape_noise), and the tile's "scale"
+              in the metadata.
     metadata  {"noisenerf_bundle": JSON}: format version, model fingerprint, secret size and the SHA-256
               of its 8-bit RGB pixels, noise layout and dtype, per tile its rectangle in the final image,
               camera, sampling and network ("coarse" or "fine": the network the noise was trained
@@ -11,9 +12,11 @@
               render network, the fine one where there is one), and for a payload (a file, or a sealed
               secret) the optional "payload" object that runtime.payload defines and validates.
 
-Versions: noisenerf writes format 2 and reads formats 1 and 2. Format 1 (every bundle written before the
-compact layout) holds only the ray and sample layouts, which format 2 keeps unchanged, so it reveals as
-it always did. A format this version does not know (a newer writer's) is refused in one line naming it.
+Versions: noisenerf writes format 3 and reads formats 1 to 3. Format 1 (every bundle written before the
+compact layout) holds only the ray and sample layouts, which formats 2 and 3 keep unchanged, so it reveals
+as it always did; format 3's compact tiles add branch escapes (tile_NNNN_branch_escapes and
+_branch_escape_noise), which a format 2 tile has none of. A format this version does not know (a newer
+writer's) is refused in one line naming it.
 
 The bundle holds noise and metadata only: without the model's exact weights it renders nothing.
 """
@@ -41,9 +44,10 @@ from noisenerf.runtime.payload import checked_payload
 from noisenerf.runtime.sealing import split_safetensors
 from noisenerf.runtime.sampling import SamplingConfig
 
-BUNDLE_FORMAT_VERSION = 2
+BUNDLE_FORMAT_VERSION = 3
 METADATA_KEY = "noisenerf_bundle"
-READABLE_FORMATS = {1: ("ray", "sample"), 2: ("ray", "sample", "compact")}  # format -> the layouts it may hold
+# format -> the layouts it may hold (format 3: compact tiles add branch escapes, runtime/layouts.py)
+READABLE_FORMATS = {1: ("ray", "sample"), 2: ("ray", "sample", "compact"), 3: ("ray", "sample", "compact")}
 SAFETENSORS_DTYPES = ("F16", "F32", "U8", "I32")  # float noise, bases and offsets, compressed coefficients, escapes
 def secret_digest(pixels: np.ndarray) -> str:
     """SHA-256 of an 8-bit RGB image's bytes, (height, width, 3) uint8 row-major."""
@@ -194,7 +198,7 @@ def tile_tensor(tensors: dict[str, np.ndarray], name: str, what: str, dtype=None
 
 def parse_tile(i: int, data, tensors: dict[str, np.ndarray], header: dict, keep_unpacked: bool) -> Tile:
     """One tile's metadata, every number type- and range-checked, joined to its tensors. header: the
-    bundle's checked layout, dtype and coefficients; keep_unpacked: the layout's read_tile's."""
+    bundle's checked format, layout, dtype and coefficients; keep_unpacked: the layout's read_tile's."""
     x0, y0, width, height = checked_rect(i, data)
     name = data.get("tensor")
     if not isinstance(name, str):
@@ -203,7 +207,7 @@ def parse_tile(i: int, data, tensors: dict[str, np.ndarray], header: dict, keep_
     layout = LAYOUTS[header["layout"]]
     shape = (height, width, header["coefficients"])  # what a layout with coefficients stores per pixel
     noise = layout.read_tile(name, data, lambda key, **kind: tile_tensor(tensors, key, what, **kind), shape,
-                             header["dtype"], what, keep_unpacked)
+                             header["dtype"], what, keep_unpacked, header["format"])
     view = data.get("view")
     return Tile(rect=(x0, y0, width, height), camera=Camera.from_dict(data.get("camera")),
                 sampling=SamplingConfig.from_dict(data.get("sampling")), noise=noise,
@@ -250,7 +254,7 @@ def parse_bundle(meta, tensors: dict[str, np.ndarray], path: Path) -> Bundle:
     if not isinstance(secret, dict) or not isinstance(noise, dict):
         raise UserError("bundle: metadata needs 'secret' and 'noise' objects")
     width, height = checked_image_size(secret.get("width"), secret.get("height"), "bundle: secret")
-    header = noise_header(noise, READABLE_FORMATS[version])
+    header = {**noise_header(noise, READABLE_FORMATS[version]), "format": version}
     tiles = checked_list(meta.get("tiles"), "bundle: tiles", most=MAX_TILES)
     areas = np.array([w * h for _, _, w, h in (checked_rect(i, tile) for i, tile in enumerate(tiles))], np.int64)
     layout = LAYOUTS[header["layout"]]

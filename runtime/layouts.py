@@ -8,11 +8,14 @@ types (what a tile holds) live here too. runtime/bundle.py keeps the file format
     compact  per pixel k integer coefficients of a per-tile basis, stored as an xz stream of byte planes
              (coefficient-major, then byte, then row-major pixels, little-endian: planes of like bytes compress
              best) with the basis (dims, k), offset (dims,) and scale: noise = offset + (coefficients · scale)
-             basisᵀ in float32; pixels the basis could not reach "escape" with their full float16 noise
+             basisᵀ in float32; pixels the basis could not reach "escape": with their full float16 noise, or
+             (format 3) as "branch escapes" with float16 values for the noise's trailing w dims alone (the
+             direction segment the view branch takes), the leading ones being the offset's
 """
 
 from __future__ import annotations
 
+import dataclasses
 import lzma
 from dataclasses import dataclass
 from typing import Callable
@@ -29,6 +32,7 @@ CODEC = "xz-byte-planes"
 # a compact bundle's coefficients, up to this many bytes unpacked, stay unpacked from the load's check to the render
 # (one xz decode for ordinary secrets); beyond, tiles are unpacked again one at a time, so memory stays bounded
 KEPT_UNPACKED_BYTES = 1 << 26
+BRANCH_ESCAPES_FROM = 3  # the bundle format from which compact tiles store branch escapes
 TensorGetter = Callable[..., np.ndarray]  # (name, dtype=None, ndim=None) -> a tile's tensor, or a UserError
 
 
@@ -41,6 +45,10 @@ class CompactBasis:
     scale: float  # one integer step of a coefficient (a float32 value)
     escapes: np.ndarray  # (e,) int32, strictly increasing row-major pixel indices with full noise
     escape_noise: np.ndarray  # (e, dims) float16
+    # (b,) int32, strictly increasing, none an escape: pixels whose noise is the offset but for its trailing w
+    # values, branch_escape_noise (b, w) float16 (format 2: none, (0,) and (0, 0))
+    branch_escapes: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(0, np.int32))
+    branch_escape_noise: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros((0, 0), np.float16))
 
 
 def expand_coefficients(coefficients: np.ndarray, basis: CompactBasis, start: int = 0) -> np.ndarray:
@@ -49,8 +57,13 @@ def expand_coefficients(coefficients: np.ndarray, basis: CompactBasis, start: in
     escaped pixels' stored noise. coefficients: (m, k) int -> (m, dims) float32."""
     params = coefficients.astype(np.float32) * np.float32(basis.scale)
     noise = basis.offset + params @ basis.basis.T
-    first, last = np.searchsorted(basis.escapes, [start, start + len(coefficients)])
+    stop = start + len(coefficients)
+    first, last = np.searchsorted(basis.escapes, [start, stop])
     noise[basis.escapes[first:last] - start] = basis.escape_noise[first:last]
+    first, last = np.searchsorted(basis.branch_escapes, [start, stop])
+    rows, lead = basis.branch_escapes[first:last] - start, noise.shape[1] - basis.branch_escape_noise.shape[1]
+    noise[rows, :lead] = basis.offset[:lead]
+    noise[rows, lead:] = basis.branch_escape_noise[first:last]
     return noise
 
 
@@ -152,7 +165,9 @@ class CompactNoise:
         return {name: self.packed, f"{name}_basis": np.ascontiguousarray(self.basis.basis),
                 f"{name}_offset": np.ascontiguousarray(self.basis.offset),
                 f"{name}_escapes": np.ascontiguousarray(self.basis.escapes),
-                f"{name}_escape_noise": np.ascontiguousarray(self.basis.escape_noise)}
+                f"{name}_escape_noise": np.ascontiguousarray(self.basis.escape_noise),
+                f"{name}_branch_escapes": np.ascontiguousarray(self.basis.branch_escapes),
+                f"{name}_branch_escape_noise": np.ascontiguousarray(self.basis.branch_escape_noise)}
 
 
 TileNoise = VectorNoise | CompactNoise
@@ -203,8 +218,8 @@ class NoiseLayout:
         return np.zeros(len(areas), dtype=bool)
 
     def read_tile(self, name: str, data: dict, tensor: TensorGetter, shape: tuple[int, ...], dtype: str, what: str,
-                  keep_unpacked: bool) -> TileNoise:
-        """A tile's noise from its tensors (`tensor` refuses a missing one)."""
+                  keep_unpacked: bool, version: int) -> TileNoise:
+        """A tile's noise from its tensors (`tensor` refuses a missing one), of a bundle of format `version`."""
         return VectorNoise(tensor(name))
 
     def check_noise(self, what: str, noise: TileNoise, pixels: int, dims: int, coefficients: int | None) -> None:
@@ -267,31 +282,45 @@ class CompactLayout(NoiseLayout):
         return np.cumsum(areas) * per_pixel <= KEPT_UNPACKED_BYTES
 
     def read_tile(self, name: str, data: dict, tensor: TensorGetter, shape: tuple[int, ...], dtype: str, what: str,
-                  keep_unpacked: bool) -> CompactNoise:
+                  keep_unpacked: bool, version: int) -> CompactNoise:
         """The coefficients (h, w, k) and the basis. The stream is decompressed here to check it holds exactly
         that (only once the header and rect are known good, so at most h·w·k values); the coefficients are
-        kept if keep_unpacked, else dropped (a reveal unpacks the tile again when it renders)."""
+        kept if keep_unpacked, else dropped (a reveal unpacks the tile again when it renders). Branch escapes
+        from format 3 on."""
+        branch = ({"branch_escapes": tensor(f"{name}_branch_escapes"),
+                   "branch_escape_noise": tensor(f"{name}_branch_escape_noise")} if version >= BRANCH_ESCAPES_FROM
+                  else {})
         basis = CompactBasis(basis=tensor(f"{name}_basis"), offset=tensor(f"{name}_offset"),
                              scale=checked_float(data.get("scale"), f"{what} scale",
                                                  low=float(np.finfo(np.float32).tiny),
                                                  high=float(np.finfo(np.float32).max)),
-                             escapes=tensor(f"{name}_escapes"), escape_noise=tensor(f"{name}_escape_noise"))
+                             escapes=tensor(f"{name}_escapes"), escape_noise=tensor(f"{name}_escape_noise"), **branch)
         packed = tensor(name, dtype=np.uint8, ndim=1)
         unpacked = unpack_coefficients(packed, shape, dtype, what)
         return CompactNoise(packed, shape, np.dtype(DTYPES[dtype]), basis, unpacked if keep_unpacked else None)
 
     def check_noise(self, what: str, noise: TileNoise, pixels: int, dims: int, coefficients: int | None) -> None:
-        """The basis (dims, k), offset (dims,) float32 and escape noise (e, dims) float16, all finite; the scale
-        > 0; the escapes (e,) int32 strictly increasing inside the tile (integers are finite by type)."""
+        """The basis (dims, k), offset (dims,) float32, escape noise (e, dims) and branch escape noise (b, w),
+        w ≤ dims, float16, all finite; the scale > 0; the escapes (e,) and branch escapes (b,) int32, each
+        strictly increasing inside the tile, none in both (integers are finite by type)."""
         basis = noise.basis
-        escapes = basis.escapes
-        if escapes.ndim != 1 or escapes.dtype != np.int32:
-            raise UserError(f"{what} escapes are {escapes.dtype} {escapes.shape}, expected int32 (e,)")
-        if len(escapes) and (escapes[0] < 0 or escapes[-1] >= pixels or (np.diff(escapes) <= 0).any()):
-            raise UserError(f"{what} escapes must be strictly increasing pixel indices inside the tile")
+        escapes, branch_escapes = basis.escapes, basis.branch_escapes
+        for name, indices in (("escapes", escapes), ("branch escapes", branch_escapes)):
+            if indices.ndim != 1 or indices.dtype != np.int32:
+                raise UserError(f"{what} {name} are {indices.dtype} {indices.shape}, expected int32 (e,)")
+            if len(indices) and (indices[0] < 0 or indices[-1] >= pixels or (np.diff(indices) <= 0).any()):
+                raise UserError(f"{what} {name} must be strictly increasing pixel indices inside the tile")
+        if np.intersect1d(escapes, branch_escapes).size:
+            raise UserError(f"{what}: a pixel is both an escape and a branch escape")
+        branch_width = basis.branch_escape_noise.shape[-1] if basis.branch_escape_noise.ndim == 2 else -1
+        if not 0 <= branch_width <= dims:
+            raise UserError(f"{what} branch escape noise is {basis.branch_escape_noise.shape}, expected (b, w), w ≤ "
+                            f"{dims}")
         for name, value, shape, dtype in (("basis", basis.basis, (dims, coefficients), np.float32),
                                           ("offset", basis.offset, (dims,), np.float32),
-                                          ("escape noise", basis.escape_noise, (len(escapes), dims), np.float16)):
+                                          ("escape noise", basis.escape_noise, (len(escapes), dims), np.float16),
+                                          ("branch escape noise", basis.branch_escape_noise,
+                                           (len(branch_escapes), branch_width), np.float16)):
             if value.shape != shape or value.dtype != dtype:
                 raise UserError(f"{what} {name} is {value.dtype} {value.shape}, expected {np.dtype(dtype)} {shape}")
             if not np.isfinite(value).all():

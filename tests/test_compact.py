@@ -99,10 +99,47 @@ def test_format_1_ray_bundle_still_reveals_and_newer_formats_are_refused(demo):
     rewrite_bundle(folder / "compact.bundle", folder / "v1compact.bundle", as_format(1))
     with pytest.raises(UserError, match="unknown noise layout 'compact'"):
         load_bundle(folder / "v1compact.bundle")
-    rewrite_bundle(folder / "compact.bundle", folder / "v3.bundle", as_format(3))
-    result = run_reveal(model, folder / "v3.bundle", "-o", folder / "v3.png")
-    assert_refused(result, folder / "v3.png", "bundle format 3")
+    rewrite_bundle(folder / "compact.bundle", folder / "v4.bundle", as_format(4))
+    result = run_reveal(model, folder / "v4.bundle", "-o", folder / "v4.png")
+    assert_refused(result, folder / "v4.png", "bundle format 4")
     assert "a newer noisenerf is needed" in result.stderr
+
+
+def test_a_format_2_compact_bundle_reveals_exactly_without_branch_escapes(demo):
+    """Format 2 compact tiles (written before branch escapes) have no branch escape tensors and none is asked for;
+    a format 3 bundle without them is refused."""
+    folder, secret, reports, model = demo
+    assert all(tile["branch_escaped"] == 0 for tile in reports["compact"]["tiles"])  # as a format 2 writer left it
+
+    def as_format_2(meta, tensors):
+        meta.update(format_version=2)
+        for name in [name for name in tensors if "_branch_escape" in name]:
+            del tensors[name]
+
+    rewrite_bundle(folder / "compact.bundle", folder / "v2.bundle", as_format_2)
+    result = run_reveal(model, folder / "v2.bundle", "-o", folder / "v2.png", "--json")
+    assert result.returncode == 0 and json.loads(result.stdout)["exact"] is True
+    rewrite_bundle(folder / "compact.bundle", folder / "v3_missing.bundle",
+                   lambda meta, tensors: tensors.pop("tile_0000_branch_escapes"))
+    with pytest.raises(UserError, match="tensor 'tile_0000_branch_escapes' is missing"):
+        load_bundle(folder / "v3_missing.bundle")
+
+
+def test_pixels_the_basis_misses_but_the_view_branch_reaches_are_stored_as_branch_escapes(demo_scene, demo_model,
+                                                                                          tmp_path):
+    """At camera 0 of the demo scene, a basis misses a few pixels of the background ±1 secret; the view branch
+    alone brings them to their colours, so each stores its 27 γ(d) values (58 bytes with its index, not the
+    184 of a full escape), and the bundle reveals exactly through onnxruntime."""
+    from noisenerf.cli.bench.coverage import hard_secrets
+
+    secret = hard_secrets(16, tuple(demo_scene.config.render.background))["background±1"]
+    report = hide(demo_scene, secret, tmp_path / "b.bundle", HideConfig(view=0), torch.device("cpu"), workers=1)
+    tile = report["tiles"][0]
+    assert tile["branch_escaped"] == tile["escaped"] > 0
+    basis = load_bundle(tmp_path / "b.bundle").tiles[0].noise.basis
+    assert len(basis.escapes) == 0 and basis.branch_escape_noise.shape == (tile["branch_escaped"], 27)
+    result = run_reveal(demo_model, tmp_path / "b.bundle", "-o", tmp_path / "b.png", "--json")
+    assert result.returncode == 0 and json.loads(result.stdout)["exact"] is True
 
 
 @pytest.mark.parametrize("dtype", ["int16", "int8"])
@@ -124,11 +161,16 @@ def test_expansion_matches_the_solver_and_puts_escapes_in_place():
     space = NoiseSpace(torch.int16, torch.from_numpy(basis), torch.from_numpy(offset), float(np.float32(1 / 32)))
     params = space.store(torch.from_numpy(rng.normal(scale=50, size=(64, 5)).astype(np.float32)))
     escape_noise = rng.normal(size=(2, 90)).astype(np.float16)
-    compact_basis = CompactBasis(basis, offset, space.scale, np.array([3, 40], np.int32), escape_noise)
+    branch_noise = rng.normal(size=(3, 27)).astype(np.float16)
+    compact_basis = CompactBasis(basis, offset, space.scale, np.array([3, 40], np.int32), escape_noise,
+                                 np.array([1, 7, 60], np.int32), branch_noise)
     expanded = expand_coefficients(space.integers(params).numpy()[2:50], compact_basis, start=2)
     solver = space.expand(params)[2:50, 0].numpy()
-    np.testing.assert_allclose(np.delete(expanded, [1, 38], axis=0), np.delete(solver, [1, 38], axis=0), atol=2e-5)
+    np.testing.assert_allclose(np.delete(expanded, [1, 5, 38], axis=0), np.delete(solver, [1, 5, 38], axis=0),
+                               atol=2e-5)
     np.testing.assert_array_equal(expanded[[1, 38]], escape_noise.astype(np.float32))
+    # pixel 7 (row 5) is a branch escape: the offset's first 63 values, then its 27 stored ones; 1 and 60 lie outside
+    np.testing.assert_array_equal(expanded[5], np.concatenate([offset[:63], branch_noise[1].astype(np.float32)]))
 
 
 def edit_tile_meta(key, value):

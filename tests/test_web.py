@@ -112,8 +112,10 @@ def golden(folder: Path) -> dict:
 
 
 def with_escape(path: Path) -> None:
-    """Rewrite a compact bundle so that tile 0's pixel 5 escapes: its coefficients 0, its noise the float16
-    of what they expanded to (the reveal's golden is what Python then reveals, exact or not)."""
+    """Rewrite a compact bundle so that tile 0's pixels 5 and 9 escape, and 12 and 14 are branch escapes: their
+    coefficients 0, their noise the float16 of what they expanded to (a branch escape's values after the
+    basis's leading zero rows, where the offset stands) (the reveal's golden is what Python then reveals, exact
+    or not)."""
     from noisenerf.runtime.bundle import load_bundle
     from noisenerf.runtime.layouts import CompactBasis, CompactNoise
 
@@ -122,9 +124,13 @@ def with_escape(path: Path) -> None:
     n = tile.rect[2] * tile.rect[3]
     noise = tile.noise.loaded().rows(0, n)[:, 0]
     coefficients = tile.noise.coefficients()
-    coefficients.reshape(n, -1)[[5, 9]] = 0
+    coefficients.reshape(n, -1)[[5, 9, 12, 14]] = 0
+    lead = int(np.argmax(tile.noise.basis.basis.any(axis=1)))
+    assert lead > 0  # the tiny scene's tile has its basis in the direction segment
     basis = dataclasses.replace(tile.noise.basis, escapes=np.array([5, 9], np.int32),
-                                escape_noise=noise[[5, 9]].astype(np.float16))
+                                escape_noise=noise[[5, 9]].astype(np.float16),
+                                branch_escapes=np.array([12, 14], np.int32),
+                                branch_escape_noise=noise[[12, 14], lead:].astype(np.float16))
     assert isinstance(basis, CompactBasis)
     tiles = (dataclasses.replace(tile, noise=CompactNoise.of(coefficients, basis)),) + bundle.tiles[1:]
     path.unlink()
@@ -425,6 +431,18 @@ def replaced_tensor(name: str, replace):
     return apply
 
 
+def edited_tensors(edit):
+    """Edit a bundle's tensors as arrays, edit(tensors dict), keeping its metadata."""
+    def apply(data: bytes) -> bytes:
+        from safetensors.numpy import load, save
+
+        size = int.from_bytes(data[:8], "little")
+        tensors = load(data)
+        edit(tensors)
+        return save(tensors, metadata=json.loads(data[8:8 + size])["__metadata__"])
+    return apply
+
+
 def stated_4096(meta: dict) -> None:
     """A compact bundle's metadata claiming a 4096² secret in one tile, its streams unchanged."""
     meta["secret"].update(width=4096, height=4096)
@@ -546,10 +564,18 @@ def write_fixtures(root: Path) -> dict:
             lambda meta: meta.update(model_fingerprint="0" * 64))),
         tamper(root, "ray", "tile_outside", edit_bundle=bundle_metadata_edit(
             lambda meta: meta["tiles"][0]["rect"].__setitem__(0, 3))),
-        tamper(root, "ray", "format_3", edit_bundle=bundle_metadata_edit(lambda meta: meta.update(format_version=3))),
+        tamper(root, "ray", "format_4", edit_bundle=bundle_metadata_edit(lambda meta: meta.update(format_version=4))),
         # quoted as repr() quotes it: a no-break space, a line separator and a zero-width space escaped
         tamper(root, "ray", "odd_tensor_name", edit_bundle=bundle_metadata_edit(
             lambda meta: meta["tiles"][0].update(tensor="n\u00a0o\u2028pe\u200b"))),
+        tamper(root, "compact_tiles", "branch_escape_also_escape", edit_bundle=edited_tensors(
+            lambda t: t.update(tile_0000_branch_escapes=np.array([9, 14], np.int32)))),
+        tamper(root, "compact_tiles", "branch_escape_too_wide", edit_bundle=edited_tensors(
+            lambda t: t.update(tile_0000_branch_escape_noise=np.zeros((2, 200), np.float16)))),
+        tamper(root, "compact_tiles", "branch_escape_nan", edit_bundle=edited_tensors(
+            lambda t: t["tile_0000_branch_escape_noise"].__setitem__((1, 0), np.nan))),
+        tamper(root, "compact_tiles", "branch_escapes_unsorted", edit_bundle=edited_tensors(
+            lambda t: t.update(tile_0000_branch_escapes=np.array([14, 12], np.int32)))),
         tamper(root, "compact_tiles", "xz_corrupt", edit_bundle=corrupt_tensor("tile_0001", 40)),
         tamper(root, "compact_tiles", "xz_truncated", edit_bundle=replaced_tensor("tile_0001", lambda s: s[:len(s) // 2])),
         tamper(root, "compact_tiles", "xz_trailing", edit_bundle=replaced_tensor("tile_0001", lambda s: s + b"junk")),

@@ -15,12 +15,13 @@ noise. Since the noise leaves γ(x) at o, each ray's trunk (density and feature)
 solver renders only the view branch, a fraction of the field's work; a basis in γ(d) alone also lets
 fewer pixels escape than one in the whole noise. A field without a view branch gets its offset and basis
 from the sample solved in the full noise. A basis cannot reach every colour from every start; those
-pixels escape: they are solved again in the full 90 values and stored as float16 noise beside the
-coefficients, so every pixel is still exact.
+pixels escape: they are solved again in the direction segment alone (a branch escape, its float16 values
+stored beside the coefficients: 58 bytes with its index for the NeRF MLP) or, where that fails too, in the
+full 90 values (184 bytes), so every pixel is still exact (train/hide/exact_solver.solve_chunk).
 
-Why k = 6: every coefficient costs bytes at every pixel and each escape 184 (90 float16 values and an
-index), so k trades bytes per pixel against escapes: fewer coefficients let many more pixels escape,
-more cost more than their fewer escapes save. int8 coefficients leave most pixels unreachable on
+Why k = 6: every coefficient costs bytes at every pixel and each escape tens to hundreds, so k trades bytes
+per pixel against escapes: fewer coefficients let many more pixels escape, more cost more than their fewer
+escapes save. int8 coefficients leave most pixels unreachable on
 their lattice. The measurements are the bench's (docs/bench/, README "Formats").
 """
 

@@ -26,27 +26,42 @@ ESCAPE_DTYPE = torch.float16  # a compact tile's escaped pixels store full noise
 COUNTS = ("iterations", "jacobians", "renders", "restarts")
 
 
-def stored_noise(space: NoiseSpace, params: torch.Tensor, escaped: torch.Tensor, escape_noise: torch.Tensor,
-                 shape: tuple[int, ...]) -> TileNoise:
+def stored_noise(space: NoiseSpace, params: torch.Tensor, escaped: torch.Tensor, branch_escaped: torch.Tensor,
+                 escape_noise: torch.Tensor, shape: tuple[int, ...], position_dims: int) -> TileNoise:
     """What a tile's bundle entry holds for solved params (n, P), of shape `shape` (its last entry −1 for P)
     in the storage dtype: float noise, or for a compact space integer coefficients (0 where a pixel
-    escaped) and the basis, with the escaped pixels (n,) bool and their float16 noise (n, dims)."""
+    escaped) and the basis, with the escaped pixels (n,) bool and their float16 noise, and the branch escapes
+    (n,) bool and the float16 values of their noise after its first position_dims (escape_noise (n, dims)
+    holds both kinds' noise)."""
     if space.basis is None:
         return VectorNoise(params.reshape(shape).to(space.storage).cpu().numpy())
-    escapes = escaped.nonzero()[:, 0]
+    escapes, branch_escapes = escaped.nonzero()[:, 0], branch_escaped.nonzero()[:, 0]
     basis = CompactBasis(basis=space.basis.cpu().numpy(), offset=space.offset.cpu().numpy(), scale=space.scale,
                          escapes=escapes.to(torch.int32).cpu().numpy(),
-                         escape_noise=escape_noise[escapes].to(torch.float16).cpu().numpy())
-    coefficients = torch.where(escaped[:, None], 0, space.integers(params))
+                         escape_noise=escape_noise[escapes].to(ESCAPE_DTYPE).cpu().numpy(),
+                         branch_escapes=branch_escapes.to(torch.int32).cpu().numpy(),
+                         branch_escape_noise=escape_noise[branch_escapes, position_dims:].to(ESCAPE_DTYPE).cpu().numpy())
+    coefficients = torch.where((escaped | branch_escaped)[:, None], 0, space.integers(params))
     return CompactNoise.of(coefficients.reshape(shape).cpu().numpy(), basis)
+
+
+def branch_space(space: NoiseSpace, position_dims: int) -> NoiseSpace:
+    """Float16 noise in the direction segment alone, the position segment at the compact space's offset: where
+    a branch escape is solved. Its expansion is exactly [offset's position part ‖ the float16 values]."""
+    dims = len(space.offset)
+    embedding = torch.eye(dims, device=space.offset.device)[:, position_dims:]
+    offset = torch.cat([space.offset[:position_dims], space.offset.new_zeros(dims - position_dims)])
+    return NoiseSpace(ESCAPE_DTYPE, embedding, offset)
 
 
 def solve_chunk(secret_view: SecretView, index: torch.Tensor, pixels: torch.Tensor, space: NoiseSpace,
                 config: HideConfig, seed: int) -> dict[str, torch.Tensor]:
     """One chunk's solve, as saved for resume: params (m, P), counts, and for a compact space the pixels it
-    could not finish, `escaped` (m,) uint8, solved again in full float16 noise, `escape_noise` (m, dims)
-    (zero where not escaped). Compact solves run at most CompactSettings.max_iters per phase: the few
-    pixels its basis cannot reach escape sooner, and their float phase stops at CompactSettings.tolerance_bins."""
+    could not finish: those the view branch alone still brings to their colours, `branch_escaped` (m,) uint8,
+    solved again in float16 direction noise, the others, `escaped` (m,) uint8, in full float16 noise, both
+    kinds' noise in `escape_noise` (m, dims) (zero where neither). Compact solves run at most
+    CompactSettings.max_iters per phase: the few pixels its basis cannot reach escape sooner, and their
+    float phase stops at CompactSettings.tolerance_bins."""
     generator, counts = torch.Generator().manual_seed(seed), SolveCounts()
     settings = config.get(ExactSettings)
     if space.basis is None:
@@ -64,21 +79,33 @@ def solve_chunk(secret_view: SecretView, index: torch.Tensor, pixels: torch.Tens
     params = space.zeros(len(index), secret_view.noise_dims, index.device)
     done = torch.zeros_like(index, dtype=torch.bool)
     params[tried], done[tried] = result.params, result.done
-    escape_noise = torch.zeros(len(index), secret_view.noise_dims, device=index.device)
-    if not done.all():  # escapes start from their own compact noise (it keeps the tile's density lift); the
-        # finished pixels' compact noise are the rescue's donors
+    escape_noise = space.expand(params)[:, 0]  # the escapes' starts; the finished pixels' noise, their donors
+    branch_escaped = torch.zeros_like(done)
+    if isinstance(solving, BranchView) and not done[tried].all():  # the view branch, every direction value free
+        position_dims = secret_view.field.config.position_dims
+        directions = branch_space(space, position_dims)
+        problem = ChunkProblem(solving, index[tried], pixels[tried], directions, settings, generator, counts)
+        solved, ok = rescue(problem, directions.store(escape_noise[tried, position_dims:]), done[tried])
+        reached = ok & ~done[tried]
+        branch_escaped[tried[reached]] = True
+        escape_noise[tried[reached]] = directions.expand(solved[reached])[:, 0]
+    escaped = ~(done | branch_escaped)
+    if escaped.any():  # escapes start from their own compact noise (it keeps the tile's density lift)
         escapes = ChunkProblem(secret_view, index, pixels, NoiseSpace(ESCAPE_DTYPE), settings, generator, counts)
-        full, _ = rescue(escapes, space.expand(params)[:, 0], done)
-        escape_noise[~done] = full[~done]
-    return {"noise": params, "counts": torch.tensor(dataclasses.astuple(counts)),
-            "escaped": (~done).to(torch.uint8), "escape_noise": escape_noise}
+        full, _ = rescue(escapes, escape_noise, ~escaped)
+        escape_noise[escaped] = full[escaped]
+    escape_noise[done] = 0
+    return {"noise": params, "counts": torch.tensor(dataclasses.astuple(counts)), "escaped": escaped.to(torch.uint8),
+            "branch_escaped": branch_escaped.to(torch.uint8), "escape_noise": escape_noise}
 
 
 def sound_chunk(saved: dict[str, torch.Tensor], space: NoiseSpace) -> bool:
     """What the solver assumes of a saved chunk beyond its layout: storable params (on the lattice, or
-    in the storage dtype), counts ≥ 0, escapes 0 or 1."""
+    in the storage dtype), counts ≥ 0, escapes 0 or 1, no pixel both kinds of escape."""
+    flags = [saved[name] for name in ("escaped", "branch_escaped") if name in saved]
     return (torch.equal(space.store(saved["noise"]), saved["noise"]) and bool((saved["counts"] >= 0).all())
-            and ("escaped" not in saved or bool((saved["escaped"] <= 1).all())))
+            and all(bool((flag <= 1).all()) for flag in flags)
+            and (len(flags) < 2 or not bool((flags[0] & flags[1]).any())))
 
 
 class ExactSolver(Solver):
@@ -125,7 +152,8 @@ class ExactSolver(Solver):
         space = chunk_space(config, prepared)
         layout = {"noise": ((rows, space.width(dims)), torch.float32), "counts": ((len(COUNTS),), torch.int64)}
         if space.basis is not None:
-            layout.update(escaped=((rows,), torch.uint8), escape_noise=((rows, dims), torch.float32))
+            layout.update(escaped=((rows,), torch.uint8), branch_escaped=((rows,), torch.uint8),
+                          escape_noise=((rows, dims), torch.float32))
         return layout, lambda tensors: sound_chunk(tensors, space)
 
     def assemble(self, secret_view: SecretView, pixels: torch.Tensor, shape: tuple[int, int], config: HideConfig,
@@ -139,14 +167,18 @@ class ExactSolver(Solver):
         totals = {name: int(counts[:, i].max() if name == "iterations" else counts[:, i].sum())
                   for i, name in enumerate(COUNTS)}
         if space.basis is None:
-            escaped = torch.zeros(len(params), dtype=torch.bool, device=device)
+            escaped = branch_escaped = torch.zeros(len(params), dtype=torch.bool, device=device)
             escape_noise = torch.zeros(len(params), secret_view.noise_dims, device=device)
         else:
-            escaped = torch.cat([part["escaped"] for part in parts]).bool().to(device)
+            escaped, branch_escaped = (torch.cat([part[name] for part in parts]).bool().to(device)
+                                       for name in ("escaped", "branch_escaped"))
             escape_noise = torch.cat([part["escape_noise"] for part in parts]).to(device)
-        noise = torch.where(escaped[:, None, None], escape_noise[:, None, :], space.expand(params))
-        stored = stored_noise(space, params, escaped, escape_noise, LAYOUTS[config.layout].stored_shape(*shape, 1, -1))
-        return TileSolution(noise, {**totals, "escaped": int(escaped.sum())}, stored)
+        outside = escaped | branch_escaped
+        noise = torch.where(outside[:, None, None], escape_noise[:, None, :], space.expand(params))
+        stored = stored_noise(space, params, escaped, branch_escaped, escape_noise,
+                              LAYOUTS[config.layout].stored_shape(*shape, 1, -1), secret_view.field.config.position_dims)
+        return TileSolution(noise, {**totals, "escaped": int(outside.sum()), "branch_escaped": int(branch_escaped.sum())},
+                            stored)
 
 
 def chunk_space(config: HideConfig, prepared: NoiseSpace | None) -> NoiseSpace:

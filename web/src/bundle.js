@@ -1,5 +1,5 @@
 // Mirrors runtime/bundle.py: the safetensors bundle (header JSON + tensors, dtypes F16/F32/U8/I32 only), its
-// metadata checked with the same messages and caps before anything is allocated (formats 1–2), each tile's noise
+// metadata checked with the same messages and caps before anything is allocated (formats 1–3), each tile's noise
 // read, checked and cut into chunks by its layout (src/layouts.js).
 
 import { UserError, repr, reprCut, tuple, PyFloat } from "./errors.js";
@@ -14,7 +14,9 @@ import { checkedPayload } from "./payload.js";
 
 export const NOISENERF_VERSION = "0.1.0"; // noisenerf.__version__ of the Python runtime this port mirrors
 export const METADATA_KEY = "noisenerf_bundle";
-const READABLE_FORMATS = { 1: ["ray", "sample"], 2: ["ray", "sample", "compact"] };
+// format -> the layouts it may hold (format 3: compact tiles add branch escapes, src/layouts.js)
+const READABLE_FORMATS = { 1: ["ray", "sample"], 2: ["ray", "sample", "compact"], 3: ["ray", "sample", "compact"] };
+const NEWEST_FORMAT = Math.max(...Object.keys(READABLE_FORMATS).map(Number));
 const SAFETENSORS_DTYPES = ["F16", "F32", "U8", "I32"];
 const NUMPY_NAMES = { F16: "float16", F32: "float32", U8: "uint8", I32: "int32" };
 const ITEM_SIZE = { F16: 2, F32: 4, U8: 1, I32: 4, I8: 1, I16: 2, BOOL: 1, F64: 8, I64: 8, U16: 2, U32: 4, U64: 8, BF16: 2 };
@@ -74,8 +76,8 @@ function checkedFormat(meta, source) {
   let version = meta.format_version;
   const key = typeof version === "number" ? version : version instanceof PyFloat ? version.value : null;
   if (typeof version === "boolean" || !(key in READABLE_FORMATS)) {
-    throw new UserError(`${source} is bundle format ${reprCut(version === undefined ? null : version, 20)}; noisenerf ${NOISENERF_VERSION} reads formats 1 to 2` +
-      (typeof version === "number" && Number.isInteger(version) && version > 2 ? "; a newer noisenerf is needed" : ""));
+    throw new UserError(`${source} is bundle format ${reprCut(version === undefined ? null : version, 20)}; noisenerf ${NOISENERF_VERSION} reads formats 1 to ${NEWEST_FORMAT}` +
+      (typeof version === "number" && Number.isInteger(version) && version > NEWEST_FORMAT ? "; a newer noisenerf is needed" : ""));
   }
   return key;
 }
@@ -131,7 +133,7 @@ async function parseTile(i, data, tensors, header) {
   if (typeof name !== "string") throw new UserError(`bundle: tile ${i} tensor ${reprCut(name ?? null, 40)} is missing`);
   const what = `bundle: tile ${i}`;
   const noise = await LAYOUTS[header.layout].readTile(name, data, (key, dtype = null, ndim = null) => tileTensor(tensors, key, what, dtype, ndim),
-    [height, width, header.coefficients], header.dtype, what);
+    [height, width, header.coefficients], header.dtype, what, header.format);
   const view = data.view ?? null;
   const camera = cameraFromDict(data.camera ?? null);
   const sampling = samplingFromDict(data.sampling ?? null);
@@ -195,7 +197,7 @@ export async function loadBundle(data, source = "secret.bundle") {
   const secret = meta.secret, noise = meta.noise;
   if (!isObject(secret) || !isObject(noise)) throw new UserError("bundle: metadata needs 'secret' and 'noise' objects");
   const [width, height] = checkedImageSize(secret.width ?? null, secret.height ?? null, "bundle: secret");
-  const header = noiseHeader(noise, READABLE_FORMATS[version]);
+  const header = { ...noiseHeader(noise, READABLE_FORMATS[version]), format: version };
   const tileData = checkedList(meta.tiles ?? null, "bundle: tiles", null, MAX_TILES);
   const areas = tileData.map((tile, i) => checkedRect(i, tile)).reduce((n, r) => n + r[2] * r[3], 0);
   const layout = LAYOUTS[header.layout];

@@ -15,6 +15,7 @@ const { XzReadableStream } = xz;
 const f32 = Math.fround;
 const FLOAT32_TINY = 1.1754943508222875e-38, FLOAT32_MAX = 3.4028234663852886e38;
 const CODEC = "xz-byte-planes";
+const BRANCH_ESCAPES_FROM = 3; // the bundle format from which compact tiles store branch escapes
 
 /** IEEE half -> float. */
 const HALF = new Float32Array(65536);
@@ -112,6 +113,11 @@ export function expandCoefficients(coefficients, k, basis) {
   }
   const escapes = basis.escapes;
   for (let e = 0; e < escapes.length; e++) out.set(basis.escapeNoise.subarray(e * dims, (e + 1) * dims), escapes[e] * dims);
+  const branchEscapes = basis.branchEscapes, width = basis.branchWidth, lead = dims - width;
+  for (let b = 0; b < branchEscapes.length; b++) {
+    out.set(offset.subarray(0, lead), branchEscapes[b] * dims);
+    out.set(basis.branchEscapeNoise.subarray(b * width, (b + 1) * width), branchEscapes[b] * dims + lead);
+  }
   return out;
 }
 
@@ -173,27 +179,44 @@ const COMPACT = {
     const packed = streams.reduce((n, stream) => n + (stream === undefined ? 0 : stream.values.byteLength), 0);
     checkedExpansion(packed, tilePixels * k * (dtype === "int16" ? 2 : 1), "bundle");
   },
-  async readTile(name, data, tensor, shape, dtype, what) {
+  /** Branch escapes from format 3 on (a format 2 tile has none). */
+  async readTile(name, data, tensor, shape, dtype, what, version) {
     const basis = tensor(`${name}_basis`), offset = tensor(`${name}_offset`);
     const scale = checkedFloat(data.scale ?? null, `${what} scale`, FLOAT32_TINY, FLOAT32_MAX);
     const escapes = tensor(`${name}_escapes`), escapeNoise = tensor(`${name}_escape_noise`);
+    const branch = version >= BRANCH_ESCAPES_FROM
+      ? { branchEscapes: tensor(`${name}_branch_escapes`), branchEscapeNoise: tensor(`${name}_branch_escape_noise`) }
+      : { branchEscapes: { dtype: "int32", shape: [0], values: new Int32Array(0) },
+        branchEscapeNoise: { dtype: "float16", shape: [0, 0], values: new Uint16Array(0) } };
     const packed = tensor(name, "uint8", 1);
     const coefficients = await unpackCoefficients(packed.values, shape, dtype, what);
-    return { coefficients, shape, dtype, basis: { basis, offset, scale, escapes, escapeNoise } };
+    return { coefficients, shape, dtype, basis: { basis, offset, scale, escapes, escapeNoise, ...branch } };
   },
-  /** The basis (dims, k), offset (dims,) float32 and escape noise (e, dims) float16, all finite; the escapes (e,)
-   * int32 strictly increasing inside the tile (the coefficients were decoded to their stated shape). */
+  /** The basis (dims, k), offset (dims,) float32, escape noise (e, dims) and branch escape noise (b, w), w ≤ dims,
+   * float16, all finite; the escapes (e,) and branch escapes (b,) int32, each strictly increasing inside the tile,
+   * none in both (the coefficients were decoded to their stated shape). */
   checkNoise(what, noise, pixels, dims, k) {
-    const basis = noise.basis, escapes = basis.escapes;
-    if (escapes.shape.length !== 1 || escapes.dtype !== "int32") {
-      throw new UserError(`${what} escapes are ${escapes.dtype} ${repr(tuple(...escapes.shape))}, expected int32 (e,)`);
+    const basis = noise.basis;
+    for (const [name, indices] of [["escapes", basis.escapes], ["branch escapes", basis.branchEscapes]]) {
+      if (indices.shape.length !== 1 || indices.dtype !== "int32") {
+        throw new UserError(`${what} ${name} are ${indices.dtype} ${repr(tuple(...indices.shape))}, expected int32 (e,)`);
+      }
+      const v = indices.values;
+      if (v.length && (v[0] < 0 || v[v.length - 1] >= pixels || v.some((x, j) => j > 0 && x <= v[j - 1]))) {
+        throw new UserError(`${what} ${name} must be strictly increasing pixel indices inside the tile`);
+      }
     }
-    const e = escapes.values;
-    if (e.length && (e[0] < 0 || e[e.length - 1] >= pixels || e.some((v, j) => j > 0 && v <= e[j - 1]))) {
-      throw new UserError(`${what} escapes must be strictly increasing pixel indices inside the tile`);
+    const e = basis.escapes.values, escaped = new Set(e);
+    if (basis.branchEscapes.values.some((p) => escaped.has(p))) {
+      throw new UserError(`${what}: a pixel is both an escape and a branch escape`);
+    }
+    const branchShape = basis.branchEscapeNoise.shape, width = branchShape.length === 2 ? branchShape[1] : -1;
+    if (!(width >= 0 && width <= dims)) {
+      throw new UserError(`${what} branch escape noise is ${repr(tuple(...branchShape))}, expected (b, w), w ≤ ${dims}`);
     }
     for (const [name, value, want, dtype] of [["basis", basis.basis, [dims, k], "float32"], ["offset", basis.offset, [dims], "float32"],
-      ["escape noise", basis.escapeNoise, [e.length, dims], "float16"]]) {
+      ["escape noise", basis.escapeNoise, [e.length, dims], "float16"],
+      ["branch escape noise", basis.branchEscapeNoise, [basis.branchEscapes.values.length, width], "float16"]]) {
       if (!sameShape(value.shape, want) || value.dtype !== dtype) {
         throw new UserError(`${what} ${name} is ${value.dtype} ${repr(tuple(...value.shape))}, expected ${dtype} ${repr(tuple(...want))}`);
       }
@@ -203,21 +226,30 @@ const COMPACT = {
   loaded(noise) {
     const b = noise.basis;
     noise.basis = { basis: b.basis.values, offset: b.offset.values, scale: b.scale, escapes: b.escapes.values,
-      escapeNoise: widened(b.escapeNoise.values) };
+      escapeNoise: widened(b.escapeNoise.values), branchEscapes: b.branchEscapes.values,
+      branchEscapeNoise: widened(b.branchEscapeNoise.values), branchWidth: b.branchEscapeNoise.shape[1] };
   },
-  /** Escaped pixels renumbered from the chunk's first. */
+  /** Escaped and branch-escaped pixels renumbered from the chunk's first. */
   chunk(tile, bundle, start, stop) {
-    const dims = bundle.noiseDims, k = bundle.coefficients, { basis, offset, scale, escapes, escapeNoise } = tile.noise.basis;
-    const inside = [];
-    for (let e = 0; e < escapes.length; e++) if (escapes[e] >= start && escapes[e] < stop) inside.push(e);
-    const chunkEscapes = Int32Array.from(inside, (e) => escapes[e] - start);
-    const chunkEscapeNoise = new Float32Array(inside.length * dims);
-    inside.forEach((e, i) => chunkEscapeNoise.set(escapeNoise.subarray(e * dims, (e + 1) * dims), i * dims));
+    const dims = bundle.noiseDims, k = bundle.coefficients, basis = tile.noise.basis, width = basis.branchWidth;
+    const [escapes, escapeNoise] = escapesIn(basis.escapes, basis.escapeNoise, dims, start, stop);
+    const [branchEscapes, branchEscapeNoise] = escapesIn(basis.branchEscapes, basis.branchEscapeNoise, width, start, stop);
     return { layout: this.name, coefficients: tile.noise.coefficients.slice(start * k, stop * k), k, dims,
-      basis: { basis, offset, scale, escapes: chunkEscapes, escapeNoise: chunkEscapeNoise } };
+      basis: { basis: basis.basis, offset: basis.offset, scale: basis.scale, escapes, escapeNoise, branchEscapes,
+        branchEscapeNoise, branchWidth: width } };
   },
   rows(chunk) { return { values: expandCoefficients(chunk.coefficients, chunk.k, chunk.basis), perSample: 1, dims: chunk.dims }; },
 };
+
+/** The pixels of `indices` (strictly increasing) in start..stop, renumbered from start, and their rows of `noise`
+ * (width values each). -> [Int32Array, Float32Array]. */
+function escapesIn(indices, noise, width, start, stop) {
+  const inside = [];
+  for (let e = 0; e < indices.length; e++) if (indices[e] >= start && indices[e] < stop) inside.push(e);
+  const rows = new Float32Array(inside.length * width);
+  inside.forEach((e, i) => rows.set(noise.subarray(e * width, (e + 1) * width), i * width));
+  return [Int32Array.from(inside, (e) => indices[e] - start), rows];
+}
 
 export const LAYOUTS = {
   ray: { ...VECTOR, name: "ray", dtypes: ["float16", "float32"] },
