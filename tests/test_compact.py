@@ -51,7 +51,7 @@ def test_tiles_beyond_the_kept_budget_are_unpacked_again_when_rendered_with_the_
 
     folder, secret, _, model = demo
     kept = load_bundle(folder / "compact.bundle")
-    tile_bytes = kept.tiles[0].noise.unpacked.nbytes  # two 24² tiles of 6 int16 coefficients a pixel
+    tile_bytes = kept.tiles[0].noise.unpacked.nbytes  # two 24² tiles of k int16 coefficients a pixel
     monkeypatch.setattr(layouts_module, "KEPT_UNPACKED_BYTES", tile_bytes)
     partly = load_bundle(folder / "compact.bundle")
     assert [t.noise.unpacked is not None for t in kept.tiles] == [True, True]

@@ -55,8 +55,8 @@ def test_singular_jacobians_give_plain_rounding():
 @pytest.fixture(scope="module")
 def compact_view():
     """The problem of a 16×12 secret's view of the demo scene in a compact space, and its float-phase
-    solution. The space's integer steps move a colour by about a quarter bin (the default), and six coefficients
-    rounded at once miss many pixels' bins."""
+    solution. The space's integer steps move a colour by about a third of a bin (the default), and five
+    coefficients rounded at once miss many pixels' bins."""
     scene = load_scene(DEMO_SCENE)
     secret = procedural_secret(16, 12)
     config = HideConfig(view=DEMO_VIEW, tile_size=16)
@@ -95,7 +95,7 @@ def test_a_compact_tile_lifts_its_density_once_and_moves_only_the_view_direction
 
 def test_each_coefficient_steps_a_colour_by_about_step_bins(compact_view):
     """The tile's lattice is stretched per coefficient: over the tile's rays (the basis chose it from a sample
-    of them), one integer step of each coefficient moves the median ray's largest channel by ~¼ bin
+    of them), one integer step of each coefficient moves the median ray's largest channel by ~⅓ bin
     (step_bins' default), though the principal directions move colours by very different amounts."""
     problem = compact_view[0]
     view, space = solver_view(problem.secret_view, problem.space), problem.space

@@ -12,7 +12,7 @@ from noisenerf.runtime.bundle import load_bundle
 from noisenerf.runtime.errors import UserError
 from noisenerf.runtime.images import to_uint8
 from noisenerf.runtime.reveal import reveal
-from noisenerf.train.hide.settings import PaperSettings
+from noisenerf.train.hide.settings import CompactSettings, PaperSettings
 from noisenerf.train.hide.plan import HideConfig
 from noisenerf.train.hide.run import hide
 from noisenerf.train.hide.tiling import tile_rects
@@ -37,7 +37,7 @@ def weights_digest(scene):
     return digest.hexdigest()
 
 
-@pytest.mark.parametrize("layout, dtype, stored", [("compact", "int16", 6), ("ray", "float16", 90),
+@pytest.mark.parametrize("layout, dtype, stored", [("compact", "int16", CompactSettings().coefficients), ("ray", "float16", 90),
                                                   ("ray", "float32", 90)])
 def test_exact_hide_recovers_every_value_and_leaves_weights_unchanged(scene, tmp_path, layout, dtype, stored):
     secret = random_secret(20, 30)

@@ -16,9 +16,9 @@ with that seed's Jacobian (chord_start: forward passes only, which spare Jacobia
 Two phases: the first solves in float32 until every channel sits within `tolerance_bins` of its bin's
 centre; the second rounds to the storage dtype and polishes, judging only storable noise, until every
 channel rounds to its 8-bit value with `margin_bins` to spare (far more than the torch ↔ onnxruntime
-disagreement). Between the phases, a compact tile's integer lattice (each of its 6 coefficients in
+disagreement). Between the phases, a compact tile's integer lattice (each of its k coefficients in
 steps that move a colour by about CompactSettings.step_bins) is entered by round_to_lattice, a search
-among nearby lattice points predicted by the Jacobian: the steps of six coefficients together can move a
+among nearby lattice points predicted by the Jacobian: the steps of k coefficients together can move a
 colour by more than a bin, so plain rounding would leave many pixels to LM on the lattice, which costs far
 more Jacobians than rendering a few predicted points.
 
