@@ -10,7 +10,8 @@ import torch
 from helpers import make_tiny_scene
 from noisenerf.cli.demo import DEMO_VIEW
 from noisenerf.runtime.errors import UserError
-from noisenerf.train.hide.compact import LIFT_MARGIN, colour_bins_per_unit, lift_density, solver_view, tile_space
+from noisenerf.train.hide.compact import (LIFT_MARGIN, colour_bins_per_unit, lift_density, solver_view, stepped,
+                                          tile_space)
 from noisenerf.train.hide.exact import (ChunkProblem, NoiseSpace, chord_start, damped_step,
                                         lattice_candidates, refine,
                                         residuals, round_to_lattice)
@@ -93,17 +94,23 @@ def test_a_compact_tile_lifts_its_density_once_and_moves_only_the_view_direction
     assert solver_view(view, NoiseSpace(torch.float16)) is view  # full noise: the whole field
 
 
-def test_each_coefficient_steps_a_colour_by_about_step_bins(compact_view):
-    """The tile's lattice is stretched per coefficient: over the tile's rays (the basis chose it from a sample
-    of them), one integer step of each coefficient moves the median ray's largest channel by ~⅓ bin
-    (step_bins' default), though the principal directions move colours by very different amounts."""
-    problem = compact_view[0]
+def test_each_coefficient_steps_a_colour_by_step_bins_where_the_solved_pixels_lie(compact_view):
+    """stepped stretches each column so that, at the noise it is given (here the tile's solved pixels'), one
+    integer step of each coefficient moves the median ray's largest channel by step_bins, though the principal
+    directions move colours by very different amounts; the tile's own lattice is stepped so too (at its
+    sample's solutions, which lie near these)."""
+    problem, converged, done = compact_view
     view, space = solver_view(problem.secret_view, problem.space), problem.space
-    per_step = colour_bins_per_unit(view, space)
-    assert space.scale == 1.0 and per_step.shape == (CompactSettings().coefficients,)
-    np.testing.assert_allclose(per_step.numpy(), CompactSettings().step_bins, rtol=0.25)
-    unstretched = colour_bins_per_unit(view, dataclasses.replace(space, basis=space.basis / space.basis.norm(dim=0)))
+    which = done.nonzero()[:, 0]
+    noise = space.expand(converged)[:, 0]
+    unit = dataclasses.replace(space, storage=torch.float32, basis=space.basis / space.basis.norm(dim=0))
+    unstretched = colour_bins_per_unit(view, unit, which, noise)
     assert float(unstretched.max() / unstretched.min()) > 2.0
+    lattice = stepped(view, unit, 0.5, torch.int16, which, noise)
+    assert lattice.scale == 1.0 and lattice.storage == torch.int16
+    np.testing.assert_allclose(colour_bins_per_unit(view, lattice, which, noise).numpy(), 0.5, rtol=1e-4)
+    np.testing.assert_allclose(colour_bins_per_unit(view, space, which, noise).numpy(), CompactSettings().step_bins,
+                               rtol=0.3)
 
 
 def test_lift_density_reaches_its_margin_on_every_sampled_ray(compact_view):

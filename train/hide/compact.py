@@ -7,7 +7,8 @@ varies in few directions. Per tile, from a seeded sample of its pixels:
   γ(d) part the mean of the sample's noise solved in γ(d) alone with that γ(x) fixed (BranchView);
 - basis B (dims, k): the top-k principal directions of that solved γ(d) noise around o, zero in γ(x);
 - scale: 1; each column of B is stretched so that one integer step of its coefficient moves a colour
-  by about CompactSettings.step_bins 8-bit bins (stepped): a step far finer than a bin only costs bits.
+  by about CompactSettings.step_bins 8-bit bins where the sample's solved pixels lie (stepped): a step
+  far finer than a bin only costs bits.
 
 Each pixel's noise is o + (q · scale) Bᵀ with q (k,) int16 (or int8); the exact solver works in that
 space (train/hide/exact.NoiseSpace) and judges only lattice points, as the ray layout judges only float16
@@ -115,39 +116,46 @@ def tile_space(secret_view: SecretView, pixels: torch.Tensor, settings: CompactS
         branch = BranchView(part, xyz_noise)
         lifted_floor = raw_floors(branch.field, exact.density_floor)[1]
         if float(is_lifted(branch.density, lifted_floor).float().mean()) >= MIN_LIFTED:
-            space = direction_basis(branch, pixels[sample], xyz_noise, settings, exact, generator)
-            return stepped(branch, space, settings.step_bins, storage)
+            space, index, noise = direction_basis(branch, pixels[sample], xyz_noise, settings, exact, generator)
+            return stepped(branch, space, settings.step_bins, storage, index, noise)
     solved = solve_exact(ChunkProblem(secret_view, sample, pixels[sample], NoiseSpace(torch.float32), exact, generator))
     offset, basis = principal_basis(solved.params, settings.coefficients)
-    return stepped(part, NoiseSpace(torch.float32, basis, offset), settings.step_bins, storage)
+    index = solved.done.nonzero()[:, 0]
+    return stepped(part, NoiseSpace(torch.float32, basis, offset), settings.step_bins, storage, index,
+                   solved.params[index])
 
 
-def colour_bins_per_unit(view: SecretView | BranchView, space: NoiseSpace) -> torch.Tensor:
-    """How far a unit of each basis coordinate moves the view's colours at the offset, in 8-bit bins: the
-    largest channel's |∂sigmoid(raw colour)/∂coordinate| · 255, the median over the view's rays. -> (k,)."""
-    index = torch.arange(view.n_rays, device=space.offset.device)
-    outputs, jac = view.outputs_and_jacobian(index, space.expand(space.zeros(view.n_rays, view.noise_dims,
-                                                                             space.offset.device)))
+def colour_bins_per_unit(view: SecretView | BranchView, space: NoiseSpace, index: torch.Tensor,
+                         noise: torch.Tensor) -> torch.Tensor:
+    """How far a unit of each basis coordinate moves the colours of rays `index` (s,) at their noise (s, dims),
+    in 8-bit bins: the largest channel's |∂sigmoid(raw colour)/∂coordinate| · 255, the median over the rays.
+    -> (k,)."""
+    outputs, jac = view.outputs_and_jacobian(index, noise[:, None, :])
     colour = torch.sigmoid(outputs[:, :3])
-    slope = (colour * (1 - colour))[:, :, None] * space.chain(jac)[:, :3]  # (rays, 3, k)
+    slope = (colour * (1 - colour))[:, :, None] * space.chain(jac)[:, :3]  # (s, 3, k)
     return 255.0 * slope.abs().amax(1).median(0).values
 
 
-def stepped(view: SecretView | BranchView, space: NoiseSpace, step_bins: float, storage: torch.dtype) -> NoiseSpace:
+def stepped(view: SecretView | BranchView, space: NoiseSpace, step_bins: float, storage: torch.dtype,
+            index: torch.Tensor, noise: torch.Tensor) -> NoiseSpace:
     """A float basis space as the tile's integer lattice: each column stretched so that one step of its
-    coefficient moves a colour by about step_bins (colour_bins_per_unit over the basis sample `view`), the
-    scale 1. A column that moves no colour (a zero one) stays as it is."""
-    per_unit = colour_bins_per_unit(view, space)
+    coefficient moves a colour by about step_bins where the basis sample's solved pixels, rays `index` of
+    `view`, lie (their noise (s, dims): colour_bins_per_unit; the colours' slopes there, not at the offset,
+    since a field's colour can be flat at the offset and steep where the colours are), the scale 1. A
+    column that moves no colour (a zero one) stays as it is."""
+    per_unit = colour_bins_per_unit(view, space, index, noise)
     stretch = torch.where(per_unit > 0, step_bins / per_unit.clamp_min(1e-30), 1.0)
     return NoiseSpace(storage, (space.basis * stretch).contiguous(), space.offset, 1.0)
 
 
 def direction_basis(branch: BranchView, pixels: torch.Tensor, xyz_noise: torch.Tensor, settings: CompactSettings,
-                    exact: ExactSettings, generator: torch.Generator) -> NoiseSpace:
+                    exact: ExactSettings, generator: torch.Generator
+                    ) -> tuple[NoiseSpace, torch.Tensor, torch.Tensor]:
     """tile_space's γ(d) basis from a sample's BranchView and pixels (s, 3): the principal directions of
     the sample's solved noise, found twice. The solved pixels the first basis cannot bring to their
     colours (mostly the darkest) count missed_weight times in the second, which turns the basis towards
-    them and so cuts escapes. Pixels left unsolved never count."""
+    them and so cuts escapes. Pixels left unsolved never count. -> the float space, and the solved pixels'
+    indices (d,) and noise (d, dims)."""
     dir_dims, k = branch.noise_dims - len(xyz_noise), settings.coefficients
     every = torch.arange(branch.n_rays, device=pixels.device)
     directions = direction_space(torch.float32, xyz_noise, xyz_noise.new_zeros(dir_dims),
@@ -156,7 +164,9 @@ def direction_basis(branch: BranchView, pixels: torch.Tensor, xyz_noise: torch.T
     first = direction_space(torch.float32, xyz_noise, *principal_basis(solved.params[solved.done], k))
     trial = solve_exact(ChunkProblem(branch, every, pixels, first, in_basis(exact, settings), generator))
     weights = torch.where(trial.done, 1, settings.missed_weight) * solved.done
-    return direction_space(torch.float32, xyz_noise, *principal_basis(solved.params.repeat_interleave(weights, 0), k))
+    done = solved.done.nonzero()[:, 0]
+    return (direction_space(torch.float32, xyz_noise, *principal_basis(solved.params.repeat_interleave(weights, 0), k)),
+            done, directions.expand(solved.params[done])[:, 0])
 
 
 def direction_space(storage: torch.dtype, xyz_noise: torch.Tensor, dir_offset: torch.Tensor,

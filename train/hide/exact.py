@@ -121,6 +121,14 @@ class NoiseSpace:
         limit = INTEGER_LIMITS[self.storage]
         return torch.clamp(torch.round(params / self.scale), -limit, limit).to(self.storage)
 
+    def noise_units(self, like: torch.Tensor) -> torch.Tensor:
+        """Params per unit of noise along each coordinate, (P,) like `like`'s: 1 in the full space, 1/‖Bⱼ‖ in a
+        basis (a compact tile's columns are stretched to its lattice steps), so that a random restart or
+        jitter of a given spread moves the noise alike in every space."""
+        if self.basis is None:
+            return torch.ones(like.shape[-1], dtype=like.dtype, device=like.device)
+        return 1.0 / self.basis.norm(dim=0).clamp_min(1e-30)
+
     def width(self, dims: int) -> int:
         """P, the params per pixel for noise of `dims` values."""
         return dims if self.basis is None else self.basis.shape[1]
@@ -378,7 +386,8 @@ def restart(problem: ChunkProblem, state: Refinement, stuck: torch.Tensor) -> No
                                         problem.generator, settings.donors * state.restarts[stuck[from_donor]])
     spread = torch.where(from_donor[:, None], spread, spread + settings.restart_spread)
     jitter = torch.randn(start.shape, generator=problem.generator).to(start.device)
-    state.params[stuck] = problem.judged(start + spread * jitter, state.storage_phase)
+    state.params[stuck] = problem.judged(start + spread * jitter * problem.space.noise_units(start),
+                                         state.storage_phase)
     state.outputs[stuck] = problem.outputs(stuck, state.params[stuck])
     state.age[stuck], state.damping[stuck] = 0, settings.damping
     problem.counts.restarts += stuck.numel()
@@ -515,7 +524,8 @@ def rescue(problem: ChunkProblem, params: torch.Tensor, done: torch.Tensor) -> t
             nearest = torch.cdist(problem.goal[left], problem.goal[finished]).topk(min(r, finished.numel()),
                                                                                   largest=False).indices
             start = params[finished[nearest[:, -1]]]
-            start = start + r * settings.jitter * torch.randn(start.shape, generator=problem.generator).to(start.device)
+            start = start + r * settings.jitter * problem.space.noise_units(start) * torch.randn(
+                start.shape, generator=problem.generator).to(start.device)
         solved, ok = solve_from(longer.subset(left), problem.space.store(start))
         params[left[ok]], done[left[ok]] = solved[ok], True
     return params, done

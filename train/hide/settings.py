@@ -56,7 +56,8 @@ class CompactSettings:
     key: ClassVar[str] = "compact"  # where bundles record these settings
     coefficients: int = 5  # k per pixel (train/hide/compact.py: why 5)
     # how far one integer step of a coefficient moves a colour, in 8-bit bins (the median over the basis
-    # sample, tile_space): coarser steps cost fewer bytes per coefficient until the lattice misses colours
+    # sample's solved pixels, compact.stepped): coarser steps cost fewer bytes per coefficient until the
+    # lattice misses colours
     step_bins: float = 0.35
     # every seed_stride-th pixel is solved first and warm-starts the others (ExactSettings.seed_stride); in a
     # basis 1: every pixel starts at the offset, so solutions stay near it rather than scattered around
