@@ -1,8 +1,11 @@
 """The recipient's side never needs torch or onnx: proven in a fresh interpreter where importing them fails."""
 
+import dataclasses
 import json
 import subprocess
 import sys
+
+from noisenerf.train.hide.settings import CompactSettings
 
 # Runs in the fresh interpreter: block torch and onnx (not onnxruntime), import every runtime module and
 # the reveal CLI, reveal a bundle end to end, then report what got imported.
@@ -74,7 +77,8 @@ def test_hide_settings_are_built_and_pickled_without_torch():
     status = json.loads(result.stdout)
     assert status["torch"] is False
     exact, paper = status["configs"]["exact"], status["configs"]["paper"]
-    assert (exact["layout"], exact["n_samples"], exact["compact"]["coefficients"]) == ("compact", 1, 6)
+    assert (exact["layout"], exact["n_samples"], exact["compact"]) == ("compact", 1,
+                                                                       dataclasses.asdict(CompactSettings()))
     assert "paper" not in exact and "exact" not in paper
     assert (paper["layout"], paper["n_samples"], paper["network"]) == ("sample", 64, "coarse")
     assert (paper["paper"]["iters"], paper["paper"]["revival"], paper["paper"]["pass_samples"]) == (7, "dead", 1 << 16)
