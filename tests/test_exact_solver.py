@@ -111,6 +111,11 @@ def test_each_coefficient_steps_a_colour_by_step_bins_where_the_solved_pixels_li
     np.testing.assert_allclose(colour_bins_per_unit(view, lattice, which, noise).numpy(), 0.5, rtol=1e-4)
     np.testing.assert_allclose(colour_bins_per_unit(view, space, which, noise).numpy(), CompactSettings().step_bins,
                                rtol=0.3)
+    none = which[:0]  # no solved pixel to measure at: the view's rays at the offset
+    at_offset = space.expand(space.zeros(view.n_rays, view.noise_dims, CPU))[:, 0]
+    every = torch.arange(view.n_rays)
+    np.testing.assert_allclose(colour_bins_per_unit(view, stepped(view, unit, 0.5, torch.int16, none, noise[:0]),
+                                                    every, at_offset).numpy(), 0.5, rtol=1e-4)
 
 
 def test_lift_density_reaches_its_margin_on_every_sampled_ray(compact_view):

@@ -142,7 +142,11 @@ def stepped(view: SecretView | BranchView, space: NoiseSpace, step_bins: float, 
     coefficient moves a colour by about step_bins where the basis sample's solved pixels, rays `index` of
     `view`, lie (their noise (s, dims): colour_bins_per_unit; the colours' slopes there, not at the offset,
     since a field's colour can be flat at the offset and steep where the colours are), the scale 1. A
-    column that moves no colour (a zero one) stays as it is."""
+    column that moves no colour (a zero one) stays as it is. Where no sample pixel was solved, the slopes
+    are measured over the view's rays at the offset."""
+    if not len(index):
+        index = torch.arange(view.n_rays, device=space.offset.device)
+        noise = space.expand(space.zeros(view.n_rays, view.noise_dims, space.offset.device))[:, 0]
     per_unit = colour_bins_per_unit(view, space, index, noise)
     stretch = torch.where(per_unit > 0, step_bins / per_unit.clamp_min(1e-30), 1.0)
     return NoiseSpace(storage, (space.basis * stretch).contiguous(), space.offset, 1.0)
