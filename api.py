@@ -95,7 +95,7 @@ def hide(scene, secret: PathLike | np.ndarray | None = None, output: PathLike | 
     from noisenerf.runtime.payload import Record, image_record, read_payload_file
     from noisenerf.train.hide.methods import METHODS
     from noisenerf.train.hide.plan import HideConfig
-    from noisenerf.train.hide.settings import chunk_pixels_for
+    from noisenerf.train.hide.settings import part_pixels_for
     from noisenerf.train.scene.scene import Scene, load_scene
 
     if output is None:
@@ -119,7 +119,7 @@ def hide(scene, secret: PathLike | np.ndarray | None = None, output: PathLike | 
         raise UserError(PAYLOAD_IS_EXACT)
     torch_device = resolve_device(device)
     config = HideConfig(method=method, layout=layout, dtype=dtype, n_samples=samples, view=view, seed=seed,
-                        chunk_pixels=chunk_pixels_for(torch_device.type), settings=tuple(settings),
+                        part_pixels=part_pixels_for(torch_device.type), settings=tuple(settings),
                         **({} if tile_size is None else {"tile_size": tile_size}))
     scene = scene if isinstance(scene, Scene) else load_scene(scene)
     notes = {}

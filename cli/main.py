@@ -229,7 +229,7 @@ def build_parser() -> argparse.ArgumentParser:
     for method in METHODS.values():  # each method's own flags
         method.add_arguments(p)
     p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--workers", type=int, help="exact method on a CPU: processes its chunks are spread over "
+    p.add_argument("--workers", type=int, help="exact method on a CPU: processes its parts are spread over "
                    "(default: every core this process may use; the bundle is the same for any number)")
     p.add_argument("--executor", choices=("local", "ray"), default="local",  # executors.EXECUTORS (torch-free here)
                    help="where the jobs run: local (this machine's processes) or ray (a Ray cluster; the bundle "

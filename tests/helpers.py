@@ -129,7 +129,7 @@ def make_tiny_scene(seed: int = 0, **kwargs):
 
 @contextlib.contextmanager
 def interrupted_after_saves(n: int):
-    """Inside, a hide is interrupted (KeyboardInterrupt) right after its n-th saved chunk or block."""
+    """Inside, a hide is interrupted (KeyboardInterrupt) right after its n-th saved part or block."""
     from noisenerf.train.hide import progress as progress_module
 
     original, saved = progress_module.Progress.save, []

@@ -1,7 +1,9 @@
 """The exact solver's steps between phases (lattice candidates, entering a compact tile's integer lattice,
-the chord warm start), its settings' checks, and the local executor's worker processes chunks are spread over."""
+the chord warm start), its settings' checks, and the local executor's worker processes parts are spread over."""
 
 import dataclasses
+import os
+import signal
 
 import numpy as np
 import pytest
@@ -12,14 +14,14 @@ from noisenerf.cli.demo import DEMO_VIEW
 from noisenerf.runtime.errors import UserError
 from noisenerf.train.hide.compact import (LIFT_MARGIN, colour_bins_per_unit, lift_density, solver_view, stepped,
                                           tile_space)
-from noisenerf.train.hide.exact import (ChunkProblem, NoiseSpace, chord_start, damped_step,
+from noisenerf.train.hide.exact import (ExactProblem, NoiseSpace, chord_start, damped_step,
                                         lattice_candidates, refine,
                                         residuals, round_to_lattice)
 from noisenerf.train.hide.plan import HideConfig, plan
 from noisenerf.train.hide.secret_view import BranchView, SecretView
 from noisenerf.train.hide.settings import CompactSettings, ExactSettings
 from noisenerf.train.hide.executors import LocalExecutor
-from noisenerf.train.hide.jobs import FieldWeights, Job, run_job
+from noisenerf.train.hide.jobs import FieldWeights, Job, JobRunner
 from noisenerf.train.scene.procedural import DEMO_SCENE, procedural_secret
 from noisenerf.train.scene.scene import load_scene
 
@@ -65,7 +67,7 @@ def compact_view():
     pixels = torch.tensor(secret.reshape(-1, 3))
     exact = ExactSettings()
     space = tile_space(view, pixels, CompactSettings(), exact, torch.int16, seed=0)
-    problem = ChunkProblem(view, torch.arange(view.n_rays), pixels, space, exact, torch.Generator().manual_seed(0))
+    problem = ExactProblem(view, torch.arange(view.n_rays), pixels, space, exact, torch.Generator().manual_seed(0))
     converged, done = refine(problem, space.zeros(view.n_rays, view.noise_dims, CPU), storage_phase=False)
     return problem, converged[done], done
 
@@ -213,7 +215,7 @@ def test_impossible_solver_settings_are_refused(field, value):
 
 def test_local_executor_spreads_jobs_over_other_processes_and_stops_on_an_error():
     scene = make_tiny_scene(seed=0)
-    config = HideConfig(layout="ray", chunk_pixels=24)
+    config = HideConfig(layout="ray", part_pixels=24)
     secret = np.random.default_rng(0).integers(0, 256, (8, 8, 3), dtype=np.uint8)
     tile = plan(scene, secret, config).tiles[0]
     pixels = torch.tensor(secret.reshape(-1, 3))
@@ -224,12 +226,20 @@ def test_local_executor_spreads_jobs_over_other_processes_and_stops_on_an_error(
         for job in jobs:
             executor.submit(job)
         spread = {job.part: result for job, result in executor.results()}
-        assert executor.pool is not None  # three jobs waited at once: they went to the workers
+        assert executor.workers  # three jobs waited at once: they went to the workers
     for job in jobs:  # the same tensors as solved here
-        assert all(torch.equal(spread[job.part][name], value) for name, value in run_job(weights, job).items())
+        assert all(torch.equal(spread[job.part][name], value) for name, value in JobRunner().run(weights, job).items())
     with pytest.raises(IndexError), LocalExecutor(weights, workers=2) as executor:
         for rows in (range(0, 24), range(0, 10 ** 6)):  # a job past the tile's rays fails in its worker
             executor.submit(Job(0, 0, tile, rows, pixels[:24], config, "cpu"))
+        list(executor.results())
+    with pytest.raises(RuntimeError, match="a hide worker process ended with exit code -9"), \
+            LocalExecutor(weights, workers=2) as executor:
+        for job in jobs:
+            executor.submit(job)
+        executor.dispatch()
+        for worker in executor.workers:  # killed (say, out of memory) before they finish: no endless wait
+            os.kill(worker.pid, signal.SIGKILL)
         list(executor.results())
 
 

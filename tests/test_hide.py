@@ -75,9 +75,9 @@ def test_same_seed_gives_byte_identical_bundles(scene, tmp_path):
     assert (tmp_path / "a.bundle").read_bytes() == (tmp_path / "b.bundle").read_bytes()
 
 
-def test_chunks_spread_over_worker_processes_give_the_same_bytes(scene, tmp_path):
+def test_parts_spread_over_worker_processes_give_the_same_bytes(scene, tmp_path):
     secret = random_secret(24, 24, seed=3)
-    config = HideConfig(tile_size=16, chunk_pixels=64)  # tiles of 256 px: 4 chunks each, solved 2 at once
+    config = HideConfig(tile_size=16, part_pixels=64)  # tiles of 256 px: 4 parts each, solved 2 at once
     for workers in (1, 2):
         report = hide(scene, secret, tmp_path / f"{workers}.bundle", config, CPU, workers=workers)
         assert report["exact"]
@@ -92,7 +92,7 @@ def test_the_driver_holds_one_tile_more_than_its_executor_runs_at_once(scene, tm
     assemble = solver.assemble
     monkeypatch.setattr(run, "tile_work", lambda *args: events.append(1) or tile_work(*args))
     monkeypatch.setattr(solver, "assemble", lambda *args: events.append(-1) or assemble(*args))
-    report = hide(scene, random_secret(48, 40, seed=4), tmp_path / "s.bundle", HideConfig(tile_size=16, chunk_pixels=64),
+    report = hide(scene, random_secret(48, 40, seed=4), tmp_path / "s.bundle", HideConfig(tile_size=16, part_pixels=64),
                   CPU, workers=1)
     assert report["exact"] and len(report["tiles"]) == 9
     in_flight = np.cumsum(events)
@@ -101,7 +101,7 @@ def test_the_driver_holds_one_tile_more_than_its_executor_runs_at_once(scene, tm
 
 def test_a_hide_interrupted_while_workers_solve_resumes_to_the_same_bytes(scene, tmp_path):
     secret = random_secret(24, 24, seed=3)
-    config = HideConfig(tile_size=16, chunk_pixels=64)
+    config = HideConfig(tile_size=16, part_pixels=64)
     hide(scene, secret, tmp_path / "whole.bundle", config, CPU, workers=1)
     with pytest.raises(KeyboardInterrupt), interrupted_after_saves(3):
         hide(scene, secret, tmp_path / "resumed.bundle", config, CPU, workers=2)
@@ -112,7 +112,7 @@ def test_a_hide_interrupted_while_workers_solve_resumes_to_the_same_bytes(scene,
 
 def test_interrupted_hide_resumes_to_a_byte_identical_bundle(scene, tmp_path, monkeypatch):
     secret = random_secret(24, 24, seed=3)
-    config = HideConfig(tile_size=16, chunk_pixels=64)
+    config = HideConfig(tile_size=16, part_pixels=64)
     hide(scene, secret, tmp_path / "whole.bundle", config, CPU, workers=1)
 
     from noisenerf.train.hide import exact_solver
@@ -120,10 +120,10 @@ def test_interrupted_hide_resumes_to_a_byte_identical_bundle(scene, tmp_path, mo
         hide(scene, secret, tmp_path / "resumed.bundle", config, CPU, workers=1)
     assert not (tmp_path / "resumed.bundle").exists()
     assert len(list((tmp_path / "resumed.bundle.partial").glob("*.safetensors"))) == 5
-    solved, solve_chunk = [], exact_solver.solve_chunk  # counted in this process: workers=1
-    monkeypatch.setattr(exact_solver, "solve_chunk", lambda *a, **k: solved.append(1) or solve_chunk(*a, **k))
+    solved, solve_pixels = [], exact_solver.solve_pixels  # counted in this process: workers=1
+    monkeypatch.setattr(exact_solver, "solve_pixels", lambda *a, **k: solved.append(1) or solve_pixels(*a, **k))
     hide(scene, secret, tmp_path / "resumed.bundle", config, CPU, workers=1)
-    assert len(solved) == 9 - 5  # tiles of 256, 128, 128 and 64 px make 9 chunks of 64; 5 were saved
+    assert len(solved) == 9 - 5  # tiles of 256, 128, 128 and 64 px make 9 parts of 64; 5 were saved
     assert (tmp_path / "resumed.bundle").read_bytes() == (tmp_path / "whole.bundle").read_bytes()
     assert not (tmp_path / "resumed.bundle.partial").exists()
 

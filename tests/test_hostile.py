@@ -51,7 +51,7 @@ class World:
     bundle: Path
     secret: Path
     hidden: bytes  # the bundle `noisenerf hide` writes for `secret`
-    partial: Path  # the chunks that run saved, kept
+    partial: Path  # the parts that run saved, kept
 
 
 def hide_args(world: World, output: Path, *extra) -> list:
@@ -710,40 +710,40 @@ def test_threads_beyond_the_cores_are_capped(world, tmp_path, capfd):
     assert result.code == 0 and result.err == "", result
 
 
-# ---- resume folders: a bad chunk is recomputed, never trusted -------------------------------------
+# ---- resume folders: a bad part is recomputed, never trusted -------------------------------------
 
-def chunk_files(partial: Path) -> list[Path]:
-    """The saved chunks of a partial folder, in tile order."""
+def part_files(partial: Path) -> list[Path]:
+    """The saved parts of a partial folder, in tile order."""
     return sorted(partial.glob("*.safetensors"))
 
 
 def restamped(path: Path, key: str, tensors: dict) -> None:
-    """Write `tensors` as chunk `path` with a valid stamp for run `key` (what a careless or hostile writer
+    """Write `tensors` as part `path` with a valid stamp for run `key` (what a careless or hostile writer
     that knows the key could do): only the shape and value checks stand between it and the bundle."""
-    tile, chunk = (int(part[-4:] if i == 0 else part[-5:]) for i, part in enumerate(path.stem.split("_")))
-    stamp = progress_module.Progress.stamp(SimpleNamespace(key=key), tile, chunk, tensors)
+    tile, part = (int(piece[-4:] if i == 0 else piece[-5:]) for i, piece in enumerate(path.stem.split("_")))
+    stamp = progress_module.Progress.stamp(SimpleNamespace(key=key), tile, part, tensors)
     save_torch_file(tensors, str(path), metadata=stamp)
 
 
 def with_tensors(edit):
-    """A corruption that edits the first chunk's tensors and restamps it with the run's own key."""
+    """A corruption that edits the first part's tensors and restamps it with the run's own key."""
     def corrupt(partial: Path) -> None:
-        path = chunk_files(partial)[0]
+        path = part_files(partial)[0]
         tensors = load_torch_file(str(path))
         edit(tensors)
         restamped(path, (partial / "key").read_text(), tensors)
     return corrupt
 
 
-def first_chunk(write):
-    """A corruption applying write(path, partial) to the first chunk file."""
-    return lambda partial: write(chunk_files(partial)[0], partial)
+def first_part(write):
+    """A corruption applying write(path, partial) to the first part file."""
+    return lambda partial: write(part_files(partial)[0], partial)
 
 
-def other_runs_chunk(partial: Path, delete_key: bool = False) -> None:
-    """The first chunk replaced by one another run (another key) stamped properly, as two runs sharing the
+def other_runs_part(partial: Path, delete_key: bool = False) -> None:
+    """The first part replaced by one another run (another key) stamped properly, as two runs sharing the
     folder used to leave; optionally with the key file gone too."""
-    path = chunk_files(partial)[0]
+    path = part_files(partial)[0]
     tensors = load_torch_file(str(path))
     tensors["noise"] = torch.randn_like(tensors["noise"])
     restamped(path, "0" * 64, tensors)
@@ -752,35 +752,35 @@ def other_runs_chunk(partial: Path, delete_key: bool = False) -> None:
 
 
 PARTIALS = {  # case: corrupt(partial folder); the rerun must recompute and write the exact bundle
-    "chunk zeroed, no stamp": first_chunk(lambda p, _: save_torch_file(
+    "part zeroed, no stamp": first_part(lambda p, _: save_torch_file(
         {k: torch.zeros_like(v) for k, v in load_torch_file(str(p)).items()}, str(p))),
-    "chunk of another run": other_runs_chunk,
-    "chunk of another run, key deleted": lambda partial: other_runs_chunk(partial, delete_key=True),
-    "chunk moved to another tile": lambda partial: shutil.copy(chunk_files(partial)[1], chunk_files(partial)[0]),
-    "chunk truncated": first_chunk(lambda p, _: p.write_bytes(p.read_bytes()[:200])),
-    "chunk random bytes": first_chunk(lambda p, _: p.write_bytes(np.random.default_rng(2).bytes(3000))),
-    "chunk empty": first_chunk(lambda p, _: p.write_bytes(b"")),
-    "chunk a folder": first_chunk(lambda p, _: p.unlink() or p.mkdir()),
-    "chunk wrong shape": with_tensors(lambda t: t.update(noise=t["noise"][:-1].clone())),
-    "chunk float64, no stamp": first_chunk(lambda p, _: save_torch_file(
+    "part of another run": other_runs_part,
+    "part of another run, key deleted": lambda partial: other_runs_part(partial, delete_key=True),
+    "part moved to another tile": lambda partial: shutil.copy(part_files(partial)[1], part_files(partial)[0]),
+    "part truncated": first_part(lambda p, _: p.write_bytes(p.read_bytes()[:200])),
+    "part random bytes": first_part(lambda p, _: p.write_bytes(np.random.default_rng(2).bytes(3000))),
+    "part empty": first_part(lambda p, _: p.write_bytes(b"")),
+    "part a folder": first_part(lambda p, _: p.unlink() or p.mkdir()),
+    "part wrong shape": with_tensors(lambda t: t.update(noise=t["noise"][:-1].clone())),
+    "part float64, no stamp": first_part(lambda p, _: save_torch_file(
         {k: v.double() for k, v in load_torch_file(str(p)).items()}, str(p))),
-    "chunk float64, stamped": with_tensors(lambda t: t.update(noise=t["noise"].double())),
-    "chunk counts float32, stamped": with_tensors(lambda t: t.update(counts=t["counts"].float())),
-    "chunk params off the lattice, stamped": with_tensors(lambda t: t["noise"].view(-1).__setitem__(0, 1e-3)),
-    "chunk escaped 7, stamped": with_tensors(lambda t: t["escaped"].view(-1).__setitem__(0, 7)),
+    "part float64, stamped": with_tensors(lambda t: t.update(noise=t["noise"].double())),
+    "part counts float32, stamped": with_tensors(lambda t: t.update(counts=t["counts"].float())),
+    "part params off the lattice, stamped": with_tensors(lambda t: t["noise"].view(-1).__setitem__(0, 1e-3)),
+    "part escaped 7, stamped": with_tensors(lambda t: t["escaped"].view(-1).__setitem__(0, 7)),
     # sound by every check a part can make alone, wrong for its tile: found when the tile renders, solved again
-    "chunk moved along the lattice, stamped": with_tensors(lambda t: t.update(noise=t["noise"] + 37)),
-    "chunk of zeros, stamped": with_tensors(lambda t: t.update(noise=torch.zeros_like(t["noise"]))),
-    "chunk NaN": with_tensors(lambda t: t["noise"].view(-1).__setitem__(5, float("nan"))),
-    "chunk without counts": with_tensors(lambda t: t.pop("counts")),
-    "chunk with an extra field": with_tensors(lambda t: t.update(extra=torch.zeros(3))),
+    "part moved along the lattice, stamped": with_tensors(lambda t: t.update(noise=t["noise"] + 37)),
+    "part of zeros, stamped": with_tensors(lambda t: t.update(noise=torch.zeros_like(t["noise"]))),
+    "part NaN": with_tensors(lambda t: t["noise"].view(-1).__setitem__(5, float("nan"))),
+    "part without counts": with_tensors(lambda t: t.pop("counts")),
+    "part with an extra field": with_tensors(lambda t: t.update(extra=torch.zeros(3))),
     "key a folder": lambda partial: (partial / "key").unlink() or (partial / "key").mkdir(),
     "key a symlink": lambda partial: (partial / "key").unlink() or (partial / "key").symlink_to("/etc/hostname"),
 }
 
 
 @pytest.mark.parametrize("case", list(PARTIALS))
-def test_bad_resume_chunk_is_recomputed(world, tmp_path, capfd, case):
+def test_bad_resume_part_is_recomputed(world, tmp_path, capfd, case):
     out = tmp_path / "s.bundle"
     partial = tmp_path / "s.bundle.partial"
     shutil.copytree(world.partial, partial, symlinks=True)
@@ -792,9 +792,9 @@ def test_bad_resume_chunk_is_recomputed(world, tmp_path, capfd, case):
     assert not partial.exists()
 
 
-def test_sound_chunks_are_reused(world, tmp_path, capfd, monkeypatch):
+def test_sound_parts_are_reused(world, tmp_path, capfd, monkeypatch):
     shutil.copytree(world.partial, tmp_path / "s.bundle.partial")
-    monkeypatch.setattr(exact_solver, "solve_exact", lambda *a, **k: pytest.fail("a sound chunk was solved again"))
+    monkeypatch.setattr(exact_solver, "solve_exact", lambda *a, **k: pytest.fail("a sound part was solved again"))
     # patched in this process only: --workers 1
     assert run_main(noisenerf_main, hide_args(world, tmp_path / "s.bundle", "--workers", 1), capfd).code == 0
     assert (tmp_path / "s.bundle").read_bytes() == world.hidden

@@ -12,7 +12,7 @@ import torch
 
 from noisenerf.runtime.images import to_uint8
 from noisenerf.runtime.metrics import ssim_authors, tile_quality
-from noisenerf.train.hide.exact import ChunkProblem, NoiseSpace, Refinement, SolveCounts, solve_exact
+from noisenerf.train.hide.exact import ExactProblem, NoiseSpace, Refinement, SolveCounts, solve_exact
 from noisenerf.train.hide.paper import recorded_points, skip_shares, solve_blocks, survey
 from noisenerf.train.hide.settings import ExactSettings, PaperSettings
 from noisenerf.train.hide.plan import HideConfig, plan
@@ -40,8 +40,8 @@ def secret_quality(colors: torch.Tensor, secret: np.ndarray) -> dict:
 
 
 @dataclass(frozen=True, eq=False, kw_only=True)
-class WatchedProblem(ChunkProblem):
-    """A chunk problem measured iteration by iteration: `observe(index (m,), noise (m, 1, dims), counts)` after
+class WatchedProblem(ExactProblem):
+    """An exact problem measured iteration by iteration: `observe(index (m,), noise (m, 1, dims), counts)` after
     every Levenberg–Marquardt step, and with `retiring` off, finished pixels kept in the batch (what
     retiring them saves)."""
 

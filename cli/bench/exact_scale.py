@@ -155,12 +155,12 @@ def measure_contention(context: BenchContext) -> Measured:
 
 def describe_contention(context: BenchContext, measured: Measured) -> list[str]:
     rows, (width, height) = measured.rows, measured.secret_size
-    chunk_pixels = HideConfig().chunk_pixels
+    part_pixels = HideConfig().part_pixels
     alone = np.median([r["hide_seconds"] for r in rows if r["busy_processes"] == 0])
     busy = np.median([r["hide_seconds"] for r in rows if r["busy_processes"] == 1])
     lines = [f"`{Path(context.config.secret).name}` at {width}×{height}, view {context.config.view}, hidden twice "
              f"alone and twice beside one `python -c 'while True: pass'` on {available_cores()} cores: its "
-             f"{math.ceil(width * height / chunk_pixels)} chunk(s) of {chunk_pixels:,} pixels spread over "
+             f"{math.ceil(width * height / part_pixels)} part(s) of {part_pixels:,} pixels spread over "
              f"{available_cores()} worker processes of one torch thread each (train/hide/executors.LocalExecutor, "
              "ExactSolver.threads).", "",
              f"- hide alone {alone:.2f} s, beside a busy process {busy:.2f} s: **{busy / alone:.1f}×** "

@@ -18,7 +18,7 @@ fewer pixels escape than one in the whole noise. A field without a view branch g
 from the sample solved in the full noise. A basis cannot reach every colour from every start; those
 pixels escape: they are solved again in the direction segment alone (a branch escape, its float16 values
 stored beside the coefficients: 58 bytes with its index for the NeRF MLP) or, where that fails too, in the
-full 90 values (184 bytes), so every pixel is still exact (train/hide/exact_solver.solve_chunk).
+full 90 values (184 bytes), so every pixel is still exact (train/hide/exact_solver.solve_pixels).
 
 Why k = 5: every coefficient costs bytes at every pixel and each escape tens to hundreds, so k trades bytes
 per pixel against escapes: k = 4 lets so many pixels escape that the worst keys grow and hides take 1.8×
@@ -34,7 +34,7 @@ import dataclasses
 import torch
 
 from noisenerf.train.hide.secret_view import BranchView, SecretView
-from noisenerf.train.hide.exact import ChunkProblem, NoiseSpace, is_lifted, raw_floors, solve_exact
+from noisenerf.train.hide.exact import ExactProblem, NoiseSpace, is_lifted, raw_floors, solve_exact
 from noisenerf.train.hide.settings import CompactSettings, ExactSettings
 
 def in_basis(exact: ExactSettings, settings: CompactSettings) -> ExactSettings:
@@ -118,7 +118,7 @@ def tile_space(secret_view: SecretView, pixels: torch.Tensor, settings: CompactS
         if float(is_lifted(branch.density, lifted_floor).float().mean()) >= MIN_LIFTED:
             space, index, noise = direction_basis(branch, pixels[sample], xyz_noise, settings, exact, generator)
             return stepped(branch, space, settings.step_bins, storage, index, noise)
-    solved = solve_exact(ChunkProblem(secret_view, sample, pixels[sample], NoiseSpace(torch.float32), exact, generator))
+    solved = solve_exact(ExactProblem(secret_view, sample, pixels[sample], NoiseSpace(torch.float32), exact, generator))
     offset, basis = principal_basis(solved.params, settings.coefficients)
     index = solved.done.nonzero()[:, 0]
     return stepped(part, NoiseSpace(torch.float32, basis, offset), settings.step_bins, storage, index,
@@ -164,9 +164,9 @@ def direction_basis(branch: BranchView, pixels: torch.Tensor, xyz_noise: torch.T
     every = torch.arange(branch.n_rays, device=pixels.device)
     directions = direction_space(torch.float32, xyz_noise, xyz_noise.new_zeros(dir_dims),
                                  torch.eye(dir_dims, device=xyz_noise.device))
-    solved = solve_exact(ChunkProblem(branch, every, pixels, directions, exact, generator))
+    solved = solve_exact(ExactProblem(branch, every, pixels, directions, exact, generator))
     first = direction_space(torch.float32, xyz_noise, *principal_basis(solved.params[solved.done], k))
-    trial = solve_exact(ChunkProblem(branch, every, pixels, first, in_basis(exact, settings), generator))
+    trial = solve_exact(ExactProblem(branch, every, pixels, first, in_basis(exact, settings), generator))
     weights = torch.where(trial.done, 1, settings.missed_weight) * solved.done
     done = solved.done.nonzero()[:, 0]
     return (direction_space(torch.float32, xyz_noise, *principal_basis(solved.params.repeat_interleave(weights, 0), k)),
@@ -182,7 +182,7 @@ def direction_space(storage: torch.dtype, xyz_noise: torch.Tensor, dir_offset: t
 
 
 def solver_view(secret_view: SecretView, space: NoiseSpace) -> SecretView | BranchView:
-    """What the exact solver renders for a chunk in `space`: the view branch alone where the space's noise
+    """What the exact solver renders for a part in `space`: the view branch alone where the space's noise
     leaves γ(x) at its offset (tile_space, fields with a view branch), else the whole field."""
     xyz_dims = secret_view.field.config.position_dims
     if space.basis is not None and secret_view.field.config.has_view_branch and not space.basis[:xyz_dims].any():

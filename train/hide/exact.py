@@ -1,4 +1,4 @@
-"""Noise solvers for one chunk of a secret view's pixels.
+"""Noise solvers for a set of a secret view's pixels (a hide's part, or a compact basis's sample).
 
 `solve_exact` (the default) renders its secret view with a single sample per ray. That sample's interval
 is the 1e10 last one, so once its density is positive its opacity is exactly 1 and the pixel's colour is
@@ -22,7 +22,7 @@ among nearby lattice points predicted by the Jacobian: the steps of k coefficien
 colour by more than a bin, so plain rounding would leave many pixels to LM on the lattice, which costs far
 more Jacobians than rendering a few predicted points.
 
-A solve is one ChunkProblem, what stays fixed over it (the view and its pixels, the noise space,
+A solve is one ExactProblem, what stays fixed over it (the view and its pixels, the noise space,
 settings, generator and counts), which every step takes; what Levenberg–Marquardt changes from one
 iteration to the next is a Refinement. The solver renders through a SolverView: the whole field
 (SecretView), or for a compact tile whose noise moves only γ(d), the view branch alone (BranchView, ~1/12
@@ -76,7 +76,7 @@ INTEGER_LIMITS = {torch.int8: 127, torch.int16: 32767}  # symmetric ranges (−1
 
 @dataclass(frozen=True)
 class NoiseSpace:
-    """The unknowns of a chunk's pixels, `params` (m, P), and how they become noise (m, 1, dims).
+    """The unknowns of a part's pixels, `params` (m, P), and how they become noise (m, 1, dims).
 
     Full space (basis None): the params are the noise itself, stored in a float dtype (P = dims).
     Basis space: noise = offset + params Bᵀ with B (dims, k) (a compact tile's: orthogonal columns, stretched). With a float storage
@@ -252,7 +252,7 @@ def is_lifted(raw_density: torch.Tensor, lifted_floor: float) -> torch.Tensor:
 
 @dataclass
 class Refinement:
-    """What refine changes from one iteration to the next, for a problem's m pixels (ChunkProblem keeps
+    """What refine changes from one iteration to the next, for a problem's m pixels (ExactProblem keeps
     what does not)."""
 
     params: torch.Tensor  # (m, P)
@@ -267,7 +267,7 @@ class Refinement:
     active: torch.Tensor  # (a,) int64: the pixels in the batch
 
     @staticmethod
-    def start(problem: ChunkProblem, params: torch.Tensor, storage_phase: bool) -> Refinement:
+    def start(problem: ExactProblem, params: torch.Tensor, storage_phase: bool) -> Refinement:
         """Every pixel in the batch at params (m, P), with the initial λ."""
         m, device = len(problem.index), params.device
         every = torch.arange(m, device=device)
@@ -279,7 +279,7 @@ class Refinement:
 
 
 @dataclass(frozen=True, eq=False)  # tensors have no truth value: a problem equals only itself
-class ChunkProblem:
+class ExactProblem:
     """One solve's fixed part: pixels `index` (m,) of a single-sample view with 8-bit values `pixels` (m, 3)
     uint8, their noise sought in `space`, the settings, the generator every random start draws from and
     the counts the solve adds to. From the pixels: `target` (m, 3), the bin centres (bin_targets), `goal`
@@ -310,7 +310,7 @@ class ChunkProblem:
         object.__setattr__(self, "goal", logit(self.target))
         object.__setattr__(self, "values", self.pixels.float() / 255.0)
 
-    def subset(self, which: torch.Tensor) -> ChunkProblem:
+    def subset(self, which: torch.Tensor) -> ExactProblem:
         """The problem of pixels `which` (s,) alone, indexed from 0; same settings, generator and counts."""
         return dataclasses.replace(self, index=self.index[which], pixels=self.pixels[which])
 
@@ -370,7 +370,7 @@ class ChunkProblem:
                                             torch.clamp(state.damping[active] * DAMPING_UP, max=DAMPING_RANGE[1]))
 
 
-def restart(problem: ChunkProblem, state: Refinement, stuck: torch.Tensor) -> None:
+def restart(problem: ExactProblem, state: Refinement, stuck: torch.Tensor) -> None:
     """New starts for the stuck pixels (s,), judged as their phase judges params. The k-th restart of a
     pixel jitters its start by k·jitter and draws from more donors, so repeated restarts explore further;
     every other one starts afresh at random around zero noise, in case the donors' noise all lies in a
@@ -393,7 +393,7 @@ def restart(problem: ChunkProblem, state: Refinement, stuck: torch.Tensor) -> No
     problem.counts.restarts += stuck.numel()
 
 
-def line_search(problem: ChunkProblem, state: Refinement, step: torch.Tensor) -> torch.Tensor:
+def line_search(problem: ExactProblem, state: Refinement, step: torch.Tensor) -> torch.Tensor:
     """Moves each pixel of the batch, state.active (a,), by the first of settings.step_scales of its step
     (a, P) that lowers its ‖r‖², updating state.params and state.outputs; the others stay.
     -> improved (a,) bool."""
@@ -414,9 +414,9 @@ def line_search(problem: ChunkProblem, state: Refinement, step: torch.Tensor) ->
     return improved
 
 
-def refine(problem: ChunkProblem, params: torch.Tensor, storage_phase: bool) -> tuple[torch.Tensor, torch.Tensor]:
+def refine(problem: ExactProblem, params: torch.Tensor, storage_phase: bool) -> tuple[torch.Tensor, torch.Tensor]:
     """Levenberg–Marquardt on every pixel of the problem until it is finished (Refinement.storage_phase
-    says when), Jacobians only for the batch (ChunkProblem.batch). params (m, P) -> params, done (m,) bool."""
+    says when), Jacobians only for the batch (ExactProblem.batch). params (m, P) -> params, done (m,) bool."""
     finished = problem.rounds_right if storage_phase else problem.converged
     state = Refinement.start(problem, params, storage_phase)
     for iteration in range(1, problem.settings.max_iters + 1):
@@ -430,12 +430,12 @@ def refine(problem: ChunkProblem, params: torch.Tensor, storage_phase: bool) -> 
 
 
 @dataclass(frozen=True)
-class ChunkResult:
+class ExactResult:
     params: torch.Tensor  # (m, P) float32, storable (NoiseSpace.store leaves them unchanged)
     done: torch.Tensor  # (m,) bool: the pixel rounds to its 8-bit value (a compact space may leave a few)
 
 
-def chord_start(problem: ChunkProblem, which: torch.Tensor, params: torch.Tensor, jac: torch.Tensor) -> torch.Tensor:
+def chord_start(problem: ExactProblem, which: torch.Tensor, params: torch.Tensor, jac: torch.Tensor) -> torch.Tensor:
     """Warm starts for pixels `which` (w,) refined without Jacobians of their own: from params (w, P) (a
     solved seed's), take settings.chord_steps Gauss–Newton steps with that seed's Jacobian jac (w, 4, P)
     (the chord method), keeping each pixel's best. The seed's Jacobian is only a rough guide to the
@@ -458,7 +458,7 @@ def chord_start(problem: ChunkProblem, which: torch.Tensor, params: torch.Tensor
 LATTICE_VALUES = 1 << 24  # candidate coordinates (pixels × c × k) formed at once: ~64 MB a tensor
 
 
-def round_to_lattice(problem: ChunkProblem, params: torch.Tensor) -> torch.Tensor:
+def round_to_lattice(problem: ExactProblem, params: torch.Tensor) -> torch.Tensor:
     """Storable params for float params (m, k) of an integer lattice: the field's Jacobian at the float
     solution predicts each lattice_candidates point's colour (the net is piecewise linear, so within a
     ReLU region exactly); the settings.lattice_tries best points (ranked by predicted distance from the
@@ -495,7 +495,7 @@ def round_to_lattice(problem: ChunkProblem, params: torch.Tensor) -> torch.Tenso
     return stored
 
 
-def solve_from(problem: ChunkProblem, start: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+def solve_from(problem: ExactProblem, start: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """Both phases from params `start` (m, P): float32 until converged near the bin centres, onto the
     storable lattice, then storable params until every value rounds right. -> params (m, P), done (m,) bool."""
     converged, _ = refine(problem, start, storage_phase=False)
@@ -505,7 +505,7 @@ def solve_from(problem: ChunkProblem, start: torch.Tensor) -> tuple[torch.Tensor
 RESCUE_ROUNDS = 6  # further solves a pixel left unfinished gets (rescue), each from another start
 
 
-def rescue(problem: ChunkProblem, params: torch.Tensor, done: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+def rescue(problem: ExactProblem, params: torch.Tensor, done: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """Pixels that a solve left unfinished, solved again from other starts until they round right: round 0
     continues from their own params, round r ≥ 1 starts from the params of the r-th finished pixel
     nearest in target colour (whose ray is lifted and whose colour is near), jittered by r·jitter; every
@@ -531,20 +531,20 @@ def rescue(problem: ChunkProblem, params: torch.Tensor, done: torch.Tensor) -> t
     return params, done
 
 
-def solve_exact(problem: ChunkProblem) -> ChunkResult:
+def solve_exact(problem: ExactProblem) -> ExactResult:
     """Bring the problem's pixels of a single-sample view to their 8-bit values, with each pixel's noise in
     its space (the full 90 values, or a tile's compact basis).
 
     Every seed_stride-th pixel is solved first from zero params; every other pixel then starts from the
     params of the solved seed nearest in target colour, which is most of the way there, so it needs far
     fewer Jacobians than a start from zero. Each group runs both phases; a last storage-phase pass over
-    the whole chunk gives any pixel still left every finished pixel as a donor."""
+    the whole problem gives any pixel still left every finished pixel as a donor."""
     secret_view, space = problem.secret_view, problem.space
     if secret_view.n_samples != 1:
         raise ValueError("the exact solver needs a secret view with one sample per ray")
     m, device = len(problem.index), problem.pixels.device
-    if m == 0:  # e.g. a chunk whose rays all escape (exact_solver.solve_chunk)
-        return ChunkResult(space.zeros(0, secret_view.noise_dims, device),
+    if m == 0:  # e.g. a part whose rays all escape (exact_solver.solve_pixels)
+        return ExactResult(space.zeros(0, secret_view.noise_dims, device),
                            torch.zeros(0, dtype=torch.bool, device=device))
     params = space.zeros(m, secret_view.noise_dims, device)
     is_seed = torch.arange(m, device=device) % problem.settings.seed_stride == 0
@@ -557,4 +557,4 @@ def solve_exact(problem: ChunkProblem) -> ChunkResult:
             _, seed_jac = problem.outputs_and_jacobian(seeds, params[seeds])
             start = chord_start(problem, rest, start, seed_jac[nearest_seed])
         params[rest] = solve_from(problem.subset(rest), start)[0]
-    return ChunkResult(*refine(problem, params, storage_phase=True))
+    return ExactResult(*refine(problem, params, storage_phase=True))

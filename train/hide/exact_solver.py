@@ -1,5 +1,5 @@
 """`--method exact` (the default): every pixel's 8-bit value recovered exactly (exact.py's solver), a
-tile at a time in resumable chunks, its noise stored compactly (compact.py) or as float noise per ray."""
+tile at a time in resumable parts, its noise stored compactly (compact.py) or as float noise per ray."""
 
 from __future__ import annotations
 
@@ -11,12 +11,12 @@ import torch
 
 from noisenerf.runtime.layouts import LAYOUTS, CompactBasis, CompactNoise, TileNoise, VectorNoise
 from noisenerf.train.hide.compact import in_basis, solver_view, tile_space
-from noisenerf.train.hide.exact import (ChunkProblem, NoiseSpace, SolveCounts, is_lifted, raw_floors, rescue,
+from noisenerf.train.hide.exact import (ExactProblem, NoiseSpace, SolveCounts, is_lifted, raw_floors, rescue,
                                         solve_exact)
 from noisenerf.train.hide.methods import METHODS
 from noisenerf.train.hide.secret_view import BranchView, SecretView
 from noisenerf.train.hide.settings import CompactSettings, ExactSettings
-from noisenerf.train.hide.solver import Solver, TileSolution, chunk_seed, storage_dtype
+from noisenerf.train.hide.solver import Solver, TileSolution, part_seed, storage_dtype
 
 if TYPE_CHECKING:
     from noisenerf.train.hide.plan import HideConfig
@@ -54,9 +54,9 @@ def branch_space(space: NoiseSpace, position_dims: int) -> NoiseSpace:
     return NoiseSpace(ESCAPE_DTYPE, embedding, offset)
 
 
-def solve_chunk(secret_view: SecretView, index: torch.Tensor, pixels: torch.Tensor, space: NoiseSpace,
+def solve_pixels(secret_view: SecretView, index: torch.Tensor, pixels: torch.Tensor, space: NoiseSpace,
                 config: HideConfig, seed: int) -> dict[str, torch.Tensor]:
-    """One chunk's solve, as saved for resume: params (m, P), counts, and for a compact space the pixels it
+    """One part's solve, as saved for resume: params (m, P), counts, and for a compact space the pixels it
     could not finish: those the view branch alone still brings to their colours, `branch_escaped` (m,) uint8,
     solved again in float16 direction noise, the others, `escaped` (m,) uint8, in full float16 noise, both
     kinds' noise in `escape_noise` (m, dims) (zero where neither). Compact solves run at most
@@ -65,7 +65,7 @@ def solve_chunk(secret_view: SecretView, index: torch.Tensor, pixels: torch.Tens
     generator, counts = torch.Generator().manual_seed(seed), SolveCounts()
     settings = config.get(ExactSettings)
     if space.basis is None:
-        problem = ChunkProblem(secret_view, index, pixels, space, settings, generator, counts)
+        problem = ExactProblem(secret_view, index, pixels, space, settings, generator, counts)
         result = solve_exact(problem)
         params, _ = rescue(problem, result.params, result.done)
         return {"noise": params, "counts": torch.tensor(dataclasses.astuple(counts))}
@@ -74,7 +74,7 @@ def solve_chunk(secret_view: SecretView, index: torch.Tensor, pixels: torch.Tens
     tried = (is_lifted(solving.density[index], raw_floors(solving.field, settings.density_floor)[1])
              if isinstance(solving, BranchView)
              else torch.ones_like(index, dtype=torch.bool)).nonzero()[:, 0]
-    result = solve_exact(ChunkProblem(solving, index[tried], pixels[tried], space,
+    result = solve_exact(ExactProblem(solving, index[tried], pixels[tried], space,
                                       in_basis(settings, config.get(CompactSettings)), generator, counts))
     params = space.zeros(len(index), secret_view.noise_dims, index.device)
     done = torch.zeros_like(index, dtype=torch.bool)
@@ -84,14 +84,14 @@ def solve_chunk(secret_view: SecretView, index: torch.Tensor, pixels: torch.Tens
     if isinstance(solving, BranchView) and not done[tried].all():  # the view branch, every direction value free
         position_dims = secret_view.field.config.position_dims
         directions = branch_space(space, position_dims)
-        problem = ChunkProblem(solving, index[tried], pixels[tried], directions, settings, generator, counts)
+        problem = ExactProblem(solving, index[tried], pixels[tried], directions, settings, generator, counts)
         solved, ok = rescue(problem, directions.store(escape_noise[tried, position_dims:]), done[tried])
         reached = ok & ~done[tried]
         branch_escaped[tried[reached]] = True
         escape_noise[tried[reached]] = directions.expand(solved[reached])[:, 0]
     escaped = ~(done | branch_escaped)
     if escaped.any():  # escapes start from their own compact noise (it keeps the tile's density lift)
-        escapes = ChunkProblem(secret_view, index, pixels, NoiseSpace(ESCAPE_DTYPE), settings, generator, counts)
+        escapes = ExactProblem(secret_view, index, pixels, NoiseSpace(ESCAPE_DTYPE), settings, generator, counts)
         full, _ = rescue(escapes, escape_noise, ~escaped)
         escape_noise[escaped] = full[escaped]
     escape_noise[done] = 0
@@ -99,8 +99,8 @@ def solve_chunk(secret_view: SecretView, index: torch.Tensor, pixels: torch.Tens
             "branch_escaped": branch_escaped.to(torch.uint8), "escape_noise": escape_noise}
 
 
-def sound_chunk(saved: dict[str, torch.Tensor], space: NoiseSpace) -> bool:
-    """What the solver assumes of a saved chunk beyond its layout: storable params (on the lattice, or
+def sound_part(saved: dict[str, torch.Tensor], space: NoiseSpace) -> bool:
+    """What the solver assumes of a saved part beyond its layout: storable params (on the lattice, or
     in the storage dtype), counts ≥ 0, escapes 0 or 1, no pixel both kinds of escape."""
     flags = [saved[name] for name in ("escaped", "branch_escaped") if name in saved]
     return (torch.equal(space.store(saved["noise"]), saved["noise"]) and bool((saved["counts"] >= 0).all())
@@ -133,34 +133,34 @@ class ExactSolver(Solver):
         return LAYOUTS[config.layout].shares_basis
 
     def prepare(self, secret_view: SecretView, pixels: torch.Tensor, config: HideConfig, tile_index: int) -> NoiseSpace:
-        """A compact tile's basis, from its own seed (chunk_seed's chunk −1)."""
+        """A compact tile's basis, from its own seed (part_seed's part −1)."""
         return tile_space(secret_view, pixels, config.get(CompactSettings), config.get(ExactSettings),
-                          storage_dtype(config.dtype), chunk_seed(config, tile_index, -1))
+                          storage_dtype(config.dtype), part_seed(config, tile_index, -1))
 
     def part_pixels(self, config: HideConfig) -> int:
-        return config.chunk_pixels
+        return config.part_pixels
 
     def solve_part(self, secret_view: SecretView, rows: range, pixels: torch.Tensor, config: HideConfig, tile_index: int,
                    part: int, prepared: NoiseSpace | None) -> dict[str, torch.Tensor]:
-        """Chunk `part`: solved in a view of its rays alone (ray i being ray rows[i] of the tile)."""
+        """Part `part`: solved in a view of its rays alone (ray i being ray rows[i] of the tile)."""
         index = torch.arange(rows.start, rows.stop, device=pixels.device)
-        return solve_chunk(secret_view.subset(index), torch.arange(len(rows), device=pixels.device), pixels,
-                           chunk_space(config, prepared), config, chunk_seed(config, tile_index, part))
+        return solve_pixels(secret_view.subset(index), torch.arange(len(rows), device=pixels.device), pixels,
+                           part_space(config, prepared), config, part_seed(config, tile_index, part))
 
     def part_layout(self, config: HideConfig, rows: int, dims: int, prepared: NoiseSpace | None
                     ) -> tuple[dict, Callable]:
-        space = chunk_space(config, prepared)
+        space = part_space(config, prepared)
         layout = {"noise": ((rows, space.width(dims)), torch.float32), "counts": ((len(COUNTS),), torch.int64)}
         if space.basis is not None:
             layout.update(escaped=((rows,), torch.uint8), branch_escaped=((rows,), torch.uint8),
                           escape_noise=((rows, dims), torch.float32))
-        return layout, lambda tensors: sound_chunk(tensors, space)
+        return layout, lambda tensors: sound_part(tensors, space)
 
     def assemble(self, secret_view: SecretView, pixels: torch.Tensor, shape: tuple[int, int], config: HideConfig,
                  prepared: NoiseSpace | None, parts: list[dict[str, torch.Tensor]]) -> TileSolution:
-        """The chunks' params, escapes and counts merged; the report has the solver's counts and the number
+        """The parts' params, escapes and counts merged; the report has the solver's counts and the number
         of escaped pixels."""
-        space = chunk_space(config, prepared)
+        space = part_space(config, prepared)
         device = pixels.device
         params = torch.cat([part["noise"] for part in parts]).to(device)
         counts = torch.stack([part["counts"] for part in parts])
@@ -181,6 +181,6 @@ class ExactSolver(Solver):
                             stored)
 
 
-def chunk_space(config: HideConfig, prepared: NoiseSpace | None) -> NoiseSpace:
-    """Where a tile's chunks look for noise: its compact basis, or the full noise in the storage dtype."""
+def part_space(config: HideConfig, prepared: NoiseSpace | None) -> NoiseSpace:
+    """Where a tile's parts look for noise: its compact basis, or the full noise in the storage dtype."""
     return prepared if prepared is not None else NoiseSpace(storage_dtype(config.dtype))

@@ -15,17 +15,23 @@ from typing import Iterator
 
 import torch
 
-from noisenerf.train.hide.jobs import FieldWeights, Job, forget, run_job
+from noisenerf.train.hide.jobs import FieldWeights, Job, JobRunner
 
 EXECUTORS = ("local", "ray")
+WORKER_CHECK_SECONDS = 1.0  # how often a wait for results looks for a worker process that died
 
 
 class Executor:
     """Runs submitted jobs; `results` yields (job, result) in the order they finish until none is left
     (jobs submitted while iterating included). A job that fails stops the iteration with its error.
-    `slots`: how many jobs it runs at once (the driver keeps that many tiles, and one more, in flight)."""
+    `slots`: how many jobs it runs at once (the driver keeps that many tiles, and one more, in flight).
+    `runner` runs the jobs of this process (the driver assembles tiles with its views); it is let go of with
+    the executor, so a hide leaves no device memory behind."""
 
     slots: int = 1
+
+    def __init__(self):
+        self.runner = JobRunner()
 
     def submit(self, job: Job, prepared: object = None) -> None:
         raise NotImplementedError
@@ -37,26 +43,22 @@ class Executor:
         return self
 
     def __exit__(self, *exc) -> None:
-        forget()  # the views the driver assembled with, and those of jobs run in this process
+        self.runner = JobRunner()
 
 
-POOL_WEIGHTS: FieldWeights | None = None  # a pool worker's copy of the hide's weights (start_worker)
-
-
-def start_worker(weights: FieldWeights) -> None:
-    """A pool worker: the weights once, one torch thread (ExactSolver.threads' reasons), and Ctrl-C is the
-    parent's to handle."""
-    global POOL_WEIGHTS
-    POOL_WEIGHTS = weights
+def worker_loop(weights: FieldWeights, todo, done) -> None:
+    """A worker process of LocalExecutor: (number, pickled (job, prepared)) from `todo` until None, (number,
+    pickled result, None) or (number, None, error) to `done`; one torch thread (ExactSolver.threads' reasons),
+    and Ctrl-C is the parent's to handle. Plain pickle (between our own processes, never from a file) keeps
+    tensors out of shared memory, where multiprocessing's torch reducers would put them."""
     torch.set_num_threads(1)
     signal.signal(signal.SIGINT, signal.SIG_IGN)
-
-
-def pool_job(pickled: bytes) -> bytes:
-    """A pool worker's side of LocalExecutor: pickled (job, prepared) -> pickled result. Plain pickle
-    (between our own processes, never from a file) keeps tensors out of shared memory, where
-    multiprocessing's torch reducers would put them."""
-    return pickle.dumps(run_job(POOL_WEIGHTS, *pickle.loads(pickled)))
+    runner = JobRunner()
+    for number, pickled in iter(todo.get, None):
+        try:
+            done.put((number, pickle.dumps(runner.run(weights, *pickle.loads(pickled))), None))
+        except Exception as error:  # the job's own error, raised in the driver
+            done.put((number, None, error))
 
 
 class LocalExecutor(Executor):
@@ -65,45 +67,65 @@ class LocalExecutor(Executor):
     job never pays their start (~1 s), and stop with the hide, at once (terminated)."""
 
     def __init__(self, weights: FieldWeights, workers: int):
+        super().__init__()
         self.weights, self.slots = weights, max(1, workers)
         self.waiting: deque[tuple[Job, object]] = deque()
-        self.finished: queue.Queue = queue.Queue()  # (job, pickled result, error) from the pool's thread
-        self.running = 0
-        self.pool = None
+        self.running: dict[int, Job] = {}  # submitted to the workers, by number
+        self.submitted = 0
+        self.workers: list = []
+        self.todo = self.done = None
 
     def submit(self, job: Job, prepared: object = None) -> None:
         self.waiting.append((job, prepared))
 
     def results(self) -> Iterator[tuple[Job, object]]:
         while self.waiting or self.running:
-            if self.pool is None and (self.slots == 1 or len(self.waiting) == 1):
+            if not self.workers and (self.slots == 1 or len(self.waiting) == 1):
                 job, prepared = self.waiting.popleft()
-                yield job, run_job(self.weights, job, prepared)
+                yield job, self.runner.run(self.weights, job, prepared)
                 continue
             self.dispatch()
-            job, result, error = self.finished.get()
-            self.running -= 1
+            number, result, error = self.next_done()
+            job = self.running.pop(number)
             if error is not None:
                 raise error
             yield job, pickle.loads(result)
 
     def dispatch(self) -> None:
-        """Every waiting job to the pool, started on first use."""
-        if self.pool is None:
-            self.pool = multiprocessing.get_context("spawn").Pool(self.slots, initializer=start_worker,
-                                                                  initargs=(self.weights,))
+        """Every waiting job to the workers, started on first use."""
+        if not self.workers:
+            context = multiprocessing.get_context("spawn")
+            self.todo, self.done = context.Queue(), context.Queue()
+            self.workers = [context.Process(target=worker_loop, args=(self.weights, self.todo, self.done), daemon=True)
+                            for _ in range(self.slots)]
+            for worker in self.workers:
+                worker.start()
         while self.waiting:
             job, prepared = self.waiting.popleft()
-            self.running += 1
-            self.pool.apply_async(pool_job, (pickle.dumps((job, prepared)),),
-                                  callback=lambda result, job=job: self.finished.put((job, result, None)),
-                                  error_callback=lambda error, job=job: self.finished.put((job, None, error)))
+            self.running[self.submitted] = job
+            self.todo.put((self.submitted, pickle.dumps((job, prepared))))
+            self.submitted += 1
+
+    def next_done(self) -> tuple[int, bytes | None, Exception | None]:
+        """The next finished job's message; a worker that died (killed, out of memory) stops the hide."""
+        while True:
+            try:
+                return self.done.get(timeout=WORKER_CHECK_SECONDS)
+            except queue.Empty:
+                dead = next((worker for worker in self.workers if not worker.is_alive()), None)
+                if dead is not None:
+                    raise RuntimeError(f"a hide worker process ended with exit code {dead.exitcode}")
 
     def __exit__(self, *exc) -> None:
         super().__exit__(*exc)
-        if self.pool is not None:  # every result is in hand, or the hide failed: nothing to wait for
-            self.pool.terminate()  # (a clean close waited ~0.5 s for the workers' interpreters to exit)
-            self.pool.join()
+        for worker in self.workers:  # every result is in hand, or the hide failed: nothing to wait for
+            worker.terminate()
+        for worker in self.workers:
+            worker.join()
+        for channel in (self.todo, self.done):
+            if channel is not None:  # jobs never taken are dropped, not flushed to dead workers at exit
+                channel.cancel_join_thread()
+                channel.close()
 
 
 def open_executor(name: str, weights: FieldWeights, workers: int, device: torch.device,

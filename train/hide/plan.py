@@ -19,7 +19,7 @@ from noisenerf.runtime.errors import UserError
 from noisenerf.runtime.networks import NETWORKS, render_network
 from noisenerf.runtime.sampling import SamplingConfig
 from noisenerf.train.hide.methods import METHODS
-from noisenerf.train.hide.settings import CPU_CHUNK_PIXELS
+from noisenerf.train.hide.settings import CPU_PART_PIXELS
 from noisenerf.train.hide.tiling import DEFAULT_TILE_SIZE, tile_camera, tile_rects
 
 if TYPE_CHECKING:
@@ -44,7 +44,7 @@ class HideConfig:
     tile_size: int = DEFAULT_TILE_SIZE
     view: int = 0
     seed: int = 0
-    chunk_pixels: int = CPU_CHUNK_PIXELS  # exact method: pixels per solved (and resumable) chunk; CLI: chunk_pixels_for
+    part_pixels: int = CPU_PART_PIXELS  # exact method: pixels per solved (and resumable) part; CLI: part_pixels_for
     network: str | None = None  # coarse | fine
     settings: tuple = ()
 
@@ -118,7 +118,7 @@ def plan(scene: Scene, secret: np.ndarray, config: HideConfig) -> HidePlan:
 
 def run_key(scene: Scene, secret: np.ndarray, config: HideConfig) -> str:
     """What a resumable partial result belongs to: scene, secret, every setting and the noisenerf version
-    (saved chunks are only valid in the compact basis the version that solved them computes)."""
+    (saved parts are only valid in the compact basis the version that solved them computes)."""
     payload = json.dumps({"scene": scene.fingerprint(), "secret": secret_digest(secret), "shape": secret.shape,
                           "config": config.to_dict(), "noisenerf": __version__}, sort_keys=True)
     return hashlib.sha256(payload.encode()).hexdigest()

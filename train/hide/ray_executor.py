@@ -8,6 +8,7 @@ optional extra, imported only here, when the executor is chosen.
 
 from __future__ import annotations
 
+import functools
 import logging
 import socket
 from typing import Iterator
@@ -16,7 +17,7 @@ import torch
 
 from noisenerf.runtime.errors import UserError
 from noisenerf.train.hide.executors import Executor
-from noisenerf.train.hide.jobs import PREPARE, FieldWeights, Job, run_job
+from noisenerf.train.hide.jobs import PREPARE, FieldWeights, Job, JobRunner
 
 CONNECT_SECONDS = 5.0  # how long an address may take to accept a connection before the hide gives up
 MAX_RETRIES = 3  # a task's reruns after its worker dies (a node lost, a process killed); not for errors
@@ -40,6 +41,7 @@ class RayExecutor(Executor):
     own log lines (and its workers') reach stderr only when verbose."""
 
     def __init__(self, weights: FieldWeights, device: torch.device, address: str | None, verbose: bool = False):
+        super().__init__()
         self.ray = import_ray()
         self.started = not self.ray.is_initialized()
         if self.started:
@@ -80,6 +82,19 @@ class RayExecutor(Executor):
             self.ray.cancel(reference, force=True)
         if self.started:
             self.ray.shutdown()
+
+
+def run_job(weights: FieldWeights, job: Job, prepared: object = None) -> object:
+    """A Ray task: the job, run by this worker process's runner. Ray reuses a worker process for task after
+    task, and a task has no place but its process to keep what consecutive jobs share (an actor would hold a
+    CPU for the hide's whole life and give up task retries' plain rescheduling)."""
+    return worker_runner().run(weights, job, prepared)
+
+
+@functools.cache
+def worker_runner() -> JobRunner:
+    """The runner of this Ray worker process (one per process, built by its first task)."""
+    return JobRunner()
 
 
 def check_reachable(address: str | None, timeout: float = CONNECT_SECONDS) -> None:

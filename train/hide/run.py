@@ -29,7 +29,7 @@ from noisenerf.runtime.limits import checked_image_size
 from noisenerf.runtime.metrics import tile_quality
 from noisenerf.runtime.progress import Counter, ProgressFn
 from noisenerf.train.hide.executors import EXECUTORS, open_executor
-from noisenerf.train.hide.jobs import PREPARE, FieldWeights, Job, tile_view
+from noisenerf.train.hide.jobs import PREPARE, FieldWeights, Job
 from noisenerf.train.hide.plan import HideConfig, plan, run_key
 from noisenerf.train.hide.progress import Progress
 from noisenerf.train.hide.settings import pass_samples_for
@@ -177,7 +177,7 @@ class Driver:
     def finish(self, work: TileWork) -> None:
         """The tile assembled from its parts, checked by rendering it whole, and let go of."""
         x0, y0, w, h = work.tile.rect
-        secret_view = tile_view(self.weights, work.tile, self.device)  # the jobs' own where they ran here
+        secret_view = self.jobs.runner.view(self.weights, work.tile, self.device)  # the jobs' own where they ran here
         pixels = work.pixels.to(self.device)
         solved = self.solver.assemble(secret_view, pixels, (h, w), self.config, work.prepared,
                                       [work.solved[c] for c in range(len(work.parts))])

@@ -51,7 +51,7 @@ class SecretView:
 
     def subset(self, index: torch.Tensor) -> SecretView:
         """A view of rays `index` (m,) alone, ray i being ray index[i] here, with the same field: what a
-        worker process needs to solve one chunk (encodings included, not the whole tile's)."""
+        worker process needs to solve one part (encodings included, not the whole tile's)."""
         part = copy.copy(self)
         part.points, part.viewdirs, part.deltas = self.points[index], self.viewdirs[index], self.deltas[index]
         part.cached = None if self.cached is None else self.cached[index]

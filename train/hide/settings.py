@@ -13,13 +13,13 @@ from typing import ClassVar
 from noisenerf.runtime.errors import UserError
 from noisenerf.runtime.limits import MAX_COMPACT_COEFFICIENTS
 
-CPU_CHUNK_PIXELS = 16384  # chunk_pixels_for a CPU, and HideConfig's default
+CPU_PART_PIXELS = 16384  # part_pixels_for a CPU, and HideConfig's default
 
 
-def chunk_pixels_for(device_type: str) -> int:
+def part_pixels_for(device_type: str) -> int:
     """Pixels solved together: a GPU needs large batches to be busy (its Jacobians of 4 × 90 per pixel
-    stay well under a GiB at 2^18); on a CPU smaller chunks resume at a finer grain and cost the same."""
-    return 1 << 18 if device_type == "cuda" else CPU_CHUNK_PIXELS
+    stay well under a GiB at 2^18); on a CPU smaller parts resume at a finer grain and cost the same."""
+    return 1 << 18 if device_type == "cuda" else CPU_PART_PIXELS
 
 
 def pass_samples_for(device_type: str) -> int:

@@ -40,11 +40,11 @@ def storage_dtype(name: str) -> torch.dtype:
     return getattr(torch, name)
 
 
-def chunk_seed(config: HideConfig, tile: int, chunk: int) -> int:
-    """The seed of one chunk's solve (chunk −1: the tile's compact basis). The strides keep the seeds of one
-    run's chunks distinct while a tile has fewer than 10,007 chunks (a 512² tile has 16 on a CPU); primes,
-    so that runs with neighbouring seeds do not repeat each other's chunk seeds in step."""
-    return config.seed * 1_000_003 + tile * 10_007 + chunk
+def part_seed(config: HideConfig, tile: int, part: int) -> int:
+    """The seed of one part's solve (part −1: the tile's compact basis). The strides keep the seeds of one
+    run's parts distinct while a tile has fewer than 10,007 parts (a 512² tile has 16 on a CPU); primes,
+    so that runs with neighbouring seeds do not repeat each other's part seeds in step."""
+    return config.seed * 1_000_003 + tile * 10_007 + part
 
 
 class Solver:
