@@ -146,10 +146,10 @@ def unseal(read: ReadBundle, passphrase: bytes | None) -> Keys | None:
     exactly so, and revealing it would pass its ciphertext off as the secret."""
     if not read.sealed:
         if passphrase is not None:
-            raise UserError(NOT_SEALED)
+            raise UserError(NOT_SEALED, code="seal.not_sealed")
         return None
     if passphrase is None:
-        raise UserError(NO_PASSPHRASE)
+        raise UserError(NO_PASSPHRASE, code="seal.no_passphrase")
     return unseal_keys(read.data, seal_of(read.bundle.payload), passphrase)
 
 
@@ -181,7 +181,7 @@ def reveal(model: Source | Model, bundle: Source | ReadBundle, passphrase: str |
         return RevealResult("image", revealed.exact, secret_digest(revealed.pixels), secret.width, secret.height,
                             pixels=revealed.pixels, **counts)
     if not revealed.exact:
-        raise UserError(INEXACT)
+        raise UserError(INEXACT, code="payload.inexact")
     record = open_payload(revealed.pixels, secret.payload, model.fingerprint, keys)
     common = {"exact": True, "sha256": record.sha256, "name": record.name.decode("utf-8", "replace") or None,
               "sealed": keys is not None, "payload": True, **counts}

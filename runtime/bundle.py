@@ -38,7 +38,7 @@ from noisenerf.runtime.errors import UserError
 from noisenerf.runtime.files import os_failure, parse_json, write_bytes
 from noisenerf.runtime.layouts import DTYPES, LAYOUTS, TileNoise, layout_named
 from noisenerf.runtime.limits import (MAX_CAMERAS, MAX_IMAGE_SIDE, MAX_NOISE_DIMS, MAX_TILES, checked_image_size,
-                                      checked_int, checked_list)
+                                      checked_int, checked_list, is_finite)
 from noisenerf.runtime.networks import NETWORKS
 from noisenerf.runtime.payload import checked_payload
 from noisenerf.runtime.sealing import split_safetensors
@@ -124,25 +124,30 @@ def validate_tile(i: int, tile: Tile, bundle: Bundle) -> None:
     layout = LAYOUTS[bundle.layout]
     x0, y0, w, h = tile.rect
     if tile.network is not None and tile.network not in NETWORKS:
-        raise UserError(f"bundle: tile {i} names network {tile.network!r:.40} (expected one of {NETWORKS})")
+        raise UserError(f"bundle: tile {i} names network {tile.network!r:.40} (expected one of {NETWORKS})",
+                        code="bundle.tile_network", tile=i, network=tile.network[:60], expected=list(NETWORKS))
     if w < 1 or h < 1 or x0 < 0 or y0 < 0 or x0 + w > bundle.width or y0 + h > bundle.height:
         raise UserError(f"bundle: tile {i} rectangle {tile.rect} lies outside the "
-                        f"{bundle.width}x{bundle.height} image")
+                        f"{bundle.width}x{bundle.height} image", code="bundle.tile_outside", tile=i, rect=tile.rect,
+                        width=bundle.width, height=bundle.height)
     if (tile.camera.width, tile.camera.height) != (w, h):
         raise UserError(f"bundle: tile {i} camera is {tile.camera.width}x{tile.camera.height}, "
-                        f"its rectangle {w}x{h}")
+                        f"its rectangle {w}x{h}", code="bundle.tile_camera", tile=i,
+                        camera=[tile.camera.width, tile.camera.height], size=[w, h])
     if tile.sampling.n_samples > layout.max_samples:
         raise UserError(f"bundle: tile {i} asks for {tile.sampling.n_samples} samples per ray; the {bundle.layout} "
-                        f"layout allows at most {layout.max_samples}")
+                        f"layout allows at most {layout.max_samples}", code="bundle.tile_samples", tile=i,
+                        samples=tile.sampling.n_samples, layout=bundle.layout, most=layout.max_samples)
     kind = layout.noise_type
     if not isinstance(tile.noise, kind):
         raise UserError(f"bundle: tile {i} noise is {type(tile.noise).__name__}; the {bundle.layout} layout "
-                        f"stores {kind.__name__}")
+                        f"stores {kind.__name__}", code="bundle.tile_noise_type", tile=i, layout=bundle.layout)
     shape, noise = expected_noise_shape(tile, bundle), tile.noise
     if noise.shape != shape or noise.dtype != DTYPES[bundle.dtype]:
         raise UserError(f"bundle: tile {i} noise is {noise.dtype} {noise.shape}, "
-                        f"expected {bundle.dtype} {shape}")
-    layout.check_noise(f"bundle: tile {i}", noise, w * h, bundle.noise_dims, bundle.coefficients)
+                        f"expected {bundle.dtype} {shape}", code="bundle.tile_noise_shape", tile=i,
+                        dtype=str(noise.dtype), shape=noise.shape, expected_dtype=bundle.dtype, expected_shape=shape)
+    layout.check_noise(i, noise, w * h, bundle.noise_dims, bundle.coefficients)
 
 
 def validate_noise_header(layout: str, dtype: str, dims: int, coefficients: int | None) -> None:
@@ -150,7 +155,8 @@ def validate_noise_header(layout: str, dtype: str, dims: int, coefficients: int 
     written = {"layout": layout, "dims": dims, "dtype": dtype,
                **(LAYOUTS[layout].header(coefficients) if layout in LAYOUTS else {})}
     if noise_header(written, tuple(LAYOUTS))["coefficients"] != coefficients:
-        raise UserError("bundle: coefficients per pixel are given for, and only for, the compact layout")
+        raise UserError("bundle: coefficients per pixel are given for, and only for, the compact layout",
+                        code="bundle.coefficients_layout", layout=layout)
 
 
 def validate(bundle: Bundle) -> None:
@@ -159,17 +165,20 @@ def validate(bundle: Bundle) -> None:
     noise the bundle holds."""
     validate_noise_header(bundle.layout, bundle.dtype, bundle.noise_dims, bundle.coefficients)
     if bundle.width < 1 or bundle.height < 1 or not bundle.tiles:
-        raise UserError(f"bundle: empty secret ({bundle.width}x{bundle.height}, {len(bundle.tiles)} tiles)")
+        raise UserError(f"bundle: empty secret ({bundle.width}x{bundle.height}, {len(bundle.tiles)} tiles)",
+                        code="bundle.empty", width=bundle.width, height=bundle.height, tiles=len(bundle.tiles))
     if len(bundle.tiles) > MAX_TILES:
-        raise UserError(f"bundle: {len(bundle.tiles)} tiles, at most {MAX_TILES} allowed")
+        raise UserError(f"bundle: {len(bundle.tiles)} tiles, at most {MAX_TILES} allowed", code="bundle.too_many_tiles",
+                        tiles=len(bundle.tiles), most=MAX_TILES)
     for i, tile in enumerate(bundle.tiles):
         validate_tile(i, tile, bundle)
     if sum(tile.rect[2] * tile.rect[3] for tile in bundle.tiles) != bundle.width * bundle.height:
-        raise UserError(f"bundle: the tiles' areas do not add up to the {bundle.width}x{bundle.height} secret")
+        raise UserError(f"bundle: the tiles' areas do not add up to the {bundle.width}x{bundle.height} secret",
+                        code="bundle.tile_areas", width=bundle.width, height=bundle.height)
     covered = np.zeros((bundle.height, bundle.width), dtype=np.uint8)
     for x0, y0, w, h in (tile.rect for tile in bundle.tiles):
         if covered[y0:y0 + h, x0:x0 + w].any():
-            raise UserError("bundle: tile rectangles overlap")
+            raise UserError("bundle: tile rectangles overlap", code="bundle.tiles_overlap")
         covered[y0:y0 + h, x0:x0 + w] = 1
 
 
@@ -179,20 +188,26 @@ def read_tensors(header: dict, data: bytes, source: str) -> dict[str, np.ndarray
         dtype = info.get("dtype") if isinstance(info, dict) else None
         if name != "__metadata__" and dtype not in SAFETENSORS_DTYPES:
             raise UserError(f"bundle tensor {name!r:.60} is {dtype!r:.20}; noise is stored as "
-                            f"{' or '.join(SAFETENSORS_DTYPES)}: {source}")
+                            f"{' or '.join(SAFETENSORS_DTYPES)}: {source}", code="bundle.tensor_dtype",
+                            tensor=name[:60], dtype=dtype[:60] if isinstance(dtype, str) else None)
     try:
         return load(data)
     except (SafetensorError, ValueError, TypeError) as error:
-        raise UserError(f"not a readable safetensors bundle: {source} ({error})") from None
+        raise UserError(f"not a readable safetensors bundle: {source} ({error})",
+                        code="bundle.not_safetensors") from None
 
 
-def tile_tensor(tensors: dict[str, np.ndarray], name: str, what: str, dtype=None, ndim: int | None = None) -> np.ndarray:
-    """A named tensor that must exist (with this dtype and rank, when given)."""
+def tile_tensor(tensors: dict[str, np.ndarray], name: str, tile: int, dtype=None,
+                ndim: int | None = None) -> np.ndarray:
+    """A named tensor of tile number `tile` that must exist (with this dtype and rank, when given)."""
     if name not in tensors:
-        raise UserError(f"{what} tensor {name!r:.60} is missing")
+        raise UserError(f"bundle: tile {tile} tensor {name!r:.60} is missing", code="bundle.tensor_missing", tile=tile,
+                        tensor=name[:60])
     value = tensors[name]
     if (dtype is not None and value.dtype != dtype) or (ndim is not None and value.ndim != ndim):
-        raise UserError(f"{what} tensor {name!r:.60} is {value.dtype} {value.shape}")
+        raise UserError(f"bundle: tile {tile} tensor {name!r:.60} is {value.dtype} {value.shape}",
+                        code="bundle.tensor_shape", tile=tile, tensor=name[:60], dtype=str(value.dtype),
+                        shape=value.shape)
     return value
 
 
@@ -202,68 +217,76 @@ def parse_tile(i: int, data, tensors: dict[str, np.ndarray], header: dict, keep_
     x0, y0, width, height = checked_rect(i, data)
     name = data.get("tensor")
     if not isinstance(name, str):
-        raise UserError(f"bundle: tile {i} tensor {name!r:.40} is missing")
-    what = f"bundle: tile {i}"
+        raise UserError(f"bundle: tile {i} tensor {name!r:.40} is missing", code="bundle.tile_no_tensor", tile=i)
     layout = LAYOUTS[header["layout"]]
     shape = (height, width, header["coefficients"])  # what a layout with coefficients stores per pixel
-    noise = layout.read_tile(name, data, lambda key, **kind: tile_tensor(tensors, key, what, **kind), shape,
-                             header["dtype"], what, keep_unpacked, header["format"])
+    noise = layout.read_tile(name, data, lambda key, **kind: tile_tensor(tensors, key, i, **kind), shape,
+                             header["dtype"], i, keep_unpacked, header["format"])
     view = data.get("view")
     return Tile(rect=(x0, y0, width, height), camera=Camera.from_dict(data.get("camera")),
                 sampling=SamplingConfig.from_dict(data.get("sampling")), noise=noise,
-                view=None if view is None else checked_int(view, f"bundle: tile {i} view", 0, MAX_CAMERAS),
-                network=None if data.get("network") is None else checked_text(data["network"], f"bundle: tile {i} network"))
+                view=None if view is None else checked_int(view, f"bundle: tile {i} view", 0, MAX_CAMERAS,
+                                                           code="bundle.tile_view", tile=i),
+                network=None if data.get("network") is None else checked_text(
+                    data["network"], f"bundle: tile {i} network", "bundle.tile_network", tile=i))
 
 
-def checked_text(value, what: str) -> str:
-    """A short JSON string (fingerprints, digests, names)."""
+def checked_text(value, what: str, code: str, **params) -> str:
+    """A short JSON string (fingerprints, digests, names); code and params: its refusal's."""
     if not isinstance(value, str) or len(value) > 256:
-        raise UserError(f"{what} must be a string of at most 256 characters")
+        raise UserError(f"{what} must be a string of at most 256 characters", code=code, most=256, **params)
     return value
 
 
 def checked_format(meta: dict, path: Path) -> int:
     """The bundle's format version, refusing one this noisenerf cannot read in a line that says which."""
     version = meta.get("format_version")
-    if isinstance(version, bool) or version not in READABLE_FORMATS:
+    if isinstance(version, bool) or not isinstance(version, (int, float)) or version not in READABLE_FORMATS:
         newest = max(READABLE_FORMATS)
+        number = isinstance(version, (int, float)) and not isinstance(version, bool) and is_finite(version)
         raise UserError(f"{path} is bundle format {version!r:.20}; noisenerf {__version__} reads formats "
                         f"{min(READABLE_FORMATS)} to {newest}"
-                        + ("; a newer noisenerf is needed" if isinstance(version, int) and version > newest else ""))
+                        + ("; a newer noisenerf is needed" if isinstance(version, int) and version > newest else ""),
+                        code="bundle.format", **({"format": version} if number else {}), oldest=min(READABLE_FORMATS),
+                        newest=newest)
     return version
 
 
 def noise_header(noise: dict, layouts: tuple[str, ...]) -> dict:
     """The bundle's noise description, type- and range-checked. -> {layout, dims, dtype, coefficients}."""
-    layout = layout_named(checked_text(noise.get("layout"), "bundle: noise layout"), layouts)
-    dims = checked_int(noise.get("dims"), "bundle: noise dims", 1, MAX_NOISE_DIMS)
-    dtype = checked_text(noise.get("dtype"), "bundle: noise dtype")
+    layout = layout_named(checked_text(noise.get("layout"), "bundle: noise layout", "bundle.noise_layout"), layouts)
+    dims = checked_int(noise.get("dims"), "bundle: noise dims", 1, MAX_NOISE_DIMS, code="bundle.noise_dims")
+    dtype = checked_text(noise.get("dtype"), "bundle: noise dtype", "bundle.noise_dtype")
     coefficients = layout.read_header(noise, dims)
     if dtype not in layout.dtypes:
         raise UserError(f"bundle: unknown noise dtype {dtype!r:.40} for the {layout.name} layout (expected one of "
-                        f"{layout.dtypes})")
+                        f"{layout.dtypes})", code="bundle.noise_dtype", dtype=dtype[:60], layout=layout.name,
+                        expected=list(layout.dtypes))
     return {"layout": layout.name, "dims": dims, "dtype": dtype, "coefficients": coefficients}
 
 
 def parse_bundle(meta, tensors: dict[str, np.ndarray], path: Path) -> Bundle:
     """The metadata as a Bundle; nothing is converted by truncation (16.9 is not a size)."""
     if not isinstance(meta, dict):
-        raise UserError(f"bundle metadata must be a JSON object: {path}")
+        raise UserError(f"bundle metadata must be a JSON object: {path}", code="bundle.metadata_not_object")
     version = checked_format(meta, path)
     secret, noise = meta.get("secret"), meta.get("noise")
     if not isinstance(secret, dict) or not isinstance(noise, dict):
-        raise UserError("bundle: metadata needs 'secret' and 'noise' objects")
-    width, height = checked_image_size(secret.get("width"), secret.get("height"), "bundle: secret")
+        raise UserError("bundle: metadata needs 'secret' and 'noise' objects", code="bundle.no_secret_or_noise")
+    width, height = checked_image_size(secret.get("width"), secret.get("height"), "bundle: secret",
+                                       code="bundle.secret_size")
     header = {**noise_header(noise, READABLE_FORMATS[version]), "format": version}
-    tiles = checked_list(meta.get("tiles"), "bundle: tiles", most=MAX_TILES)
+    tiles = checked_list(meta.get("tiles"), "bundle: tiles", most=MAX_TILES, code="bundle.tiles")
     areas = np.array([w * h for _, _, w, h in (checked_rect(i, tile) for i, tile in enumerate(tiles))], np.int64)
     layout = LAYOUTS[header["layout"]]
     layout.check_streams([tensors.get(tile.get("tensor")) if isinstance(tile.get("tensor"), str) else None
                           for tile in tiles], (width, height), int(areas.sum()), header["coefficients"],
                          header["dtype"])
     extra = meta.get("extra", {})
-    return Bundle(model_fingerprint=checked_text(meta.get("model_fingerprint"), "bundle: model_fingerprint"),
-                  width=width, height=height, secret_sha256=checked_text(secret.get("sha256"), "bundle: sha256"),
+    return Bundle(model_fingerprint=checked_text(meta.get("model_fingerprint"), "bundle: model_fingerprint",
+                                                 "bundle.model_fingerprint"),
+                  width=width, height=height,
+                  secret_sha256=checked_text(secret.get("sha256"), "bundle: sha256", "bundle.secret_sha256"),
                   layout=header["layout"], noise_dims=header["dims"], dtype=header["dtype"],
                   tiles=tuple(parse_tile(i, tile, tensors, header, keep) for i, (tile, keep) in
                               enumerate(zip(tiles, layout.kept_unpacked(areas, header["coefficients"],
@@ -275,10 +298,11 @@ def parse_bundle(meta, tensors: dict[str, np.ndarray], path: Path) -> Bundle:
 def checked_rect(i: int, data) -> tuple[int, int, int, int]:
     """A tile's rectangle (x0, y0, width, height) from its metadata object."""
     if not isinstance(data, dict):
-        raise UserError(f"bundle: tile {i} must be a JSON object")
-    rect = checked_list(data.get("rect"), f"bundle: tile {i} rect", length=4)
-    x0, y0 = (checked_int(v, f"bundle: tile {i} rect origin", 0, MAX_IMAGE_SIDE) for v in rect[:2])
-    return (x0, y0, *checked_image_size(rect[2], rect[3], f"bundle: tile {i} rect"))
+        raise UserError(f"bundle: tile {i} must be a JSON object", code="bundle.tile_not_object", tile=i)
+    rect = checked_list(data.get("rect"), f"bundle: tile {i} rect", length=4, code="bundle.tile_rect", tile=i)
+    x0, y0 = (checked_int(v, f"bundle: tile {i} rect origin", 0, MAX_IMAGE_SIDE, code="bundle.tile_rect", tile=i)
+              for v in rect[:2])
+    return (x0, y0, *checked_image_size(rect[2], rect[3], f"bundle: tile {i} rect", code="bundle.tile_rect", tile=i))
 
 
 def bundle_bytes(source: str | Path | bytes) -> tuple[bytes, str]:
@@ -287,11 +311,11 @@ def bundle_bytes(source: str | Path | bytes) -> tuple[bytes, str]:
         return bytes(source), "the bundle"
     path = Path(source)
     if not path.is_file():
-        raise UserError(f"bundle not found: {path}")
+        raise UserError(f"bundle not found: {path}", code="bundle.not_found")
     try:
         return path.read_bytes(), str(path)
     except OSError as error:
-        raise os_failure("read bundle", path, error) from None
+        raise os_failure("read bundle", path, error, "bundle.read_failed") from None
 
 
 def load_bundle(source: str | Path | bytes) -> Bundle:
@@ -304,7 +328,7 @@ def parse_bundle_bytes(data: bytes, name: str) -> Bundle:
     header, _ = split_safetensors(data, name)
     raw = header.get("__metadata__", {}).get(METADATA_KEY)
     if not isinstance(raw, str):
-        raise UserError(f"not a noisenerf bundle (no '{METADATA_KEY}' metadata): {name}")
+        raise UserError(f"not a noisenerf bundle (no '{METADATA_KEY}' metadata): {name}", code="bundle.not_noisenerf")
     meta = parse_json(raw, "bundle metadata", name)
     bundle = parse_bundle(meta, read_tensors(header, data, name), Path(name))
     validate(bundle)

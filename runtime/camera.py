@@ -55,18 +55,22 @@ class Camera:
     def from_dict(data) -> "Camera":
         """From metadata someone else wrote: integer size within the caps, finite intrinsics, finite pose."""
         if not isinstance(data, dict):
-            raise UserError("malformed camera: expected an object")
+            raise UserError("malformed camera: expected an object", code="camera.not_object")
         try:
             c2w = np.asarray(data["c2w"])
             if c2w.shape == (3, 4):
                 c2w = np.vstack([c2w, [0.0, 0.0, 0.0, 1.0]])
             if c2w.shape != (4, 4) or c2w.dtype.kind not in "iuf" or not np.isfinite(c2w).all():
                 raise ValueError("c2w must be a finite 4x4 matrix")
-            width, height = checked_image_size(data["width"], data["height"], "camera")
-            fx, fy = (checked_float(data[name], f"camera {name}", 1e-6, 1e9) for name in ("fx", "fy"))
-            cx, cy = (checked_float(data[name], f"camera {name}", -1e9, 1e9) for name in ("cx", "cy"))
-        except (KeyError, TypeError, ValueError) as error:
-            raise UserError(f"malformed camera: {error}") from None
+            width, height = checked_image_size(data["width"], data["height"], "camera", code="camera.size")
+            fx, fy = (checked_float(data[name], f"camera {name}", 1e-6, 1e9, code="camera.focal", key=name)
+                      for name in ("fx", "fy"))
+            cx, cy = (checked_float(data[name], f"camera {name}", -1e9, 1e9, code="camera.center", key=name)
+                      for name in ("cx", "cy"))
+        except KeyError as error:
+            raise UserError(f"malformed camera: {error}", code="camera.missing_key", key=error.args[0]) from None
+        except (TypeError, ValueError) as error:  # numpy's words, or ours
+            raise UserError(f"malformed camera: {error}", code="camera.bad_c2w") from None
         return Camera(_as_tuple(c2w), width, height, fx, fy, cx, cy)
 
 
@@ -87,8 +91,10 @@ class NDCSpace:
         """From metadata: positive finite values only (a zero would divide by zero in every ray)."""
         if not isinstance(data, dict) or not {"tan_half_fov_x", "tan_half_fov_y"} <= set(data) <= {
                 "tan_half_fov_x", "tan_half_fov_y", "near_plane"}:
-            raise UserError("ndc must be an object with tan_half_fov_x, tan_half_fov_y and near_plane")
-        return NDCSpace(**{name: checked_float(value, f"ndc {name}", 1e-6, 1e6) for name, value in data.items()})
+            raise UserError("ndc must be an object with tan_half_fov_x, tan_half_fov_y and near_plane",
+                            code="camera.bad_ndc")
+        return NDCSpace(**{name: checked_float(value, f"ndc {name}", 1e-6, 1e6, code="camera.ndc_value", key=name)
+                           for name, value in data.items()})
 
 
 def _as_tuple(matrix: np.ndarray) -> tuple[tuple[float, ...], ...]:
@@ -121,7 +127,7 @@ def normalize_directions(rays_d: np.ndarray) -> np.ndarray:
     """Unit view directions. rays_d: (n, 3) -> (n, 3); a zero-length direction is refused."""
     norms = np.linalg.norm(rays_d, axis=-1, keepdims=True)
     if not np.all(norms > 0):
-        raise UserError("a ray has a zero-length direction")
+        raise UserError("a ray has a zero-length direction", code="camera.zero_direction")
     return (rays_d / norms).astype(np.float32)
 
 

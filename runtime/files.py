@@ -33,17 +33,18 @@ NO_SPACE = (errno.ENOSPC, errno.EDQUOT)
 NO_HARD_LINKS = (errno.EPERM, errno.EOPNOTSUPP, errno.ENOTSUP, errno.EXDEV, errno.EMLINK)
 
 
-def os_failure(what: str, path: str | os.PathLike, error: OSError) -> UserError:
-    """One readable line for an OSError: what we tried, on which path, and the system's reason."""
-    return UserError(f"cannot {what} {path}: {error.strerror or error}")
+def os_failure(what: str, path: str | os.PathLike, error: OSError, code: str) -> UserError:
+    """One readable line for an OSError: what we tried, on which path, and the system's reason (code: the
+    refusal's; no params: the path and the system's words are not the refusal's to promise)."""
+    return UserError(f"cannot {what} {path}: {error.strerror or error}", code=code)
 
 
 def write_failure(path: Path, error: OSError) -> UserError:
     """One line for an OSError while writing `path`; a full file system is named as such."""
     if error.errno in NO_SPACE:
         return UserError(f"no space left on the file system of {path.parent} while writing {path.name}; "
-                         f"nothing was written")
-    return os_failure("write", path, error)
+                         f"nothing was written", code="file.no_space")
+    return os_failure("write", path, error, "file.write_failed")
 
 
 def existing_kind(path: Path) -> str | None:
@@ -53,7 +54,7 @@ def existing_kind(path: Path) -> str | None:
     except FileNotFoundError:
         return None
     except OSError as error:
-        raise os_failure("inspect", path, error) from None
+        raise os_failure("inspect", path, error, "file.inspect_failed") from None
     kinds = {stat.S_ISREG: "a file", stat.S_ISDIR: "a directory", stat.S_ISLNK: "a symlink",
              stat.S_ISFIFO: "a FIFO", stat.S_ISSOCK: "a socket"}
     return next((name for test, name in kinds.items() if test(mode)), "a device")
@@ -66,7 +67,7 @@ def probe_writable(folder: Path) -> None:
         os.close(fd)
         os.unlink(scratch)
     except OSError as error:
-        raise os_failure("write to folder", folder, error) from None
+        raise os_failure("write to folder", folder, error, "file.folder_not_writable") from None
 
 
 def check_output_path(path: str | os.PathLike, force: bool = True) -> Path:
@@ -74,14 +75,15 @@ def check_output_path(path: str | os.PathLike, force: bool = True) -> Path:
     (even with force: we never replace a symlink, FIFO or folder), or (without force) that exists."""
     path = Path(path)
     if not path.parent.is_dir():
-        raise UserError(f"output folder does not exist: {path.parent}")
+        raise UserError(f"output folder does not exist: {path.parent}", code="file.no_output_folder")
     if len(path.name.encode()) > 255:
-        raise UserError(f"output file name is longer than 255 bytes: {path.name[:40]}…")
+        raise UserError(f"output file name is longer than 255 bytes: {path.name[:40]}…", code="file.name_too_long",
+                        bytes=len(path.name.encode()), most=255)
     kind = existing_kind(path)
     if kind not in (None, "a file"):
-        raise UserError(f"output path is {kind}, not a regular file: {path}")
+        raise UserError(f"output path is {kind}, not a regular file: {path}", code="file.not_regular", kind=kind)
     if kind == "a file" and not force:
-        raise UserError(f"output exists (pass --force to overwrite): {path}")
+        raise UserError(f"output exists (pass --force to overwrite): {path}", code="file.exists")
     probe_writable(path.parent)
     return path
 
@@ -90,10 +92,10 @@ def check_output_directory(path: str | os.PathLike) -> Path:
     """A folder to write into: its parent must exist, and it may already exist only as a folder."""
     path = Path(path)
     if not path.parent.is_dir():
-        raise UserError(f"output folder does not exist: {path.parent}")
+        raise UserError(f"output folder does not exist: {path.parent}", code="file.no_output_folder")
     kind = existing_kind(path)
     if kind not in (None, "a directory"):
-        raise UserError(f"output path is {kind}, not a folder: {path}")
+        raise UserError(f"output path is {kind}, not a folder: {path}", code="file.not_folder", kind=kind)
     return path
 
 
@@ -101,7 +103,7 @@ def refuse_lossy(path: Path) -> None:
     """A reveal is checked on its 8-bit pixels, so it is only written where those pixels survive."""
     if path.suffix.lower() in LOSSY_SUFFIXES:
         raise UserError(f"{path.suffix} is a lossy format: the revealed pixels would not be the secret's; "
-                        f"write .png, .tif or .exr")
+                        f"write .png, .tif or .exr", code="file.lossy_format", suffix=path.suffix.lower()[:60])
 
 
 def fsync_path(path: str | os.PathLike) -> None:
@@ -153,7 +155,7 @@ def publish(tmp: Path, path: Path, replace: bool) -> None:
         os.link(tmp, path)
     except FileExistsError:
         raise UserError(f"output exists (pass --force to overwrite): {path} appeared while this one was "
-                        f"written") from None
+                        f"written", code="file.exists") from None
     except OSError as error:
         if error.errno not in NO_HARD_LINKS:
             raise
@@ -168,7 +170,8 @@ def write_bytes(path: str | os.PathLike, data: bytes, *, replace: bool) -> None:
         with open(tmp, "wb") as handle:
             handle.write(data)
         if tmp.stat().st_size != len(data):  # a write that lost bytes without an error is still a failure
-            raise UserError(f"cannot write {path}: {tmp.stat().st_size} of {len(data)} bytes reached the disk")
+            raise UserError(f"cannot write {path}: {tmp.stat().st_size} of {len(data)} bytes reached the disk",
+                            code="file.write_incomplete", written=tmp.stat().st_size, bytes=len(data))
 
 
 def finite_json(data):
@@ -203,9 +206,10 @@ def parse_json(text: str | bytes, what: str, source: str | os.PathLike = ""):
         data, too_deep = None, True
     except (UnicodeDecodeError, ValueError) as error:  # JSONDecodeError is a ValueError
         raise UserError(f"{what} is not valid JSON{f': {source}' if source else ''} "
-                        f"({' '.join(str(error).split())[:160]})") from None
+                        f"({' '.join(str(error).split())[:160]})", code="json.invalid") from None
     if too_deep:
-        raise UserError(f"{what} is nested deeper than {MAX_JSON_DEPTH} levels{f': {source}' if source else ''}")
+        raise UserError(f"{what} is nested deeper than {MAX_JSON_DEPTH} levels{f': {source}' if source else ''}",
+                        code="json.too_deep", depth=MAX_JSON_DEPTH)
     return data
 
 
@@ -214,10 +218,10 @@ def read_json(path: str | os.PathLike, what: str) -> dict:
     try:
         text = Path(path).read_bytes()
     except FileNotFoundError:
-        raise UserError(f"{what} not found: {path}") from None
+        raise UserError(f"{what} not found: {path}", code="file.not_found") from None
     except OSError as error:
-        raise os_failure(f"read {what}", path, error) from None
+        raise os_failure(f"read {what}", path, error, "file.read_failed") from None
     data = parse_json(text, what, path)
     if not isinstance(data, dict):
-        raise UserError(f"{what} must hold a JSON object: {path}")
+        raise UserError(f"{what} must hold a JSON object: {path}", code="json.not_object")
     return data

@@ -117,8 +117,9 @@ class GraphBuilder:
             self.split(name, add_sizes(), (f"{name}.xyz", f"{name}.dirs"))
         return f"{name}.xyz", f"{name}.dirs"
 
-def refuse(source: str, what: str) -> UserError:
-    return UserError(f"{source}: the model's graph is not the one its scene exports: {what}; export the scene again")
+def refuse(source: str, what: str, code: str, **params) -> UserError:
+    return UserError(f"{source}: the model's graph is not the one its scene exports: {what}; export the scene again",
+                     code=code, **params)
 
 
 def describe(node: Node) -> str:
@@ -130,37 +131,45 @@ def check_graph(file: ModelFile, expected: FieldGraph, source: str) -> dict[str,
     """Refuse (UserError) a model file whose graph differs from `expected` in any node, attribute, constant,
     initializer, port or opset; return its weights (name -> float32 array) for the fingerprint check."""
     if file.unexpected:
-        raise refuse(source, f"it holds {file.unexpected[0]}")
+        raise refuse(source, f"it holds {file.unexpected[0]}", "graph.unexpected_field", field=file.unexpected[0])
     for kind, got, want in (("inputs", file.inputs, expected.inputs), ("outputs", file.outputs, expected.outputs)):
         if got != want:
             raise refuse(source, f"its {kind} are {[port and (port.name, port.shape) for port in got]}, expected "
-                                 f"{[(port.name, port.shape) for port in want]}")
+                                 f"{[(port.name, port.shape) for port in want]}", "graph.ports", ports=kind,
+                         names=[port and port.name[:60] for port in got[:16]], expected=[port.name for port in want])
     if file.opsets != (("", expected.opset),):
-        raise refuse(source, f"it imports opsets {list(file.opsets)}, not [('', {expected.opset})]")
+        raise refuse(source, f"it imports opsets {list(file.opsets)}, not [('', {expected.opset})]", "graph.opsets",
+                     opsets=[[domain[:60], version] for domain, version in file.opsets[:16]], expected=expected.opset)
     for i, (got, want) in enumerate(zip(file.nodes, expected.nodes)):
         if got != want:
-            raise refuse(source, f"node {i} is {describe(got)}, expected {describe(want)}")
+            raise refuse(source, f"node {i} is {describe(got)}, expected {describe(want)}", "graph.node", index=i,
+                         op=got.op[:60], expected=want.op)
     if len(file.nodes) != len(expected.nodes):
         more = len(file.nodes) - len(expected.nodes)
         raise refuse(source, f"it has {abs(more)} {'more' if more > 0 else 'fewer'} nodes than the "
-                             f"{len(expected.nodes)} expected")
+                             f"{len(expected.nodes)} expected", "graph.node_count", nodes=len(file.nodes),
+                     expected=len(expected.nodes))
     records = {}
     for record in file.initializers:
         if record.name in records:
-            raise refuse(source, f"initializer {record.name!r} appears twice")
+            raise refuse(source, f"initializer {record.name!r} appears twice", "graph.initializer_twice",
+                         name=record.name[:60])
         records[record.name] = record
     names, wanted = set(records), set(expected.weights) | set(expected.constants)
     if names != wanted:
         odd = sorted(names - wanted) or sorted(wanted - names)
-        raise refuse(source, f"initializer {odd[0]!r} is {'extra' if names - wanted else 'missing'}")
+        if names - wanted:
+            raise refuse(source, f"initializer {odd[0]!r} is extra", "graph.initializer_extra", name=odd[0][:60])
+        raise refuse(source, f"initializer {odd[0]!r} is missing", "graph.initializer_missing", name=odd[0])
     for name, values in expected.constants.items():
         got = records[name].array(source, INT64 if values.dtype == np.int64 else FLOAT)
         if got.shape != values.shape or not np.array_equal(got, values):
             raise refuse(source, f"constant {name!r} holds {got.ravel()[:4].tolist()}…, expected "
-                                 f"{values.ravel()[:4].tolist()}…")
+                                 f"{values.ravel()[:4].tolist()}…", "graph.constant", name=name)
     weights = {}
     for name, shape in expected.weights.items():
         if records[name].dims != shape:
-            raise refuse(source, f"weight {name!r} has shape {list(records[name].dims)}, expected {list(shape)}")
+            raise refuse(source, f"weight {name!r} has shape {list(records[name].dims)}, expected {list(shape)}",
+                         "graph.weight_shape", name=name, shape=list(records[name].dims), expected=list(shape))
         weights[name] = records[name].array(source)
     return weights

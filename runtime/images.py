@@ -52,14 +52,14 @@ def _open(path: str | os.PathLike) -> oiio.ImageInput:
     """An open ImageInput that leaves straight alpha straight, or one UserError naming the file."""
     path = Path(path)
     if not path.is_file():
-        raise UserError(f"image not found: {path}")
+        raise UserError(f"image not found: {path}", code="image.not_found")
     if path.stat().st_size == 0:
-        raise UserError(f"image file is empty: {path}")
+        raise UserError(f"image file is empty: {path}", code="image.empty")
     config = oiio.ImageSpec()
     config.attribute("oiio:UnassociatedAlpha", 1)
     image = oiio.ImageInput.open(str(path), config)
     if image is None:
-        raise UserError(f"cannot read image {path}: {oiio.geterror() or 'unknown format'}")
+        raise UserError(f"cannot read image {path}: {oiio.geterror() or 'unknown format'}", code="image.unreadable")
     return image
 
 
@@ -70,7 +70,7 @@ def image_shape(path: str | os.PathLike) -> tuple[int, int, int]:
     spec = image.spec()
     image.close()
     if spec.width < 1 or spec.height < 1 or spec.nchannels < 1:
-        raise UserError(f"image has no pixels: {path}")
+        raise UserError(f"image has no pixels: {path}", code="image.no_pixels")
     return spec.height, spec.width, spec.nchannels
 
 
@@ -84,9 +84,11 @@ def read_native(path: str | os.PathLike) -> np.ndarray:
     image = _open(path)
     spec = image.spec()
     try:
-        checked_image_size(spec.width, spec.height, f"image {path}")  # the header's claim, before decoding
+        # the header's claim, before decoding
+        checked_image_size(spec.width, spec.height, f"image {path}", code="image.size")
         if not 1 <= spec.nchannels <= MAX_CHANNELS:
-            raise UserError(f"image {path} has {spec.nchannels} channels; at most {MAX_CHANNELS} are read")
+            raise UserError(f"image {path} has {spec.nchannels} channels; at most {MAX_CHANNELS} are read",
+                            code="image.too_many_channels", channels=spec.nchannels, most=MAX_CHANNELS)
     except UserError:
         image.close()
         raise
@@ -94,7 +96,7 @@ def read_native(path: str | os.PathLike) -> np.ndarray:
     error = image.geterror()
     image.close()
     if pixels is None or pixels.size == 0:
-        raise UserError(f"cannot read image {path}: {error or 'no pixels'}")
+        raise UserError(f"cannot read image {path}: {error or 'no pixels'}", code="image.unreadable")
     pixels = pixels.reshape(spec.height, spec.width, spec.nchannels)
     if pixels.dtype.kind == "f":
         pixels = pixels.astype(np.float32)
@@ -156,12 +158,13 @@ def load_secret(path: str | os.PathLike) -> Secret:
     pixels = read_native(path)
     channels = pixels.shape[-1]
     if channels not in SECRET_CHANNELS:
-        raise UserError(f"secret image {path} has {channels} channels; expected {', '.join(SECRET_CHANNELS.values())}")
+        raise UserError(f"secret image {path} has {channels} channels; expected {', '.join(SECRET_CHANNELS.values())}",
+                        code="image.secret_channels", channels=channels)
     if pixels.dtype == np.uint8 and channels in (1, 3):
         return Secret(np.ascontiguousarray(np.broadcast_to(pixels, pixels.shape[:2] + (3,))), [], 8)
     values = normalized(pixels)
     if np.isnan(values).any():
-        raise UserError(f"secret image {path} contains NaN values")
+        raise UserError(f"secret image {path} contains NaN values", code="image.nan")
     bits = 8 * pixels.dtype.itemsize
     kind = "float" if pixels.dtype.kind == "f" else f"{bits}-bit"
     warnings = [] if bits == 8 else [f"{path} has {kind} channels; it is hidden as 8 bits per channel (the "
@@ -196,7 +199,8 @@ def written_format(path: Path) -> tuple[str, str]:
     """(OpenImageIO format, pixel type) an image path is written in, by its extension (none: PNG)."""
     suffix = path.suffix.lower() or ".png"
     if suffix not in WRITE_FORMATS:
-        raise UserError(f"unknown image extension {path.suffix!r} for {path}; use one of {', '.join(WRITE_FORMATS)}")
+        raise UserError(f"unknown image extension {path.suffix!r} for {path}; use one of {', '.join(WRITE_FORMATS)}",
+                        code="image.unknown_extension")
     return WRITE_FORMATS[suffix]
 
 
@@ -243,7 +247,7 @@ def written_failure(path: Path, error: str) -> Exception:
     folder has no room left, since the libraries' own messages do not say so; else their message."""
     if os.statvfs(path.parent).f_bavail == 0:
         return OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), str(path))
-    return UserError(f"cannot write image {path}: {error}")
+    return UserError(f"cannot write image {path}: {error}", code="image.write_failed")
 
 
 def check_written(tmp: Path, path: Path, pixels: np.ndarray, lossless: bool) -> None:

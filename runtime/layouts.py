@@ -74,18 +74,22 @@ def pack_coefficients(coefficients: np.ndarray) -> np.ndarray:
     return np.frombuffer(lzma.compress(np.ascontiguousarray(split).tobytes(), preset=XZ_PRESET), dtype=np.uint8)
 
 
-def unpack_coefficients(packed: np.ndarray, shape: tuple[int, int, int], dtype: str, what: str) -> np.ndarray:
+def unpack_coefficients(packed: np.ndarray, shape: tuple[int, int, int], dtype: str, what: str,
+                        tile: int | None = None) -> np.ndarray:
     """pack_coefficients undone, refusing a stream that is corrupt or does not hold exactly shape's bytes
-    (at most that many are ever decompressed, within MAX_XZ_MEMORY). -> (h, w, k) of dtype."""
+    (at most that many are ever decompressed, within MAX_XZ_MEMORY). tile: the tile's number, for the refusal.
+    -> (h, w, k) of dtype."""
     kind = np.dtype(DTYPES[dtype]).newbyteorder("<")
     expected = int(np.prod(shape)) * kind.itemsize
     decompressor = lzma.LZMADecompressor(format=lzma.FORMAT_XZ, memlimit=MAX_XZ_MEMORY)
     try:
         data = decompressor.decompress(packed.tobytes(), max_length=expected + 1)
     except lzma.LZMAError as error:
-        raise UserError(f"{what}: compressed coefficients are corrupt ({error})") from None
+        raise UserError(f"{what}: compressed coefficients are corrupt ({error})", code="compact.xz_corrupt",
+                        tile=tile) from None
     if len(data) != expected or not decompressor.eof or decompressor.unused_data:
-        raise UserError(f"{what}: compressed coefficients do not hold exactly {shape} {dtype} values")
+        raise UserError(f"{what}: compressed coefficients do not hold exactly {shape} {dtype} values",
+                        code="compact.xz_size", tile=tile, shape=shape, dtype=dtype)
     height, width, k = shape
     split = np.frombuffer(data, dtype=np.uint8).reshape(k, kind.itemsize, height, width)
     planes = np.ascontiguousarray(split.transpose(0, 2, 3, 1)).view(kind)[..., 0]
@@ -202,7 +206,8 @@ class NoiseLayout:
     def read_header(self, noise: dict, dims: int) -> int | None:
         """Its part of a bundle's noise metadata, checked -> coefficients per pixel (compact) or None."""
         if noise.get("coefficients") is not None:
-            raise UserError("bundle: coefficients per pixel are given for, and only for, the compact layout")
+            raise UserError("bundle: coefficients per pixel are given for, and only for, the compact layout",
+                            code="bundle.coefficients_layout", layout=self.name)
         return None
 
     def tile_metadata(self, noise: TileNoise) -> dict:
@@ -217,15 +222,17 @@ class NoiseLayout:
         """Which tiles of these areas (pixels) load_bundle keeps unpacked. (tiles,) bool."""
         return np.zeros(len(areas), dtype=bool)
 
-    def read_tile(self, name: str, data: dict, tensor: TensorGetter, shape: tuple[int, ...], dtype: str, what: str,
+    def read_tile(self, name: str, data: dict, tensor: TensorGetter, shape: tuple[int, ...], dtype: str, tile: int,
                   keep_unpacked: bool, version: int) -> TileNoise:
-        """A tile's noise from its tensors (`tensor` refuses a missing one), of a bundle of format `version`."""
+        """Tile number `tile`'s noise from its tensors (`tensor` refuses a missing one), of a bundle of format
+        `version`."""
         return VectorNoise(tensor(name))
 
-    def check_noise(self, what: str, noise: TileNoise, pixels: int, dims: int, coefficients: int | None) -> None:
-        """A tile's noise beyond its shape and dtype: finite floats."""
+    def check_noise(self, tile: int, noise: TileNoise, pixels: int, dims: int, coefficients: int | None) -> None:
+        """Tile number `tile`'s noise beyond its shape and dtype: finite floats."""
         if not np.isfinite(noise.values).all():
-            raise UserError(f"{what} noise holds NaN or Inf")
+            raise UserError(f"bundle: tile {tile} noise holds NaN or Inf", code="bundle.tile_noise_not_finite",
+                            tile=tile)
 
     @property
     def noise_type(self) -> type:
@@ -258,12 +265,16 @@ class CompactLayout(NoiseLayout):
 
     def read_header(self, noise: dict, dims: int) -> int:
         coefficients = checked_int(noise.get("coefficients"), "bundle: coefficients per pixel", 1,
-                                   MAX_COMPACT_COEFFICIENTS)
-        if noise.get("codec") != CODEC:
-            raise UserError(f"bundle: unknown coefficient codec {noise.get('codec')!r:.40} (expected {CODEC!r})")
+                                   MAX_COMPACT_COEFFICIENTS, code="compact.coefficients")
+        codec = noise.get("codec")
+        if codec != CODEC:
+            raise UserError(f"bundle: unknown coefficient codec {codec!r:.40} (expected {CODEC!r})",
+                            code="compact.codec", **({"codec": codec[:60]} if isinstance(codec, str) else {}),
+                            expected=CODEC)
         if coefficients > min(dims, MAX_COMPACT_COEFFICIENTS):
             raise UserError(f"bundle: {coefficients} coefficients per pixel, expected 1 to "
-                            f"{min(dims, MAX_COMPACT_COEFFICIENTS)}")
+                            f"{min(dims, MAX_COMPACT_COEFFICIENTS)}", code="compact.coefficients", value=coefficients,
+                            low=1, high=min(dims, MAX_COMPACT_COEFFICIENTS))
         return coefficients
 
     def tile_metadata(self, noise: TileNoise) -> dict:
@@ -273,7 +284,8 @@ class CompactLayout(NoiseLayout):
                       dtype: str) -> None:
         width, height = secret_size
         if tile_pixels != width * height:
-            raise UserError(f"bundle: the tiles' areas do not add up to the {width}x{height} secret")
+            raise UserError(f"bundle: the tiles' areas do not add up to the {width}x{height} secret",
+                            code="bundle.tile_areas", width=width, height=height)
         checked_expansion(sum(stream.nbytes for stream in streams if stream is not None),
                           tile_pixels * coefficients * np.dtype(DTYPES[dtype]).itemsize, "bundle")
 
@@ -281,52 +293,62 @@ class CompactLayout(NoiseLayout):
         per_pixel = coefficients * np.dtype(DTYPES[dtype]).itemsize
         return np.cumsum(areas) * per_pixel <= KEPT_UNPACKED_BYTES
 
-    def read_tile(self, name: str, data: dict, tensor: TensorGetter, shape: tuple[int, ...], dtype: str, what: str,
+    def read_tile(self, name: str, data: dict, tensor: TensorGetter, shape: tuple[int, ...], dtype: str, tile: int,
                   keep_unpacked: bool, version: int) -> CompactNoise:
         """The coefficients (h, w, k) and the basis. The stream is decompressed here to check it holds exactly
         that (only once the header and rect are known good, so at most h·w·k values); the coefficients are
         kept if keep_unpacked, else dropped (a reveal unpacks the tile again when it renders). Branch escapes
         from format 3 on."""
+        what = f"bundle: tile {tile}"
         branch = ({"branch_escapes": tensor(f"{name}_branch_escapes"),
                    "branch_escape_noise": tensor(f"{name}_branch_escape_noise")} if version >= BRANCH_ESCAPES_FROM
                   else {})
         basis = CompactBasis(basis=tensor(f"{name}_basis"), offset=tensor(f"{name}_offset"),
                              scale=checked_float(data.get("scale"), f"{what} scale",
                                                  low=float(np.finfo(np.float32).tiny),
-                                                 high=float(np.finfo(np.float32).max)),
+                                                 high=float(np.finfo(np.float32).max), code="compact.scale",
+                                                 tile=tile),
                              escapes=tensor(f"{name}_escapes"), escape_noise=tensor(f"{name}_escape_noise"), **branch)
         packed = tensor(name, dtype=np.uint8, ndim=1)
-        unpacked = unpack_coefficients(packed, shape, dtype, what)
+        unpacked = unpack_coefficients(packed, shape, dtype, what, tile)
         return CompactNoise(packed, shape, np.dtype(DTYPES[dtype]), basis, unpacked if keep_unpacked else None)
 
-    def check_noise(self, what: str, noise: TileNoise, pixels: int, dims: int, coefficients: int | None) -> None:
+    def check_noise(self, tile: int, noise: TileNoise, pixels: int, dims: int, coefficients: int | None) -> None:
         """The basis (dims, k), offset (dims,) float32, escape noise (e, dims) and branch escape noise (b, w),
         w ≤ dims, float16, all finite; the scale > 0; the escapes (e,) and branch escapes (b,) int32, each
         strictly increasing inside the tile, none in both (integers are finite by type)."""
+        what = f"bundle: tile {tile}"
         basis = noise.basis
         escapes, branch_escapes = basis.escapes, basis.branch_escapes
         for name, indices in (("escapes", escapes), ("branch escapes", branch_escapes)):
             if indices.ndim != 1 or indices.dtype != np.int32:
-                raise UserError(f"{what} {name} are {indices.dtype} {indices.shape}, expected int32 (e,)")
+                raise UserError(f"{what} {name} are {indices.dtype} {indices.shape}, expected int32 (e,)",
+                                code="compact.escapes_type", tile=tile, part=name, dtype=str(indices.dtype),
+                                shape=indices.shape)
             if len(indices) and (indices[0] < 0 or indices[-1] >= pixels or (np.diff(indices) <= 0).any()):
-                raise UserError(f"{what} {name} must be strictly increasing pixel indices inside the tile")
+                raise UserError(f"{what} {name} must be strictly increasing pixel indices inside the tile",
+                                code="compact.escapes_order", tile=tile, part=name)
         if np.intersect1d(escapes, branch_escapes).size:
-            raise UserError(f"{what}: a pixel is both an escape and a branch escape")
+            raise UserError(f"{what}: a pixel is both an escape and a branch escape", code="compact.escape_twice",
+                            tile=tile)
         branch_width = basis.branch_escape_noise.shape[-1] if basis.branch_escape_noise.ndim == 2 else -1
         if not 0 <= branch_width <= dims:
             raise UserError(f"{what} branch escape noise is {basis.branch_escape_noise.shape}, expected (b, w), w ≤ "
-                            f"{dims}")
+                            f"{dims}", code="compact.branch_width", tile=tile, shape=basis.branch_escape_noise.shape,
+                            dims=dims)
         for name, value, shape, dtype in (("basis", basis.basis, (dims, coefficients), np.float32),
                                           ("offset", basis.offset, (dims,), np.float32),
                                           ("escape noise", basis.escape_noise, (len(escapes), dims), np.float16),
                                           ("branch escape noise", basis.branch_escape_noise,
                                            (len(branch_escapes), branch_width), np.float16)):
             if value.shape != shape or value.dtype != dtype:
-                raise UserError(f"{what} {name} is {value.dtype} {value.shape}, expected {np.dtype(dtype)} {shape}")
+                raise UserError(f"{what} {name} is {value.dtype} {value.shape}, expected {np.dtype(dtype)} {shape}",
+                                code="compact.tensor_shape", tile=tile, part=name, dtype=str(value.dtype),
+                                shape=value.shape, expected_dtype=np.dtype(dtype).name, expected_shape=shape)
             if not np.isfinite(value).all():
-                raise UserError(f"{what} {name} holds NaN or Inf")
+                raise UserError(f"{what} {name} holds NaN or Inf", code="compact.not_finite", tile=tile, part=name)
         checked_float(basis.scale, f"{what} scale", low=np.finfo(np.float32).tiny,
-                      high=float(np.finfo(np.float32).max))
+                      high=float(np.finfo(np.float32).max), code="compact.scale", tile=tile)
 
     @property
     def noise_type(self) -> type:
@@ -347,5 +369,6 @@ LAYOUTS = {layout.name: layout for layout in (
 def layout_named(name: str, among: tuple[str, ...] = tuple(LAYOUTS)) -> NoiseLayout:
     """The layout of this name, refusing one not `among` those allowed (a bundle format's)."""
     if name not in among:
-        raise UserError(f"bundle: unknown noise layout {name!r:.40} (expected one of {among})")
+        raise UserError(f"bundle: unknown noise layout {name!r:.40} (expected one of {among})",
+                        code="bundle.noise_layout", layout=name[:60], expected=list(among))
     return LAYOUTS[name]

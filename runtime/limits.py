@@ -39,42 +39,75 @@ MAX_CAMERAS = 100_000  # dataset cameras listed in a model or scene
 MAX_JSON_DEPTH = 32  # nesting of any JSON metadata (ours is at most 5 deep)
 
 
-def checked_int(value, what: str, low: int, high: int) -> int:
+def is_finite(number) -> bool:
+    """Whether an int or float is a finite float (an integer of hundreds of digits is not)."""
+    try:
+        return math.isfinite(number)
+    except OverflowError:
+        return False
+
+
+def finite_params(**numbers) -> dict:
+    """These numbers as a refusal's params, those that are not finite floats left out (JSON has no Infinity)."""
+    return {name: number for name, number in numbers.items() if is_finite(number)}
+
+
+def checked_int(value, what: str, low: int, high: int, code: str | None = None, **params) -> int:
     """`value` as an int in [low, high]: JSON integers only, so 2.5, 16.0, 1e300, true and Infinity are
-    refused rather than truncated or overflowed."""
+    refused rather than truncated or overflowed. code (and params): the refusal's, the field's own (the
+    runtime's callers name one; the sender's half refuses with a message only)."""
     if isinstance(value, bool) or not isinstance(value, int):
-        raise UserError(f"{what} must be an integer, got {value!r:.40}")
+        raise UserError(f"{what} must be an integer, got {value!r:.40}", code=code, **finite_params(low=low, high=high),
+                        **params)
     if not low <= value <= high:
-        raise UserError(f"{what} must be between {low} and {high}, got {value:.6g}")
+        raise UserError(f"{what} must be between {low} and {high}, got {approximately(value)}", code=code,
+                        **finite_params(value=value, low=low, high=high), **params)
     return value
 
 
-def checked_float(value, what: str, low: float = -math.inf, high: float = math.inf) -> float:
-    """`value` as a finite float in [low, high]; NaN, Infinity, strings and bools are refused."""
+def approximately(value: int) -> str:
+    """An integer as format(value, ".6g") prints it, and one past a float's range (a JSON integer of hundreds
+    of digits) in the same form from its digits, where .6g would overflow."""
+    try:
+        return f"{value:.6g}"
+    except OverflowError:
+        digits = str(abs(value))
+        return f"{'-' if value < 0 else ''}{digits[0]}.{digits[1:6]}e+{len(digits) - 1}"
+
+
+def checked_float(value, what: str, low: float = -math.inf, high: float = math.inf, code: str | None = None,
+                  **params) -> float:
+    """`value` as a finite float in [low, high]; NaN, Infinity, strings and bools are refused. code (and
+    params): as checked_int's; a value or bound that is not finite is left out of the params."""
     if isinstance(value, bool) or not isinstance(value, (int, float)):
-        raise UserError(f"{what} must be a number, got {value!r:.40}")
-    number = float(value)
-    if not math.isfinite(number) or not low <= number <= high:
-        raise UserError(f"{what} must be a finite number in [{low}, {high}], got {value!r:.40}")
-    return number
+        raise UserError(f"{what} must be a number, got {value!r:.40}", code=code,
+                        **finite_params(low=low, high=high), **params)
+    if not is_finite(value) or not low <= float(value) <= high:
+        raise UserError(f"{what} must be a finite number in [{low}, {high}], got {value!r:.40}", code=code,
+                        **finite_params(value=value, low=low, high=high), **params)
+    return float(value)
 
 
-def checked_list(value, what: str, length: int | None = None, most: int = MAX_CAMERAS) -> list:
-    """`value` as a JSON list of `length` items (or at most `most`)."""
+def checked_list(value, what: str, length: int | None = None, most: int = MAX_CAMERAS, code: str | None = None,
+                 **params) -> list:
+    """`value` as a JSON list of `length` items (or at most `most`). code (and params): as checked_int's."""
     if not isinstance(value, list):
-        raise UserError(f"{what} must be a list, got {type(value).__name__}")
+        raise UserError(f"{what} must be a list, got {type(value).__name__}", code=code, **params)
     if (length is not None and len(value) != length) or len(value) > most:
         raise UserError(f"{what} must hold {length if length is not None else f'at most {most}'} items, "
-                        f"got {len(value)}")
+                        f"got {len(value)}", code=code, count=len(value),
+                        **({"length": length} if length is not None else {"most": most}), **params)
     return value
 
 
-def checked_image_size(width, height, what: str) -> tuple[int, int]:
-    """(width, height) of an image or camera within MAX_IMAGE_SIDE and MAX_IMAGE_PIXELS."""
-    width = checked_int(width, f"{what} width", 1, MAX_IMAGE_SIDE)
-    height = checked_int(height, f"{what} height", 1, MAX_IMAGE_SIDE)
+def checked_image_size(width, height, what: str, code: str | None = None, **params) -> tuple[int, int]:
+    """(width, height) of an image or camera within MAX_IMAGE_SIDE and MAX_IMAGE_PIXELS. code (and params): as
+    checked_int's, for each side (side: "width" or "height") and for the pixels together."""
+    width = checked_int(width, f"{what} width", 1, MAX_IMAGE_SIDE, code, side="width", **params)
+    height = checked_int(height, f"{what} height", 1, MAX_IMAGE_SIDE, code, side="height", **params)
     if width * height > MAX_IMAGE_PIXELS:
-        raise UserError(f"{what} is {width}x{height}, more than the {MAX_IMAGE_PIXELS} pixels noisenerf renders")
+        raise UserError(f"{what} is {width}x{height}, more than the {MAX_IMAGE_PIXELS} pixels noisenerf renders",
+                        code=code, width=width, height=height, most=MAX_IMAGE_PIXELS, **params)
     return width, height
 
 
@@ -83,7 +116,8 @@ def checked_expansion(packed: int, stated: int, what: str) -> None:
     FREE_XZ_BYTES): a reveal's decoding and rendering then follow the size of the file, not what it claims."""
     if stated > max(FREE_XZ_BYTES, MAX_XZ_RATIO * packed):
         raise UserError(f"{what}: {packed} bytes of compressed coefficients cannot hold the {stated} bytes the tiles "
-                        f"state (at most {MAX_XZ_RATIO} times their size)")
+                        f"state (at most {MAX_XZ_RATIO} times their size)", code="compact.xz_ratio", packed=packed,
+                        stated=stated, ratio=MAX_XZ_RATIO)
 
 
 def json_depth(data) -> int:

@@ -62,19 +62,31 @@ def grid_to_dict(grid: OccupancyGrid) -> dict:
             "occupancy": base64.b64encode(bits.tobytes()).decode("ascii")}
 
 
+def malformed(why: str, code: str, **params) -> ValueError:
+    """A ValueError that ModelMetadata.from_metadata_props reports as malformed metadata (the message quotes its
+    repr), carrying the code and params of that refusal."""
+    error = ValueError(why)
+    error.refusal = code, params
+    return error
+
+
 def grid_from_dict(data) -> OccupancyGrid:
     """Inverse of grid_to_dict; the resolution is capped and the bit string must have exactly its length,
     so the unpacked cube is never more than 8x the metadata that carried it."""
     if not isinstance(data, dict) or not isinstance(data.get("occupancy"), str):
-        raise UserError("grid must be an object with aabb, resolution and occupancy")
-    resolution = checked_int(data.get("resolution"), "grid resolution", 1, MAX_GRID_RESOLUTION)
-    aabb = [checked_float(v, "grid aabb", -1e9, 1e9) for v in checked_list(data.get("aabb"), "grid aabb", length=6)]
+        raise UserError("grid must be an object with aabb, resolution and occupancy", code="model.grid_malformed")
+    resolution = checked_int(data.get("resolution"), "grid resolution", 1, MAX_GRID_RESOLUTION,
+                             code="model.grid_resolution")
+    aabb = [checked_float(v, "grid aabb", -1e9, 1e9, code="model.grid_aabb")
+            for v in checked_list(data.get("aabb"), "grid aabb", length=6, code="model.grid_aabb")]
     if not all(lo < hi for lo, hi in zip(aabb[:3], aabb[3:])):
-        raise UserError(f"grid aabb must have min < max on every axis, got {aabb}")
+        raise UserError(f"grid aabb must have min < max on every axis, got {aabb}", code="model.grid_aabb_order",
+                        aabb=aabb)
     packed = np.frombuffer(base64.b64decode(data["occupancy"], validate=True), dtype=np.uint8)
     n_cells = resolution ** 3
     if packed.size != (n_cells + 7) // 8:
-        raise ValueError(f"occupancy holds {packed.size} bytes, a {resolution}^3 grid needs {(n_cells + 7) // 8}")
+        raise malformed(f"occupancy holds {packed.size} bytes, a {resolution}^3 grid needs {(n_cells + 7) // 8}",
+                        "model.occupancy_size", bytes=packed.size, resolution=resolution, needed=(n_cells + 7) // 8)
     occupied = np.unpackbits(packed, count=n_cells).astype(bool).reshape((resolution,) * 3)
     return OccupancyGrid(aabb, occupied)
 
@@ -106,32 +118,36 @@ class ModelMetadata:
     def from_metadata_props(props: dict[str, str], source: str) -> "ModelMetadata":
         """Parse and check a model's metadata_props; anything missing or malformed is one UserError."""
         if METADATA_KEY not in props or VERSION_KEY not in props:
-            raise UserError(f"{source} is not a noisenerf model (no '{METADATA_KEY}' metadata)")
+            raise UserError(f"{source} is not a noisenerf model (no '{METADATA_KEY}' metadata)",
+                            code="model.not_noisenerf")
         if props[VERSION_KEY] != str(MODEL_FORMAT_VERSION):
             raise UserError(f"{source} has model format version {props[VERSION_KEY]!r}; this noisenerf reads "
-                            f"version {MODEL_FORMAT_VERSION} (export the scene again with `noisenerf export`)")
+                            f"version {MODEL_FORMAT_VERSION} (export the scene again with `noisenerf export`)",
+                            code="model.format_version", version=props[VERSION_KEY][:60])
         data = parse_json(props[METADATA_KEY], f"{source}: noisenerf metadata")
         try:
             if not isinstance(data, dict) or data["format_version"] != MODEL_FORMAT_VERSION:
-                raise ValueError(f"format_version disagrees with {VERSION_KEY}")
+                raise malformed(f"format_version disagrees with {VERSION_KEY}", "model.metadata_version")
             architecture = {"coarse": dict(data["architecture"]["coarse"]), "fine": data["architecture"]["fine"]}
             hierarchy = Hierarchy(**data["hierarchy"]) if data["hierarchy"] is not None else None
             if (architecture["fine"] is None) != (hierarchy is None):
-                raise ValueError("a fine network and hierarchical sampling go together")
-            cameras = checked_list(data["cameras"], "cameras", most=MAX_CAMERAS)
+                raise malformed("a fine network and hierarchical sampling go together", "model.fine_hierarchy")
+            cameras = checked_list(data["cameras"], "cameras", most=MAX_CAMERAS, code="model.cameras")
             return ModelMetadata(
                 fingerprint=str(data["fingerprint"]),
                 architecture=architecture,
-                noise_dims=checked_int(data["noise_dims"], "noise_dims", 1, MAX_NOISE_DIMS),
+                noise_dims=checked_int(data["noise_dims"], "noise_dims", 1, MAX_NOISE_DIMS,
+                                       code="model.noise_dims_range"),
                 render_config=RenderConfig.from_dict(data["render"]),
                 hierarchy=hierarchy,
                 cameras=tuple(Camera.from_dict(camera) for camera in cameras),
                 grid=grid_from_dict(data["grid"]),
             )
         except (KeyError, TypeError, ValueError, binascii.Error) as error:
-            raise UserError(f"{source}: malformed noisenerf metadata ({error!r})") from None
+            code, params = getattr(error, "refusal", ("model.metadata_malformed", {}))
+            raise UserError(f"{source}: malformed noisenerf metadata ({error!r})", code=code, **params) from None
         except UserError as error:
-            raise UserError(f"{source}: {error}") from None
+            raise UserError(f"{source}: {error}", code=error.code, **error.params) from None
 
 
 @dataclass(frozen=True, eq=False)
@@ -185,7 +201,8 @@ class Model:
         """The dataset camera of a view index, refusing one out of range."""
         if not 0 <= view < len(self.cameras):
             raise UserError(f"view {view} is out of range: this model has {len(self.cameras)} cameras "
-                            f"(0..{len(self.cameras) - 1})")
+                            f"(0..{len(self.cameras) - 1})", code="model.view_out_of_range", view=view,
+                            cameras=len(self.cameras))
         return self.cameras[view]
 
 
@@ -193,7 +210,7 @@ def check_weights(weights: dict[str, np.ndarray], metadata: ModelMetadata, sourc
     """Refuse a model whose initializers and architecture do not hash to its metadata's fingerprint."""
     if weights_fingerprint(weights, metadata.architecture) != metadata.fingerprint:
         raise UserError(f"{source}: its weights do not match its fingerprint {short_fingerprint(metadata.fingerprint)} "
-                        "(the model was changed after export); export the scene again")
+                        "(the model was changed after export); export the scene again", code="model.weights_changed")
 
 
 def load_model(path: str | os.PathLike, device: str = "cpu", threads: int | None = None) -> Model:
@@ -212,7 +229,7 @@ def expected_graph(metadata: ModelMetadata, source: str) -> FieldGraph:
     try:
         return field_graph(metadata.architecture, metadata.noise_dims)
     except UserError as error:
-        raise UserError(f"{source}: {error}") from None
+        raise UserError(f"{source}: {error}", code=error.code, **error.params) from None
 
 
 def short_fingerprint(fingerprint: str) -> str:
@@ -223,6 +240,8 @@ def check_bundle(model: Model, bundle: Bundle) -> None:
     """Refuse a bundle hidden in another model, or with noise the field cannot take."""
     if bundle.model_fingerprint != model.fingerprint:
         raise UserError(f"bundle was made for model {short_fingerprint(bundle.model_fingerprint)}, "
-                        f"this model is {short_fingerprint(model.fingerprint)}")
+                        f"this model is {short_fingerprint(model.fingerprint)}", code="model.other_model",
+                        bundle=bundle.model_fingerprint[:12], model=model.fingerprint[:12])
     if bundle.noise_dims != model.noise_dims:
-        raise UserError(f"bundle noise has {bundle.noise_dims} dims, this model takes {model.noise_dims}")
+        raise UserError(f"bundle noise has {bundle.noise_dims} dims, this model takes {model.noise_dims}",
+                        code="model.noise_dims", bundle=bundle.noise_dims, model=model.noise_dims)

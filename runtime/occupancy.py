@@ -14,7 +14,8 @@ class OccupancyGrid:
         self.aabb = np.asarray(aabb, dtype=np.float32).reshape(6)
         self.occupied = np.asarray(occupied, dtype=bool)
         if self.occupied.ndim != 3 or len(set(self.occupied.shape)) != 1:
-            raise UserError(f"occupancy grid must be a cube, got shape {self.occupied.shape}")
+            raise UserError(f"occupancy grid must be a cube, got shape {self.occupied.shape}",
+                            code="model.grid_not_cube", shape=self.occupied.shape)
 
     @property
     def resolution(self) -> int:

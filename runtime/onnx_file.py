@@ -172,7 +172,8 @@ class TensorRecord:
         type and a byte count that disagrees with the dims."""
         if self.data_type != data_type:
             raise UserError(f"{source}: initializer {self.name!r} has ONNX data type {self.data_type}, "
-                            f"expected {data_type} (noisenerf weights are float32)")
+                            f"expected {data_type} (noisenerf weights are float32)", code="onnx.data_type",
+                            name=self.name[:60], data_type=self.data_type, expected=data_type)
         count = int(np.prod(self.dims, dtype=np.int64))
         dtype = np.dtype("<f4" if data_type == FLOAT else "<i8")
         if self.raw_data is not None:  # a ragged byte count holds no whole number of values: refused below
@@ -183,7 +184,8 @@ class TensorRecord:
             values = typed if typed is not None else np.zeros(0, dtype)
         if values.size != count:
             raise UserError(f"{source}: initializer {self.name!r} holds {values.size} values, its dims "
-                            f"{list(self.dims)} need {count}")
+                            f"{list(self.dims)} need {count}", code="onnx.value_count", name=self.name[:60],
+                            values=values.size, dims=list(self.dims), needed=count)
         return values.reshape(self.dims)
 
 
@@ -233,7 +235,8 @@ class ModelFile:
 def refuse_unsupported(message: str, number: int, source: str) -> None:
     """Refuse field `number` of a `message` kind that is in UNSUPPORTED."""
     if (message, number) in UNSUPPORTED:
-        raise UserError(f"{source} holds {UNSUPPORTED[message, number]}, which a noisenerf model never has")
+        raise UserError(f"{source} holds {UNSUPPORTED[message, number]}, which a noisenerf model never has",
+                        code="onnx.unsupported", holds=UNSUPPORTED[message, number])
 
 
 def node_tensors(node: memoryview, source: str) -> Iterator[TensorRecord]:
@@ -340,10 +343,11 @@ def parse_model(data: bytes, source: str) -> ModelFile:
                     elif inner not in (2, 10):  # name, doc_string
                         unexpected.append(f"graph field {inner}")
     except ValueError as error:  # WireError, UnicodeDecodeError, float_data of a length not divisible by 4
-        raise UserError(f"{source} is not a loadable ONNX model (not ONNX, or truncated): {error}") from None
+        raise UserError(f"{source} is not a loadable ONNX model (not ONNX, or truncated): {error}",
+                        code="onnx.malformed") from None
     external = [t.name or "(unnamed)" for t in initializers + attributes if t.external]
     if external:
         raise UserError(f"{source} keeps tensor {external[0]!r} in external data; a noisenerf model must be "
-                        "one self-contained .onnx file")
-    return ModelFile(data, source, props, tuple(initializers), tuple(nodes), tuple(ports[11]), tuple(ports[12]), tuple(opsets),
-                     ir_version, tuple(unexpected))
+                        "one self-contained .onnx file", code="onnx.external_data", tensor=external[0][:60])
+    return ModelFile(data, source, props, tuple(initializers), tuple(nodes), tuple(ports[11]), tuple(ports[12]),
+                     tuple(opsets), ir_version, tuple(unexpected))

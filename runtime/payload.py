@@ -65,7 +65,8 @@ class Record:
     def pack(self) -> bytes:
         """header | name | body."""
         if len(self.name) > MAX_NAME_BYTES:
-            raise UserError(f"the payload's file name is longer than {MAX_NAME_BYTES} bytes")
+            raise UserError(f"the payload's file name is longer than {MAX_NAME_BYTES} bytes",
+                            code="payload.name_too_long", name_bytes=len(self.name), most=MAX_NAME_BYTES)
         header = RECORD.pack(MAGIC, RECORD_VERSION, KINDS.index(self.kind), len(self.name), len(self.body),
                              self.width, self.height, hashlib.sha256(self.body).digest())
         return header + self.name + self.body
@@ -91,14 +92,16 @@ def read_payload_file(path: str | os.PathLike) -> Record:
     """A file as a record carrying its name; its size is checked before it is read."""
     path = Path(path)
     if not path.is_file():
-        raise UserError(f"payload file not found: {path}")
+        raise UserError(f"payload file not found: {path}", code="payload.file_not_found")
     size = path.stat().st_size
     if size > MAX_PAYLOAD_BYTES:
-        raise UserError(f"payload file is {size} bytes; at most {MAX_PAYLOAD_BYTES} fit in one secret")
+        raise UserError(f"payload file is {size} bytes; at most {MAX_PAYLOAD_BYTES} fit in one secret",
+                        code="payload.file_too_large", size=size, most=MAX_PAYLOAD_BYTES)
     try:
         body = path.read_bytes()
     except OSError as error:
-        raise UserError(f"cannot read payload file {path}: {error.strerror or error}") from None
+        raise UserError(f"cannot read payload file {path}: {error.strerror or error}",
+                        code="payload.file_unreadable") from None
     return Record("file", body, name=os.fsencode(path.name)[:MAX_NAME_BYTES])
 
 
@@ -106,18 +109,19 @@ def unpack_record(data: bytes) -> Record:
     """The record at the start of `data` (padding after it is ignored); INEXACT unless its header is sound
     and its body hashes to the header's SHA-256."""
     if len(data) < RECORD.size:
-        raise UserError(INEXACT)
+        raise UserError(INEXACT, code="payload.inexact")
     magic, version, kind, name_length, length, width, height, digest = RECORD.unpack_from(data)
     end = RECORD.size + name_length + length
     if magic != MAGIC or version != RECORD_VERSION or kind >= len(KINDS) or end > len(data):
-        raise UserError(INEXACT)
+        raise UserError(INEXACT, code="payload.inexact")
     body = data[RECORD.size + name_length:end]
     if hashlib.sha256(body).digest() != digest or (KINDS[kind] == "image" and width * height * 3 != length):
-        raise UserError(INEXACT)
+        raise UserError(INEXACT, code="payload.inexact")
     if name_length > MAX_NAME_BYTES:  # what Record.pack writes at most
-        raise UserError(f"the payload's file name is {name_length} bytes; a record holds at most {MAX_NAME_BYTES}")
+        raise UserError(f"the payload's file name is {name_length} bytes; a record holds at most {MAX_NAME_BYTES}",
+                        code="payload.name_too_long", name_bytes=name_length, most=MAX_NAME_BYTES)
     if KINDS[kind] == "image":  # before any image library sees them
-        checked_image_size(width, height, "the payload's image")
+        checked_image_size(width, height, "the payload's image", code="payload.image_size")
     return Record(KINDS[kind], body, data[RECORD.size:RECORD.size + name_length], width, height)
 
 
@@ -147,8 +151,9 @@ def secret_shape(n_bytes: int, tile_size: int, sealed: bool) -> tuple[int, int]:
     width, height = sealed_shape(n_pixels, tile_size) if sealed else near_square(n_pixels)
     if width * height > MAX_PAYLOAD_PIXELS:
         raise UserError(f"a payload of {n_bytes} bytes needs a {width}x{height} secret, more than the "
-                        f"{MAX_PAYLOAD_PIXELS} pixels a payload may take")
-    checked_image_size(width, height, "the payload's secret")
+                        f"{MAX_PAYLOAD_PIXELS} pixels a payload may take", code="payload.too_large", bytes=n_bytes,
+                        width=width, height=height, most=MAX_PAYLOAD_PIXELS)
+    checked_image_size(width, height, "the payload's secret", code="payload.secret_size")
     return width, height
 
 
@@ -167,7 +172,8 @@ def payload_metadata(seal: Seal | None) -> dict:
 def checked_payload(data) -> dict:
     """A bundle's payload object, refused unless it is exactly one payload_metadata writes."""
     if not isinstance(data, dict) or data.get("version") != PAYLOAD_VERSION or set(data) != {"version", "sealed"}:
-        raise UserError(f"bundle: payload must be an object with version {PAYLOAD_VERSION} and sealed")
+        raise UserError(f"bundle: payload must be an object with version {PAYLOAD_VERSION} and sealed",
+                        code="payload.malformed", version=PAYLOAD_VERSION)
     seal_of(data)
     return data
 

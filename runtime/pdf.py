@@ -27,7 +27,8 @@ class Hierarchy:
         if not all(type(n) is int for n in counts) or not (3 <= self.n_coarse <= MAX_HIERARCHY_SAMPLES
                                                           and 1 <= self.n_importance <= MAX_HIERARCHY_SAMPLES):
             raise UserError(f"hierarchical sampling needs whole numbers 3 <= n_coarse <= {MAX_HIERARCHY_SAMPLES} "
-                            f"and 1 <= n_importance <= {MAX_HIERARCHY_SAMPLES}, got {counts}")
+                            f"and 1 <= n_importance <= {MAX_HIERARCHY_SAMPLES}, got {counts}",
+                            code="sampling.bad_hierarchy", most=MAX_HIERARCHY_SAMPLES)
 
     def coarse(self, sampling: SamplingConfig) -> SamplingConfig:
         """The coarse pass's uniform sampling over the scene's ray interval."""

@@ -52,18 +52,22 @@ class RenderConfig:
         """From metadata someone else wrote: every number finite and in range (a NaN background would
         silently paint every pixel NaN)."""
         if not isinstance(data, dict):
-            raise UserError("malformed render config: expected an object")
+            raise UserError("malformed render config: expected an object", code="render.not_object")
         try:
-            background = checked_list(data["background"], "render background", length=3)
+            background = checked_list(data["background"], "render background", length=3, code="render.background")
             return RenderConfig(
                 sampling=SamplingConfig.from_dict(data["sampling"]),
-                background=tuple(checked_float(v, "render background", 0.0, 1.0) for v in background),
+                background=tuple(checked_float(v, "render background", 0.0, 1.0, code="render.background")
+                                 for v in background),
                 ndc=NDCSpace.from_dict(data["ndc"]) if data.get("ndc") else None,
-                pixel_center=checked_float(data["pixel_center"], "render pixel_center", 0.0, 1.0),
-                early_stop=checked_float(data.get("early_stop", 1e-4), "render early_stop", 0.0, 1.0),
+                pixel_center=checked_float(data["pixel_center"], "render pixel_center", 0.0, 1.0,
+                                           code="render.pixel_center"),
+                early_stop=checked_float(data.get("early_stop", 1e-4), "render early_stop", 0.0, 1.0,
+                                         code="render.early_stop"),
             )
         except KeyError as error:
-            raise UserError(f"malformed render config: missing {error}") from None
+            raise UserError(f"malformed render config: missing {error}", code="render.missing_key",
+                            key=error.args[0]) from None
 
 
 @dataclass(frozen=True)

@@ -51,7 +51,8 @@ def tile_field(tile: Tile, fields: Mapping[str, NoisyFieldFn]) -> NoisyFieldFn:
     name = tile.network or render_network(fields)
     if name not in fields:
         raise UserError(f"bundle tile at {tile.rect[:2]} needs the {name} network; this model has only "
-                        f"{' and '.join(fields)}")
+                        f"{' and '.join(fields)}", code="reveal.missing_network", at=tile.rect[:2],
+                        network=name, networks=list(fields))
     return fields[name]
 
 

@@ -27,17 +27,21 @@ class SamplingConfig:
 
     def __post_init__(self):
         if not (np.isfinite(self.near) and np.isfinite(self.far) and 0 <= self.near < self.far):
-            raise UserError(f"sampling needs 0 <= near < far, got near={self.near}, far={self.far}")
+            raise UserError(f"sampling needs 0 <= near < far, got near={self.near}, far={self.far}",
+                            code="sampling.bad_range", near=self.near, far=self.far)
         if not 1 <= self.n_samples <= MAX_SAMPLES_PER_RAY:
-            raise UserError(f"sampling needs 1 to {MAX_SAMPLES_PER_RAY} samples per ray, got {self.n_samples}")
+            raise UserError(f"sampling needs 1 to {MAX_SAMPLES_PER_RAY} samples per ray, got {self.n_samples}",
+                            code="sampling.bad_count", n_samples=self.n_samples, most=MAX_SAMPLES_PER_RAY)
 
     @staticmethod
     def from_dict(data) -> "SamplingConfig":
         """From metadata someone else wrote: exactly near, far and an integer n_samples, all checked."""
         if not isinstance(data, dict) or set(data) != {"near", "far", "n_samples"}:
-            raise UserError("sampling must be an object with near, far and n_samples")
-        return SamplingConfig(checked_float(data["near"], "sampling near"), checked_float(data["far"], "sampling far"),
-                              checked_int(data["n_samples"], "sampling n_samples", 1, MAX_SAMPLES_PER_RAY))
+            raise UserError("sampling must be an object with near, far and n_samples", code="sampling.not_object")
+        return SamplingConfig(checked_float(data["near"], "sampling near", code="sampling.near"),
+                              checked_float(data["far"], "sampling far", code="sampling.far"),
+                              checked_int(data["n_samples"], "sampling n_samples", 1, MAX_SAMPLES_PER_RAY,
+                                          code="sampling.n_samples"))
 
 
 def sample_positions(config: SamplingConfig) -> np.ndarray:

@@ -76,14 +76,16 @@ class ScryptParams:
     def from_dict(data) -> "ScryptParams":
         """Parameters read from a bundle, refused beyond MAX_KDF_MEMORY or MAX_KDF_WORK."""
         if not isinstance(data, dict) or data.get("name") != KDF:
-            raise UserError(f"bundle: sealed payload needs a {KDF} kdf object")
-        params = ScryptParams(checked_int(data.get("log2_n"), "bundle: kdf log2_n", 1, 30),
-                              checked_int(data.get("r"), "bundle: kdf r", 1, 64),
-                              checked_int(data.get("p"), "bundle: kdf p", 1, 64))
+            raise UserError(f"bundle: sealed payload needs a {KDF} kdf object", code="seal.bad_kdf", kdf=KDF)
+        params = ScryptParams(checked_int(data.get("log2_n"), "bundle: kdf log2_n", 1, 30, code="seal.kdf_log2_n"),
+                              checked_int(data.get("r"), "bundle: kdf r", 1, 64, code="seal.kdf_r"),
+                              checked_int(data.get("p"), "bundle: kdf p", 1, 64, code="seal.kdf_p"))
         if params.memory > MAX_KDF_MEMORY or (1 << params.log2_n) * params.r * params.p > MAX_KDF_WORK:
             raise UserError(f"bundle: kdf asks for {params.memory >> 20} MiB and n·r·p = "
                             f"{(1 << params.log2_n) * params.r * params.p}; at most {MAX_KDF_MEMORY >> 20} MiB "
-                            f"and {MAX_KDF_WORK} are allowed")
+                            f"and {MAX_KDF_WORK} are allowed", code="seal.kdf_too_costly",
+                            memory_mib=params.memory >> 20, work=(1 << params.log2_n) * params.r * params.p,
+                            max_memory_mib=MAX_KDF_MEMORY >> 20, max_work=MAX_KDF_WORK)
         return params
 
 
@@ -103,11 +105,11 @@ class Seal:
     def from_dict(data) -> "Seal":
         """A seal read from a bundle: known cipher, capped KDF, salt and nonce of the right lengths."""
         if not isinstance(data, dict) or data.get("cipher") != CIPHER:
-            raise UserError(f"bundle: sealed payload needs cipher {CIPHER!r}")
+            raise UserError(f"bundle: sealed payload needs cipher {CIPHER!r}", code="seal.bad_cipher", cipher=CIPHER)
         seal = Seal(ScryptParams.from_dict(data.get("kdf")), decoded(data.get("salt"), "salt", SALT_BYTES),
                     decoded(data.get("nonce"), "nonce", NONCE_BYTES))
         if seal.to_dict() != data:
-            raise UserError("bundle: sealed payload object has unexpected fields")
+            raise UserError("bundle: sealed payload object has unexpected fields", code="seal.unexpected_fields")
         return seal
 
 
@@ -118,7 +120,8 @@ def decoded(text, what: str, length: int) -> bytes:
     except binascii.Error:
         value = None
     if value is None or len(value) != length:
-        raise UserError(f"bundle: sealed payload {what} must be {length} bytes in base64")
+        raise UserError(f"bundle: sealed payload {what} must be {length} bytes in base64", code="seal.bad_base64",
+                        what=what, length=length)
     return value
 
 
@@ -136,7 +139,7 @@ class Keys:
 def derive_keys(passphrase: bytes, seal: Seal) -> Keys:
     """scrypt(passphrase, salt) -> 64 bytes: the cipher key, then the bundle key."""
     if not passphrase:
-        raise UserError("the passphrase is empty")
+        raise UserError("the passphrase is empty", code="seal.empty_passphrase")
     kdf = seal.kdf
     material = Scrypt(salt=seal.salt, length=64, n=1 << kdf.log2_n, r=kdf.r, p=kdf.p).derive(passphrase)
     return Keys(material[:32], material[32:])
@@ -163,20 +166,21 @@ def decrypt(ciphertext: bytes, keys: Keys, seal: Seal, associated: bytes) -> byt
     try:
         return ChaCha20Poly1305(keys.cipher).decrypt(seal.nonce, ciphertext, associated)
     except InvalidTag:
-        raise UserError(WRONG) from None
+        raise UserError(WRONG, code="seal.wrong_passphrase") from None
 
 
 def split_safetensors(data: bytes, source: str | Path) -> tuple[dict, bytes]:
     """A safetensors file's parsed header and its tensor data (everything after the header)."""
     size = int.from_bytes(data[:8], "little") if len(data) >= 8 else -1
     if not 0 < size <= len(data) - 8:
-        raise UserError(f"not a readable safetensors bundle: {source}")
+        raise UserError(f"not a readable safetensors bundle: {source}", code="bundle.not_safetensors")
     try:
         header = parse_json(data[8:8 + size], "bundle header", source)
     except UserError as error:
-        raise UserError(f"not a readable safetensors bundle: {source} ({str(error).split(': ', 1)[0]})") from None
+        raise UserError(f"not a readable safetensors bundle: {source} ({str(error).split(': ', 1)[0]})",
+                        code="bundle.not_safetensors") from None
     if not isinstance(header, dict) or not isinstance(header.get("__metadata__", {}), dict):
-        raise UserError(f"not a readable safetensors bundle: {source}")
+        raise UserError(f"not a readable safetensors bundle: {source}", code="bundle.not_safetensors")
     return header, data[8 + size:]
 
 
@@ -203,7 +207,7 @@ def check_bundle_tag(data: bytes, keys: Keys) -> None:
     header, body = split_safetensors(data, "the bundle")
     stored = header.get("__metadata__", {}).get(MAC_KEY)
     if not isinstance(stored, str) or not stored.isascii() or not hmac.compare_digest(stored, bundle_tag(header, body, keys)):
-        raise UserError(WRONG)
+        raise UserError(WRONG, code="seal.wrong_passphrase")
 
 
 def unseal_keys(data: bytes, seal: Seal, passphrase: bytes) -> Keys:

@@ -30,29 +30,30 @@ from noisenerf.runtime.networks import NETWORKS, network_names, render_network
 from noisenerf.runtime.onnx_file import ModelFile, parse_model, pruned_model
 
 DEVICES = {"cpu": "CPUExecutionProvider", "cuda": "CUDAExecutionProvider"}
-DEFAULT_CHUNK = 16384  # points per run: as fast as larger chunks on CPU, ~16 MB per 256-wide activation
+DEFAULT_BATCH = 16384  # points per onnxruntime run: as fast as larger batches on CPU, ~16 MB per 256-wide activation
 # onnxruntime's log levels: FATAL keeps its own lines, errors included (they raise and are reported once, as
-# our one line), off stderr; --verbose shows its warnings and errors
+# our one line), off stderr; --verbose shows its warnings and errors. The level is onnxruntime's process-wide
+# logger's (sessions log through it): quiet from this import on, until onnxruntime_logging says otherwise.
 LOG_SEVERITY = {"quiet": 4, "verbose": 2}
-log_severity = LOG_SEVERITY["quiet"]
+ort.set_default_logger_severity(LOG_SEVERITY["quiet"])
 
 
 def onnxruntime_logging(verbose: bool) -> None:
-    """Whether onnxruntime's own log lines reach stderr (the process-wide logger and every later session)."""
-    global log_severity
-    log_severity = LOG_SEVERITY["verbose" if verbose else "quiet"]
-    ort.set_default_logger_severity(log_severity)
+    """Whether onnxruntime's own log lines reach stderr (the process-wide logger every session logs through)."""
+    ort.set_default_logger_severity(LOG_SEVERITY["verbose" if verbose else "quiet"])
 
 
 def providers_for(device: str) -> list[str]:
     """onnxruntime execution providers for a device name, refusing one this installation lacks."""
     if device not in DEVICES:
-        raise UserError(f"unknown device {device!r} (expected one of {', '.join(DEVICES)})")
+        raise UserError(f"unknown device {device!r} (expected one of {', '.join(DEVICES)})",
+                        code="session.unknown_device", device=device[:60])
     provider = DEVICES[device]
     available = ort.get_available_providers()
     if provider not in available:
         raise UserError(f"device {device!r} needs onnxruntime's {provider}, which this installation lacks "
-                        f"(available: {', '.join(available)}); install onnxruntime-gpu for cuda")
+                        f"(available: {', '.join(available)}); install onnxruntime-gpu for cuda",
+                        code="session.no_provider", device=device, provider=provider)
     return [provider] if device == "cpu" else [provider, DEVICES["cpu"]]
 
 
@@ -61,24 +62,23 @@ def session_options(threads: int | None) -> ort.SessionOptions:
     the thousands, hangs onnxruntime); one inter-op thread, the graph being a single chain. Idle pool
     threads sleep instead of spinning, so a reveal on a shared machine leaves its cores to whoever needs
     them (the exact hide's cause of slowness there, see train/hide/exact_solver.ExactSolver.threads).
-    onnxruntime's own logging is silenced, so a failure is our one line on stderr."""
+    Sessions log through onnxruntime's default logger (silenced: a failure is our one line on stderr)."""
     cores = available_cores()
     threads = cores if threads is None else threads
     if threads < 1:
-        raise UserError(f"threads must be at least 1, got {threads}")
-    ort.set_default_logger_severity(log_severity)
+        raise UserError(f"threads must be at least 1, got {threads}", code="session.threads", threads=threads)
     options = ort.SessionOptions()
     options.intra_op_num_threads = min(threads, cores)
     options.inter_op_num_threads = 1
     options.add_session_config_entry("session.intra_op.allow_spinning", "0")
-    options.log_severity_level = log_severity
     return options
 
 
 def load_failure(source: str, error: Exception) -> UserError:
     """One readable line for a model onnxruntime could not load."""
     detail = str(error).replace("\n", " ").strip()
-    return UserError(f"{source} is not a loadable ONNX model (not ONNX, or truncated): {detail[:200]}")
+    return UserError(f"{source} is not a loadable ONNX model (not ONNX, or truncated): {detail[:200]}",
+                     code="session.load_failed")
 
 
 def read_model_file(model: str | os.PathLike | bytes) -> ModelFile:
@@ -87,7 +87,7 @@ def read_model_file(model: str | os.PathLike | bytes) -> ModelFile:
         return parse_model(model, "model")
     path = Path(model)
     if not path.is_file():
-        raise UserError(f"model not found: {path}")
+        raise UserError(f"model not found: {path}", code="model.not_found")
     return parse_model(path.read_bytes(), str(path))
 
 
@@ -96,7 +96,8 @@ def declared_noise_dims(file: ModelFile) -> int:
     runtime.graph.check_graph (load_model) before it gets here; the export's own are built by runtime.graph."""
     port = next((port for port in file.inputs if port is not None and port.name == "noise"), None)
     if port is None or not isinstance(port.shape[-1], int):
-        raise UserError(f"{file.source} is not a noisenerf field: it has no noise input of fixed width")
+        raise UserError(f"{file.source} is not a noisenerf field: it has no noise input of fixed width",
+                        code="session.no_noise_input")
     return port.shape[-1]
 
 
@@ -104,15 +105,15 @@ class OnnxField:
     """field(points (n, 3), viewdirs (n, 3), noise (n, noise_dims) | None) -> rgb (n, 3), sigma (n,).
 
     The render network; `network(name)` gives either network of the same session. Satisfies both
-    runtime.field_callbacks.FieldFn (no noise) and NoisyFieldFn; inputs are run in chunks of at most `chunk`
+    runtime.field_callbacks.FieldFn (no noise) and NoisyFieldFn; inputs are run in batches of at most `batch`
     points so that memory stays bounded whatever the caller passes. Made from a parsed ModelFile, so
     onnxruntime never sees bytes with external data (read_model_file reads and parses a path).
     """
 
     def __init__(self, file: ModelFile, device: str = "cpu", threads: int | None = None,
-                 chunk: int = DEFAULT_CHUNK):
-        if chunk < 1:
-            raise UserError(f"chunk must be at least 1 point, got {chunk}")
+                 batch: int = DEFAULT_BATCH):
+        if batch < 1:
+            raise UserError(f"batch must be at least 1 point, got {batch}", code="session.batch", batch=batch)
         self.file, self.source = file, file.source
         self.options, self.providers = session_options(threads), providers_for(device)
         self.noise_dims = declared_noise_dims(file)
@@ -122,7 +123,7 @@ class OnnxField:
         self.sessions: dict[tuple[str, ...], ort.InferenceSession] = {}  # shared by network()'s copies
         self.session_for(self.outputs)  # a model onnxruntime cannot load fails here, at load
         self.run_options = ort.RunOptions()
-        self.chunk = chunk
+        self.batch = batch
 
     def session_for(self, outputs: tuple[str, ...]) -> ort.InferenceSession:
         """A session of the graph pruned to `outputs` (onnxruntime evaluates every node of a graph whatever
@@ -140,9 +141,10 @@ class OnnxField:
         """The same session answering for the `coarse` or `fine` network: the render network is on the
         outputs rgb, sigma (runtime.graph), the other one on rgb_coarse, sigma_coarse."""
         if name not in NETWORKS:
-            raise UserError(f"unknown network {name!r} (expected one of {', '.join(NETWORKS)})")
+            raise UserError(f"unknown network {name!r} (expected one of {', '.join(NETWORKS)})",
+                            code="session.unknown_network", network=name[:60])
         if name not in self.networks:
-            raise UserError(f"{self.source} has no {name} network")
+            raise UserError(f"{self.source} has no {name} network", code="session.no_network", network=name)
         network = copy.copy(self)
         network.outputs = OUTPUT_NAMES if name == render_network(self.networks) else COARSE_OUTPUT_NAMES
         return network
@@ -157,8 +159,8 @@ class OnnxField:
                              f"{points.shape}, {viewdirs.shape}, {noise.shape}")
         rgb = np.empty((n, 3), dtype=np.float32)
         sigma = np.empty(n, dtype=np.float32)
-        for start in range(0, n, self.chunk):
-            window = slice(start, start + self.chunk)
+        for start in range(0, n, self.batch):
+            window = slice(start, start + self.batch)
             feed = {name: np.ascontiguousarray(array[window], dtype=np.float32)
                     for name, array in zip(INPUT_NAMES, (points, viewdirs, noise))}
             rgb[window], sigma[window] = self.evaluate(feed)
@@ -166,15 +168,15 @@ class OnnxField:
 
     def proposal_density(self, index: int):
         """σ (n,) of proposal network `index` at points (n, 3) (output sigma_proposal<index>; the graph check
-        has made it exist), run in chunks as the field is."""
+        has made it exist), run in batches as the field is."""
         output = proposal_output(index)
 
         def density(points: np.ndarray) -> np.ndarray:
             sigma = np.empty(points.shape[0], dtype=np.float32)
-            for start in range(0, points.shape[0], self.chunk):
-                chunk = np.ascontiguousarray(points[start:start + self.chunk], dtype=np.float32)
-                m = chunk.shape[0]
-                feed = {"points": chunk, "viewdirs": np.zeros((m, 3), np.float32),
+            for start in range(0, points.shape[0], self.batch):
+                batch = np.ascontiguousarray(points[start:start + self.batch], dtype=np.float32)
+                m = batch.shape[0]
+                feed = {"points": batch, "viewdirs": np.zeros((m, 3), np.float32),
                         "noise": np.zeros((m, self.noise_dims), np.float32)}
                 sigma[start:start + m] = self.run([output], feed, (m,))[0]
             return sigma
@@ -186,14 +188,17 @@ class OnnxField:
         try:
             results = self.session_for(tuple(outputs)).run(outputs, feed, self.run_options)
         except Exception as error:  # onnxruntime's pybind errors share no base class but Exception
-            raise UserError(f"{self.source} failed to evaluate: {' '.join(str(error).split())[:200]}") from None
+            raise UserError(f"{self.source} failed to evaluate: {' '.join(str(error).split())[:200]}",
+                            code="session.evaluate_failed") from None
         if [result.shape for result in results] != list(shapes):
             raise UserError(f"{self.source} returned {' and '.join(f'{n} {r.shape}' for n, r in zip(outputs, results))} "
-                            f"for {feed['points'].shape[0]} points, expected {' and '.join(map(str, shapes))}")
+                            f"for {feed['points'].shape[0]} points, expected {' and '.join(map(str, shapes))}",
+                            code="session.output_shape", points=feed["points"].shape[0],
+                            shapes=[result.shape for result in results], expected=list(shapes))
         return results
 
     def evaluate(self, feed: dict[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
-        """One chunk through onnxruntime; a failing graph, or outputs of another shape than the declared
+        """One batch through onnxruntime; a failing graph, or outputs of another shape than the declared
         (m, 3) and (m,), is one UserError."""
         m = feed["points"].shape[0]
         rgb, sigma = self.run(list(self.outputs), feed, (m, 3), (m,))

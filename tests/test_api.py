@@ -54,16 +54,18 @@ def test_a_sealed_file_comes_back_with_its_name_and_bytes(reveal_inputs, sealed_
     note = noisenerf.reveal(model, bundle, passphrase="api")
     assert (note.kind, note.name, note.bytes, note.sealed, note.exact) == ("file", "note.txt", body, True, True)
     assert note.pixels is None
-    for passphrase, message in ((None, "the bundle is sealed"), ("API", WRONG), (b"ap", WRONG)):
-        with pytest.raises(noisenerf.UserError, match=message):
+    for passphrase, message, code in ((None, "the bundle is sealed", "seal.no_passphrase"),
+                                      ("API", WRONG, "seal.wrong_passphrase"), (b"ap", WRONG, "seal.wrong_passphrase")):
+        with pytest.raises(noisenerf.UserError, match=message) as refused:
             noisenerf.reveal(model, bundle, passphrase=passphrase)
+        assert (refused.value.code, refused.value.params) == (code, {})
 
 
 def test_a_passphrase_for_an_unsealed_bundle_is_refused(reveal_inputs):
     _, model, bundle = reveal_inputs
     with pytest.raises(noisenerf.UserError) as refused:
         noisenerf.reveal(model, bundle, passphrase="anything")
-    assert str(refused.value) == NOT_SEALED
+    assert (str(refused.value), refused.value.code) == (NOT_SEALED, "seal.not_sealed")
 
 
 def test_render_is_the_cli_view_render(reveal_inputs, tmp_path):

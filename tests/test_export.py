@@ -141,15 +141,15 @@ def test_skipping_render_evaluates_the_same_samples(exported):
     assert np.abs(image - reference).max() <= 1e-5
 
 
-def test_chunked_and_noise_free_calls_agree(exported):
+def test_batched_and_noise_free_calls_agree(exported):
     _, path, _ = exported
-    field, small = OnnxField(read_model_file(path), threads=1), OnnxField(read_model_file(path), threads=1, chunk=7)
+    field, small = OnnxField(read_model_file(path), threads=1), OnnxField(read_model_file(path), threads=1, batch=7)
     rng = np.random.default_rng(4)
     points, viewdirs = rng.normal(size=(50, 3)).astype(np.float32), rng.normal(size=(50, 3)).astype(np.float32)
     zeros = np.zeros((50, field.noise_dims), np.float32)
     for a, b in zip(field(points, viewdirs), field(points, viewdirs, zeros)):
         np.testing.assert_array_equal(a, b)
-    # onnxruntime's GEMM kernels depend on the batch size, so chunking may move the last bit
+    # onnxruntime's GEMM kernels depend on the batch size, so batching may move the last bit
     for a, b in zip(field(points, viewdirs), small(points, viewdirs)):
         np.testing.assert_allclose(a, b, rtol=0, atol=1e-6)
 

@@ -13,7 +13,7 @@ import torch
 from helpers import assert_refused, tiny_fit
 from noisenerf.runtime.errors import UserError
 from noisenerf.train.scene.datasets import load_dataset
-from noisenerf.train.scene.fit import PRESETS, Budget, Fitter, fit
+from noisenerf.train.scene.fit import Budget, Fitter, fit
 from noisenerf.train.scene.procedural import write_procedural_dataset
 from noisenerf.train.scene.random_scene import SMALL_HASHGRID
 from noisenerf.train.scene.scene import load_scene

@@ -11,7 +11,7 @@ import pytest
 
 from helpers import assert_refused, rewrite_bundle, run_reveal, two_tile_bundle
 from noisenerf.runtime.bundle import load_bundle
-from noisenerf.runtime.images import read_image, read_native
+from noisenerf.runtime.images import read_native
 from noisenerf.runtime.model import load_model
 from noisenerf.runtime.rays import camera_ray_batch
 from noisenerf.runtime.reveal import reveal

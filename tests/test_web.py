@@ -6,12 +6,14 @@ multi-tile bundle; a hash-grid field; nerfacto fields of both implementations, i
 nerfstudio runs), exports the models, and writes beside each model.onnx and
 secret.bundle what the Python runtime computes on them: per tile the rays (runtime.rays.camera_ray_batch),
 the expanded noise (the tile noise's `rows`), the rendered colours (runtime.reveal.render_tile), and the
-revealed 8-bit pixels, digest and exactness (runtime.reveal.reveal). Tampered copies carry the one-line
-message `noisenerf-reveal` prints for them. The manifest also holds the graphs runtime.fields derives for
-hash-grid and nerfacto architectures, and the messages refusing those out of the caps, and the models of a fine
+revealed 8-bit pixels, digest and exactness (runtime.reveal.reveal). Tampered copies carry the refusal's code and
+params (`noisenerf.reveal` raises them; `noisenerf-reveal` exits 2 with its message). The manifest also holds the
+graphs runtime.fields derives for hash-grid and nerfacto architectures, and the refusals of those out of the caps,
+and the models of a fine
 network's and nerfacto scenes pruned to each set of outputs a session fetches (runtime.onnx_file.pruned_model,
 under pruned/). Then `node --test` runs web/test/ with NOISENERF_WEB_FIXTURES pointing there: the JavaScript
-port must give the same pixels byte for byte, the same graphs, the same pruned models and the same refusals.
+port must give the same pixels byte for byte, the same graphs, the same pruned models and the same refusals (code
+and params; the messages are each language's own).
 
 Run by hand: `python tests/test_web.py DIR` writes the fixtures into DIR (then `npm test` in web/ with
 NOISENERF_WEB_FIXTURES=DIR).
@@ -69,14 +71,32 @@ def run_cli(folder: Path, passphrase: str | None = None, output: str = "revealed
     return code, stderr.getvalue()
 
 
-def cli_error(folder: Path, passphrase: str | None = None) -> str:
-    """The one line `noisenerf-reveal model.onnx secret.bundle` prints on stderr in `folder`, without its prefix."""
+def refusal(error) -> dict:
+    """A UserError as the manifest holds it: the stable code and params the JavaScript must raise too."""
+    assert error.code is not None, f"a refusal of runtime/ without a code: {error}"
+    return {"code": error.code, "params": error.params, "message": str(error)}
+
+
+def cli_refusal(folder: Path, passphrase: str | None = None) -> dict:
+    """How the library refuses folder's model.onnx and secret.bundle (`noisenerf.reveal`: code, params, message),
+    checked to be the refusal `noisenerf-reveal` exits 2 with (its line starts with the library's message)."""
+    from noisenerf import reveal
+    from noisenerf.runtime.errors import UserError
+
     code, stderr = run_cli(folder, passphrase)
     assert code == 2, f"expected a refusal in {folder}, got exit code {code}: {stderr}"
     line = stderr.strip().splitlines()[-1]
     prefix = "noisenerf-reveal: error: "
     assert line.startswith(prefix), line
-    return line[len(prefix):]
+    cwd = os.getcwd()
+    try:
+        os.chdir(folder)  # the files named as the CLI names them
+        with pytest.raises(UserError) as caught:
+            reveal("model.onnx", "secret.bundle", passphrase, threads=1)
+    finally:
+        os.chdir(cwd)
+    assert line[len(prefix):].startswith(str(caught.value)), (line, str(caught.value))
+    return refusal(caught.value)
 
 
 def golden(folder: Path) -> dict:
@@ -139,7 +159,7 @@ def with_escape(path: Path) -> None:
 
 def tamper(fixtures: Path, source: str, case: str, edit_bundle=None, edit_model=None,
            passphrase: str | None = None) -> dict:
-    """A copy of fixture `source` with its bundle or model edited, and the CLI's message for it (revealed with
+    """A copy of fixture `source` with its bundle or model edited, and how it is refused (revealed with
     `passphrase`, if any)."""
     folder = fixtures / "tampered" / case
     folder.mkdir(parents=True)
@@ -147,7 +167,7 @@ def tamper(fixtures: Path, source: str, case: str, edit_bundle=None, edit_model=
         data = (fixtures / source / name).read_bytes()
         (folder / name).write_bytes(edit(data) if edit else data)
     return {"case": case, "source": source, "folder": f"tampered/{case}", "passphrase": passphrase,
-            "message": cli_error(folder, passphrase)}
+            **cli_refusal(folder, passphrase)}
 
 
 def payload_golden(folder: Path, passphrase: str | None) -> dict:
@@ -251,7 +271,7 @@ def model_architecture(path: Path) -> dict:
 
 def graph_golden(architecture: dict, noise_dims: int) -> dict:
     """runtime.fields.field_graph(architecture, noise_dims) as JSON: nodes, constants (name, dtype, shape, values:
-    float32 values exactly, as the doubles they are), weights, ports and opset, or the refusal's message. The
+    float32 values exactly, as the doubles they are), weights, ports and opset, or the refusal. The
     architecture goes as its JSON text, which the JavaScript parses as Python does (16.0 a float, 16 an int)."""
     from noisenerf.runtime.errors import UserError
     from noisenerf.runtime.fields import field_graph
@@ -260,7 +280,7 @@ def graph_golden(architecture: dict, noise_dims: int) -> dict:
     try:
         graph = field_graph(json.loads(text), noise_dims)
     except UserError as error:
-        return {"architecture": text, "noise_dims": noise_dims, "message": str(error)}
+        return {"architecture": text, "noise_dims": noise_dims, **refusal(error)}
     ports = lambda ports: [[port.name, list(port.shape), port.elem_type] for port in ports]  # noqa: E731
     return {"architecture": text, "noise_dims": noise_dims, "opset": graph.opset,
             "nodes": [[node.op, list(node.inputs), list(node.outputs), [list(a) for a in node.attributes]]
@@ -633,12 +653,12 @@ def write_fixtures(root: Path) -> dict:
     graphs, refused = hashgrid_architectures()
     noise_dims = scenes["hashgrid"].render_field.config.noise_dims
     manifest["graphs"] = [graph_golden(architecture, noise_dims) for architecture in graphs + refused]
-    assert ["message" in graph for graph in manifest["graphs"]] == [False] * len(graphs) + [True] * len(refused)
+    assert ["code" in graph for graph in manifest["graphs"]] == [False] * len(graphs) + [True] * len(refused)
     graphs, refused = nerfacto_architectures({implementation: model_architecture(
         root / "scenes" / f"nerfacto_{implementation}.onnx")["coarse"] for implementation in ("tcnn", "torch")})
     nerfacto = [graph_golden(architecture, scenes["nerfacto_tcnn"].render_field.config.noise_dims)
                 for architecture in graphs + refused]
-    assert ["message" in graph for graph in nerfacto] == [False] * len(graphs) + [True] * len(refused)
+    assert ["code" in graph for graph in nerfacto] == [False] * len(graphs) + [True] * len(refused)
     manifest["graphs"] += nerfacto
     manifest["scales"] = scales_golden()
     manifest["pruned"] = pruned_goldens(root)

@@ -73,7 +73,8 @@ def field_kind(config, what: str) -> FieldKind:
     name = config.get("kind", DEFAULT_KIND) if isinstance(config, dict) else DEFAULT_KIND
     kinds = field_kinds()
     if not isinstance(name, str) or name not in kinds:
-        raise UserError(f"the {what} network is of kind {name!r}; this noisenerf knows {sorted(kinds)}")
+        raise UserError(f"the {what} network is of kind {name!r}; this noisenerf knows {sorted(kinds)}",
+                        code="field.unknown_kind", network=what, kind=name[:60] if isinstance(name, str) else None)
     return kinds[name]
 
 
@@ -94,7 +95,8 @@ def field_graph(architecture: dict, noise_dims: int) -> FieldGraph:
         outputs += [Port("rgb_coarse", (BATCH, 3)), Port("sigma_coarse", (BATCH,))]
     samplers = {name: kind.proposal_sampler(checked[name]) for name, kind in kinds.items()}
     if any(samplers.values()) and "fine" in checked:
-        raise UserError("a network with proposal networks cannot be beside a fine network")
+        raise UserError("a network with proposal networks cannot be beside a fine network",
+                        code="field.proposals_beside_fine")
     if samplers["coarse"]:
         outputs += [Port(proposal_output(i), (BATCH,)) for i in range(len(samplers["coarse"]["proposal_samples"]))]
     inputs = (Port("points", (BATCH, 3)), Port("viewdirs", (BATCH, 3)), Port("noise", (BATCH, noise_dims)))

@@ -123,27 +123,37 @@ class HashGridKind:
 
     def checked(self, config, what: str) -> dict:
         if not isinstance(config, dict) or set(config) != KEYS:
-            raise UserError(f"the {what} network's architecture must have exactly {', '.join(sorted(KEYS))}")
+            raise UserError(f"the {what} network's architecture must have exactly {', '.join(sorted(KEYS))}",
+                            code="field.keys", network=what, kind=self.name)
         checked = {
             "kind": self.name,
-            "levels": checked_int(config["levels"], f"{what} levels", 1, MAX_HASH_LEVELS),
-            "features": checked_int(config["features"], f"{what} features", 1, MAX_HASH_FEATURES),
-            "log2_table": checked_int(config["log2_table"], f"{what} log2_table", 3, MAX_LOG2_TABLE),
-            "base_resolution": checked_int(config["base_resolution"], f"{what} base_resolution", 1, MAX_HASH_RESOLUTION),
-            "per_level_scale": checked_float(config["per_level_scale"], f"{what} per_level_scale", 1.0, 8.0),
+            "levels": checked_int(config["levels"], f"{what} levels", 1, MAX_HASH_LEVELS, code="field.levels"),
+            "features": checked_int(config["features"], f"{what} features", 1, MAX_HASH_FEATURES,
+                                    code="field.features"),
+            "log2_table": checked_int(config["log2_table"], f"{what} log2_table", 3, MAX_LOG2_TABLE,
+                                      code="field.log2_table"),
+            "base_resolution": checked_int(config["base_resolution"], f"{what} base_resolution", 1, MAX_HASH_RESOLUTION,
+                                             code="field.base_resolution"),
+            "per_level_scale": checked_float(config["per_level_scale"], f"{what} per_level_scale", 1.0, 8.0,
+                                             code="field.per_level_scale"),
             **checked_mlps(config, what),
-            "aabb": [checked_float(v, f"{what} aabb", -1e9, 1e9) for v in checked_list(config["aabb"], "aabb", length=6)],
+            "aabb": [checked_float(v, f"{what} aabb", -1e9, 1e9, code="field.aabb")
+                     for v in checked_list(config["aabb"], "aabb", length=6, code="field.aabb")],
         }
         if not all(lo < hi for lo, hi in zip(checked["aabb"][:3], checked["aabb"][3:])):
-            raise UserError(f"the {what} network's aabb must have min < max on every axis")
+            raise UserError(f"the {what} network's aabb must have min < max on every axis", code="field.aabb_order",
+                            network=what)
         finest = (checked["per_level_scale"] ** (checked["levels"] - 1)) * checked["base_resolution"]
         if not math.isfinite(finest) or finest > MAX_HASH_RESOLUTION:
             raise UserError(f"the {what} network's finest level has {finest:.6g} vertices a side, more than "
-                            f"{MAX_HASH_RESOLUTION}")
+                            f"{MAX_HASH_RESOLUTION}", code="field.finest_resolution", network=what,
+                            levels=checked["levels"], base_resolution=checked["base_resolution"],
+                            per_level_scale=checked["per_level_scale"], most=MAX_HASH_RESOLUTION)
         levels = config_levels(checked)
         if levels.total_rows * checked["features"] > MAX_TABLE_VALUES:
             raise UserError(f"the {what} network's tables hold {levels.total_rows * checked['features']} values, more "
-                            f"than {MAX_TABLE_VALUES}")
+                            f"than {MAX_TABLE_VALUES}", code="field.table_values", network=what,
+                            values=levels.total_rows * checked["features"], most=MAX_TABLE_VALUES)
         return checked
 
     def proposal_sampler(self, config: dict) -> None:
@@ -164,11 +174,14 @@ class HashGridKind:
 
 def checked_mlps(config: dict, what: str) -> dict:
     """The widths of a hash-grid field's two MLPs and its SH degree, within the caps."""
-    width = lambda key, low=1: checked_int(config[key], f"{what} {key}", low, MAX_FIELD_WIDTH)  # noqa: E731
+    width = lambda key, low=1: checked_int(config[key], f"{what} {key}", low, MAX_FIELD_WIDTH,  # noqa: E731
+                                           code="field.width")
     return {"density_hidden": width("density_hidden"), "geo_features": width("geo_features", 0),
-            "sh_degree": checked_int(config["sh_degree"], f"{what} sh_degree", 1, MAX_SH_DEGREE),
+            "sh_degree": checked_int(config["sh_degree"], f"{what} sh_degree", 1, MAX_SH_DEGREE,
+                                     code="field.sh_degree"),
             "colour_hidden": width("colour_hidden"),
-            "colour_layers": checked_int(config["colour_layers"], f"{what} colour_layers", 1, MAX_FIELD_DEPTH)}
+            "colour_layers": checked_int(config["colour_layers"], f"{what} colour_layers", 1, MAX_FIELD_DEPTH,
+                                           code="field.colour_layers")}
 
 
 def field_mlps(builder: GraphBuilder, prefix: str, config: dict, segments: tuple[Segment, Segment], features: str,

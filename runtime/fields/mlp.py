@@ -58,15 +58,18 @@ class MlpKind:
         """train.scene.field.FieldConfig's fields, exactly, within the caps."""
         if not isinstance(config, dict) or set(config) != KEYS:
             raise UserError(f"the {what} network's architecture must have exactly depth, width, skips, xyz_freqs, "
-                            "dir_freqs and use_viewdirs")
-        depth = checked_int(config["depth"], f"{what} depth", 1, MAX_FIELD_DEPTH)
-        skips = [checked_int(skip, f"{what} skip", 0, depth - 1) for skip in checked_list(
-            list(config["skips"]) if isinstance(config["skips"], tuple) else config["skips"], "skips", most=depth)]
+                            "dir_freqs and use_viewdirs", code="field.keys", network=what, kind=self.name)
+        depth = checked_int(config["depth"], f"{what} depth", 1, MAX_FIELD_DEPTH, code="field.depth")
+        skips = [checked_int(skip, f"{what} skip", 0, depth - 1, code="field.skips") for skip in checked_list(
+            list(config["skips"]) if isinstance(config["skips"], tuple) else config["skips"], "skips", most=depth,
+            code="field.skips")]
         if not isinstance(config["use_viewdirs"], bool):
-            raise UserError(f"the {what} network's use_viewdirs must be true or false")
-        return {"depth": depth, "width": checked_int(config["width"], f"{what} width", 2, MAX_FIELD_WIDTH),
+            raise UserError(f"the {what} network's use_viewdirs must be true or false", code="field.use_viewdirs",
+                            network=what)
+        return {"depth": depth, "width": checked_int(config["width"], f"{what} width", 2, MAX_FIELD_WIDTH,
+                                                     code="field.width"),
                 "skips": sorted(set(skips)), "use_viewdirs": config["use_viewdirs"],
-                **{key: checked_int(config[key], f"{what} {key}", 0, MAX_FREQUENCIES)
+                **{key: checked_int(config[key], f"{what} {key}", 0, MAX_FREQUENCIES, code="field.frequencies")
                    for key in ("xyz_freqs", "dir_freqs")}}
 
     def proposal_sampler(self, config: dict) -> None:

@@ -58,23 +58,30 @@ class NerfactoKind:
 
     def checked(self, config, what: str) -> dict:
         if not isinstance(config, dict) or set(config) != KEYS:
-            raise UserError(f"the {what} network's architecture must have exactly {', '.join(sorted(KEYS))}")
+            raise UserError(f"the {what} network's architecture must have exactly {', '.join(sorted(KEYS))}",
+                            code="field.keys", network=what, kind=self.name)
         implementation = config["implementation"]
         if implementation not in IMPLEMENTATIONS:
-            raise UserError(f"the {what} network's implementation must be one of {', '.join(IMPLEMENTATIONS)}")
+            raise UserError(f"the {what} network's implementation must be one of {', '.join(IMPLEMENTATIONS)}",
+                            code="field.implementation", network=what,
+                            implementation=implementation[:60] if isinstance(implementation, str) else None)
         checked = {"kind": self.name, "implementation": implementation,
                    **checked_grid(config, implementation, f"{what} network"), **checked_mlps(config, what),
-                   "density_scale": checked_float(config["density_scale"], f"{what} density_scale", 1e-12, 1e12)}
-        proposals = checked_list(config["proposals"], f"{what} proposals", most=MAX_PROPOSAL_NETWORKS)
+                   "density_scale": checked_float(config["density_scale"], f"{what} density_scale", 1e-12, 1e12,
+                                                    code="field.density_scale")}
+        proposals = checked_list(config["proposals"], f"{what} proposals", most=MAX_PROPOSAL_NETWORKS,
+                                 code="field.proposals")
         if not proposals:
-            raise UserError(f"the {what} network needs a proposal network (its sampler has a stage per network)")
+            raise UserError(f"the {what} network needs a proposal network (its sampler has a stage per network)",
+                            code="field.no_proposals", network=what)
         checked["proposals"] = [checked_proposal(proposal, implementation, f"{what} proposal network {i}")
                                 for i, proposal in enumerate(proposals)]
         checked["sampler"] = checked_sampler(config["sampler"], len(proposals), what)
         values = sum(grid_layout(implementation, grid["scales"], grid["log2_table"]).total_rows * grid["features"]
                      for grid in [checked, *checked["proposals"]])
         if values > MAX_TABLE_VALUES:
-            raise UserError(f"the {what} network's tables hold {values} values, more than {MAX_TABLE_VALUES}")
+            raise UserError(f"the {what} network's tables hold {values} values, more than {MAX_TABLE_VALUES}",
+                            code="field.table_values", network=what, values=values, most=MAX_TABLE_VALUES)
         return checked
 
     def segments(self, config: dict) -> tuple[Segment, ...]:
@@ -115,37 +122,48 @@ def grid_on(builder: GraphBuilder, name: str, unit: str, implementation: str, gr
 
 def checked_grid(config: dict, implementation: str, what: str) -> dict:
     """A grid's features, log2_table and float32 scales (one per level), within the caps."""
-    scales = checked_list(config["scales"], f"{what} scales", most=MAX_HASH_LEVELS)
+    scales = checked_list(config["scales"], f"{what} scales", most=MAX_HASH_LEVELS, code="field.scales")
     if not scales:
-        raise UserError(f"the {what}'s grid needs at least one level")
+        raise UserError(f"the {what}'s grid needs at least one level", code="field.no_levels", network=what)
     lowest = 1.0 if implementation == "torch" else 0.0
-    values = [float(np.float32(checked_float(v, f"{what} scales", lowest, MAX_HASH_RESOLUTION - 2))) for v in scales]
+    values = [float(np.float32(checked_float(v, f"{what} scales", lowest, MAX_HASH_RESOLUTION - 2,
+                                                        code="field.scales"))) for v in scales]
     if any(finer < coarser for coarser, finer in zip(values, values[1:])):
-        raise UserError(f"the {what}'s scales must not decrease from level to level")  # dense levels come first
-    return {"features": checked_int(config["features"], f"{what} features", 1, MAX_HASH_FEATURES),
-            "log2_table": checked_int(config["log2_table"], f"{what} log2_table", 3, MAX_LOG2_TABLE), "scales": values}
+        raise UserError(f"the {what}'s scales must not decrease from level to level",  # dense levels come first
+                        code="field.scales_decrease", network=what)
+    return {"features": checked_int(config["features"], f"{what} features", 1, MAX_HASH_FEATURES,
+                                    code="field.features"),
+            "log2_table": checked_int(config["log2_table"], f"{what} log2_table", 3, MAX_LOG2_TABLE,
+                                      code="field.log2_table"), "scales": values}
 
 
 def checked_proposal(config, implementation: str, what: str) -> dict:
     if not isinstance(config, dict) or set(config) != PROPOSAL_KEYS:
-        raise UserError(f"the {what} must have exactly {', '.join(sorted(PROPOSAL_KEYS))}")
+        raise UserError(f"the {what} must have exactly {', '.join(sorted(PROPOSAL_KEYS))}", code="field.proposal_keys",
+                        network=what)
     return {**checked_grid(config, implementation, what),
-            "hidden": checked_int(config["hidden"], f"{what} hidden", 1, MAX_FIELD_WIDTH)}
+            "hidden": checked_int(config["hidden"], f"{what} hidden", 1, MAX_FIELD_WIDTH, code="field.width")}
 
 
 def checked_sampler(config, proposals: int, what: str) -> dict:
     """nerfacto's proposal sampler: samples per proposal stage (one per network), the field's samples, the
     PDF's histogram padding, the ray interval of ordinary renders."""
     if not isinstance(config, dict) or set(config) != SAMPLER_KEYS:
-        raise UserError(f"the {what} network's sampler must have exactly {', '.join(sorted(SAMPLER_KEYS))}")
-    stages = checked_list(config["proposal_samples"], f"{what} proposal_samples", length=proposals)
-    near = checked_float(config["near"], f"{what} sampler near", 0.0, 1e9)
-    far = checked_float(config["far"], f"{what} sampler far", 0.0, 1e9)
+        raise UserError(f"the {what} network's sampler must have exactly {', '.join(sorted(SAMPLER_KEYS))}",
+                        code="field.sampler_keys", network=what)
+    stages = checked_list(config["proposal_samples"], f"{what} proposal_samples", length=proposals,
+                          code="field.proposal_samples")
+    near = checked_float(config["near"], f"{what} sampler near", 0.0, 1e9, code="field.sampler_near")
+    far = checked_float(config["far"], f"{what} sampler far", 0.0, 1e9, code="field.sampler_far")
     if not near < far:
-        raise UserError(f"the {what} network's sampler needs near < far, got {near}, {far}")
-    return {"proposal_samples": [checked_int(n, f"{what} proposal_samples", 1, MAX_SAMPLES_PER_RAY) for n in stages],
-            "samples": checked_int(config["samples"], f"{what} sampler samples", 1, MAX_SAMPLES_PER_RAY),
-            "histogram_padding": checked_float(config["histogram_padding"], f"{what} histogram_padding", 0.0, 1.0),
+        raise UserError(f"the {what} network's sampler needs near < far, got {near}, {far}", code="field.near_far",
+                        network=what, near=near, far=far)
+    return {"proposal_samples": [checked_int(n, f"{what} proposal_samples", 1, MAX_SAMPLES_PER_RAY,
+                                             code="field.proposal_samples") for n in stages],
+            "samples": checked_int(config["samples"], f"{what} sampler samples", 1, MAX_SAMPLES_PER_RAY,
+                                   code="field.sampler_samples"),
+            "histogram_padding": checked_float(config["histogram_padding"], f"{what} histogram_padding", 0.0, 1.0,
+                                                       code="field.histogram_padding"),
             "near": near, "far": far}
 
 

@@ -108,7 +108,7 @@ def test_the_readme_python_api_runs_as_written_without_torch(demo_dir, tmp_path)
     assert result.returncode == 0, result.stderr
     image, note, refusal, view = result.stdout.splitlines()
     assert image.startswith("image True (72, 96, 3) ") and note == f"file note.txt {(demo_dir / 'note.txt').read_bytes()!r}"
-    assert refusal.startswith("the bundle is sealed: give its passphrase")
+    assert refusal.startswith("seal.no_passphrase the bundle is sealed: give its passphrase")
     assert view.startswith("float32 (") and " samples" in view
     from noisenerf.runtime.images import read_native
     assert (read_native(tmp_path / "revealed.png") == read_native(demo_dir / "secret.png")).all()

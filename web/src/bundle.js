@@ -2,11 +2,11 @@
 // metadata checked with the same messages and caps before anything is allocated (formats 1–3), each tile's noise
 // read, checked and cut into chunks by its layout (src/layouts.js).
 
-import { UserError, repr, reprCut, tuple, PyFloat } from "./errors.js";
+import { UserError, PyFloat, show } from "./errors.js";
 import { isJsonObject as isObject, parseJson } from "./json.js";
 import { LAYOUTS, chunkRows, layoutNamed } from "./layouts.js";
 import {
-  MAX_CAMERAS, MAX_IMAGE_SIDE, MAX_NOISE_DIMS, MAX_TILES, checkedImageSize, checkedInt, checkedList,
+  MAX_CAMERAS, MAX_IMAGE_SIDE, MAX_NOISE_DIMS, MAX_TILES, checkedImageSize, checkedInt, checkedList, cut, num,
 } from "./limits.js";
 import { cameraFromDict } from "./camera.js";
 import { samplingFromDict } from "./sampling.js";
@@ -33,19 +33,19 @@ function decodeTensor(dtype, shape, bytes) {
 
 /** The safetensors file: header checks as the safetensors library makes them -> {metadata, tensors (lazy)}. */
 function readSafetensors(data, source) {
-  const fail = (why) => new UserError(`not a readable safetensors bundle: ${source} (${why})`);
-  if (data.length < 8) throw fail("HeaderTooSmall");
+  const fail = (why) => new UserError(`not a readable safetensors bundle: ${source} (${why})`, { code: "bundle.not_safetensors" });
+  if (data.length < 8) throw fail("shorter than its header's size");
   const view = new DataView(data.buffer, data.byteOffset, data.byteLength);
   const size = Number(view.getBigUint64(0, true));
-  if (size > 100_000_000) throw fail("HeaderTooLarge");
-  if (8 + size > data.length) throw fail("InvalidHeaderLength");
+  if (size > 100_000_000) throw fail("header too large");
+  if (8 + size > data.length) throw fail("header runs past the end of the file");
   let header;
   try {
     header = JSON.parse(new TextDecoder("utf-8", { fatal: true }).decode(data.subarray(8, 8 + size)));
   } catch (error) {
-    throw fail(`InvalidHeaderDeserialization`);
+    throw fail(`header is not JSON`);
   }
-  if (header === null || typeof header !== "object" || Array.isArray(header)) throw fail("InvalidHeaderDeserialization");
+  if (header === null || typeof header !== "object" || Array.isArray(header)) throw fail("header is not a JSON object");
   const metadata = header.__metadata__ ?? null;
   const entries = Object.entries(header).filter(([name]) => name !== "__metadata__")
     .sort((a, b) => a[1]?.data_offsets?.[0] - b[1]?.data_offsets?.[0]);
@@ -54,30 +54,36 @@ function readSafetensors(data, source) {
   const tensors = new Map();
   for (const [name, info] of entries) {
     if (!info || typeof info.dtype !== "string" || !Array.isArray(info.shape) || !Array.isArray(info.data_offsets)) {
-      throw fail("InvalidHeaderDeserialization");
+      throw fail(`tensor ${show(name)} is not described by dtype, shape and data_offsets`);
     }
     const [begin, stop] = info.data_offsets;
-    if (!(info.dtype in ITEM_SIZE)) throw fail("InvalidHeaderDeserialization");
+    if (!(info.dtype in ITEM_SIZE)) throw fail(`tensor ${show(name)} has unknown dtype ${show(info.dtype)}`);
     const count = info.shape.reduce((a, b) => a * b, 1);
-    if (begin !== end || stop < begin || stop - begin !== count * ITEM_SIZE[info.dtype]) throw fail(`InvalidOffset(${repr(name)})`);
+    if (begin !== end || stop < begin || stop - begin !== count * ITEM_SIZE[info.dtype]) throw fail(`tensor ${show(name)} has wrong data offsets`);
     end = stop;
     tensors.set(name, { dtype: info.dtype, shape: info.shape, bytes: body.subarray(begin, stop) });
   }
-  if (end !== body.length) throw fail("MetadataIncompleteBuffer");
+  if (end !== body.length) throw fail("the tensors do not fill the data");
   return { metadata, tensors };
 }
 
-function checkedText(value, what) {
-  if (typeof value !== "string" || value.length > 256) throw new UserError(`${what} must be a string of at most 256 characters`);
+/** checked_text: a short JSON string (fingerprints, digests, names; at most 256 code points, as Python counts);
+ * `refusal`: { code, ...params }. */
+function checkedText(value, what, { code, ...params }) {
+  if (typeof value !== "string" || [...value].length > 256) {
+    throw new UserError(`${what} must be a string of at most 256 characters`, { code, most: 256, ...params });
+  }
   return value;
 }
 
 function checkedFormat(meta, source) {
-  let version = meta.format_version;
+  const version = meta.format_version;
   const key = typeof version === "number" ? version : version instanceof PyFloat ? version.value : null;
   if (typeof version === "boolean" || !(key in READABLE_FORMATS)) {
-    throw new UserError(`${source} is bundle format ${reprCut(version === undefined ? null : version, 20)}; noisenerf ${NOISENERF_VERSION} reads formats 1 to ${NEWEST_FORMAT}` +
-      (typeof version === "number" && Number.isInteger(version) && version > NEWEST_FORMAT ? "; a newer noisenerf is needed" : ""));
+    const number = num(version);
+    throw new UserError(`${source} is bundle format ${show(version ?? null, 20)}; noisenerf ${NOISENERF_VERSION} reads formats 1 to ${NEWEST_FORMAT}` +
+      ((typeof version === "number" || typeof version === "bigint") && number > NEWEST_FORMAT ? "; a newer noisenerf is needed" : ""),
+    { code: "bundle.format", ...(Number.isFinite(number) ? { format: version } : {}), oldest: 1, newest: NEWEST_FORMAT });
   }
   return key;
 }
@@ -85,32 +91,37 @@ function checkedFormat(meta, source) {
 function validateNoiseHeader(name, dtype, dims, coefficients, layouts = Object.keys(LAYOUTS)) {
   const layout = layoutNamed(name, layouts);
   if (!layout.dtypes.includes(dtype)) {
-    throw new UserError(`bundle: unknown noise dtype ${reprCut(dtype, 40)} for the ${layout.name} layout (expected one of ${repr(tuple(...layout.dtypes))})`);
+    throw new UserError(`bundle: unknown noise dtype ${show(dtype, 40)} for the ${layout.name} layout (expected one of ${layout.dtypes.join(", ")})`,
+      { code: "bundle.noise_dtype", dtype: cut(dtype), layout: layout.name, expected: layout.dtypes });
   }
 }
 
 function noiseHeader(noise, layouts) {
-  const layout = layoutNamed(checkedText(noise.layout, "bundle: noise layout"), layouts);
-  const dims = checkedInt(noise.dims, "bundle: noise dims", 1, MAX_NOISE_DIMS);
-  const dtype = checkedText(noise.dtype, "bundle: noise dtype");
+  const layout = layoutNamed(checkedText(noise.layout, "bundle: noise layout", { code: "bundle.noise_layout" }), layouts);
+  const dims = checkedInt(noise.dims, "bundle: noise dims", 1, MAX_NOISE_DIMS, { code: "bundle.noise_dims" });
+  const dtype = checkedText(noise.dtype, "bundle: noise dtype", { code: "bundle.noise_dtype" });
   const coefficients = layout.readHeader(noise, dims);
   validateNoiseHeader(layout.name, dtype, dims, coefficients, layouts);
   return { layout: layout.name, dims, dtype, coefficients };
 }
 
 function checkedRect(i, data) {
-  if (!isObject(data)) throw new UserError(`bundle: tile ${i} must be a JSON object`);
-  const rect = checkedList(data.rect, `bundle: tile ${i} rect`, 4);
-  const x0 = checkedInt(rect[0], `bundle: tile ${i} rect origin`, 0, MAX_IMAGE_SIDE);
-  const y0 = checkedInt(rect[1], `bundle: tile ${i} rect origin`, 0, MAX_IMAGE_SIDE);
-  return [x0, y0, ...checkedImageSize(rect[2], rect[3], `bundle: tile ${i} rect`)];
+  if (!isObject(data)) throw new UserError(`bundle: tile ${i} must be a JSON object`, { code: "bundle.tile_not_object", tile: i });
+  const rect = checkedList(data.rect, `bundle: tile ${i} rect`, 4, undefined, { code: "bundle.tile_rect", tile: i });
+  const x0 = checkedInt(rect[0], `bundle: tile ${i} rect origin`, 0, MAX_IMAGE_SIDE, { code: "bundle.tile_rect", tile: i });
+  const y0 = checkedInt(rect[1], `bundle: tile ${i} rect origin`, 0, MAX_IMAGE_SIDE, { code: "bundle.tile_rect", tile: i });
+  return [x0, y0, ...checkedImageSize(rect[2], rect[3], `bundle: tile ${i} rect`, { code: "bundle.tile_rect", tile: i })];
 }
 
-function tileTensor(tensors, name, what, dtype = null, ndim = null) {
-  if (!tensors.has(name)) throw new UserError(`${what} tensor ${reprCut(name, 60)} is missing`);
+/** tile_tensor: a named tensor of tile number `tile` that must exist (with this dtype and rank, when given). */
+function tileTensor(tensors, name, tile, dtype = null, ndim = null) {
+  if (!tensors.has(name)) {
+    throw new UserError(`bundle: tile ${tile} tensor ${show(name)} is missing`, { code: "bundle.tensor_missing", tile, tensor: cut(name) });
+  }
   const value = tensors.get(name);
   if ((dtype !== null && value.dtype !== dtype) || (ndim !== null && value.shape.length !== ndim)) {
-    throw new UserError(`${what} tensor ${reprCut(name, 60)} is ${value.dtype} ${repr(tuple(...value.shape))}`);
+    throw new UserError(`bundle: tile ${tile} tensor ${show(name)} is ${value.dtype} [${value.shape}]`,
+      { code: "bundle.tensor_shape", tile, tensor: cut(name), dtype: value.dtype, shape: value.shape });
   }
   return value;
 }
@@ -130,49 +141,57 @@ export function tileRows(tile, bundle, start, stop) {
 async function parseTile(i, data, tensors, header) {
   const [x0, y0, width, height] = checkedRect(i, data);
   const name = data.tensor;
-  if (typeof name !== "string") throw new UserError(`bundle: tile ${i} tensor ${reprCut(name ?? null, 40)} is missing`);
-  const what = `bundle: tile ${i}`;
-  const noise = await LAYOUTS[header.layout].readTile(name, data, (key, dtype = null, ndim = null) => tileTensor(tensors, key, what, dtype, ndim),
-    [height, width, header.coefficients], header.dtype, what, header.format);
+  if (typeof name !== "string") throw new UserError(`bundle: tile ${i} names no tensor`, { code: "bundle.tile_no_tensor", tile: i });
+  const noise = await LAYOUTS[header.layout].readTile(name, data, (key, dtype = null, ndim = null) => tileTensor(tensors, key, i, dtype, ndim),
+    [height, width, header.coefficients], header.dtype, i, header.format);
   const view = data.view ?? null;
   const camera = cameraFromDict(data.camera ?? null);
   const sampling = samplingFromDict(data.sampling ?? null);
   return { rect: [x0, y0, width, height], camera, sampling, noise,
-    view: view === null ? null : checkedInt(view, `bundle: tile ${i} view`, 0, MAX_CAMERAS),
-    network: data.network === undefined || data.network === null ? null : checkedText(data.network, `bundle: tile ${i} network`) };
+    view: view === null ? null : checkedInt(view, `bundle: tile ${i} view`, 0, MAX_CAMERAS, { code: "bundle.tile_view", tile: i }),
+    network: data.network === undefined || data.network === null ? null
+      : checkedText(data.network, `bundle: tile ${i} network`, { code: "bundle.tile_network", tile: i }) };
 }
 
 function validateTile(i, tile, bundle) {
   const [x0, y0, w, h] = tile.rect;
   if (tile.network !== null && !NETWORKS.includes(tile.network)) {
-    throw new UserError(`bundle: tile ${i} names network ${reprCut(tile.network, 40)} (expected one of ${repr(tuple(...NETWORKS))})`);
+    throw new UserError(`bundle: tile ${i} names network ${show(tile.network, 40)} (expected one of ${NETWORKS.join(", ")})`,
+      { code: "bundle.tile_network", tile: i, network: cut(tile.network), expected: NETWORKS });
   }
   if (x0 + w > bundle.width || y0 + h > bundle.height) {
-    throw new UserError(`bundle: tile ${i} rectangle ${repr(tuple(...tile.rect))} lies outside the ${bundle.width}x${bundle.height} image`);
+    throw new UserError(`bundle: tile ${i} rectangle [${tile.rect}] lies outside the ${bundle.width}x${bundle.height} image`,
+      { code: "bundle.tile_outside", tile: i, rect: tile.rect, width: bundle.width, height: bundle.height });
   }
   if (tile.camera.width !== w || tile.camera.height !== h) {
-    throw new UserError(`bundle: tile ${i} camera is ${tile.camera.width}x${tile.camera.height}, its rectangle ${w}x${h}`);
+    throw new UserError(`bundle: tile ${i} camera is ${tile.camera.width}x${tile.camera.height}, its rectangle ${w}x${h}`,
+      { code: "bundle.tile_camera", tile: i, camera: [tile.camera.width, tile.camera.height], size: [w, h] });
   }
   const layout = LAYOUTS[bundle.layout];
   if (tile.sampling.nSamples > layout.maxSamples) {
-    throw new UserError(`bundle: tile ${i} asks for ${tile.sampling.nSamples} samples per ray; the ${bundle.layout} layout allows at most ${layout.maxSamples}`);
+    throw new UserError(`bundle: tile ${i} asks for ${tile.sampling.nSamples} samples per ray; the ${bundle.layout} layout allows at most ${layout.maxSamples}`,
+      { code: "bundle.tile_samples", tile: i, samples: tile.sampling.nSamples, layout: bundle.layout, most: layout.maxSamples });
   }
   const perVector = bundle.coefficients === null ? bundle.noiseDims : bundle.coefficients;
   const shape = layout.storedShape(h, w, tile.sampling.nSamples, perVector);
-  layout.checkNoise(`bundle: tile ${i}`, tile.noise, w * h, bundle.noiseDims, bundle.coefficients, shape, bundle.dtype);
+  layout.checkNoise(i, tile.noise, w * h, bundle.noiseDims, bundle.coefficients, shape, bundle.dtype);
 }
 
 function validate(bundle) {
-  if (bundle.tiles.length === 0) throw new UserError(`bundle: empty secret (${bundle.width}x${bundle.height}, 0 tiles)`);
+  if (bundle.tiles.length === 0) {
+    throw new UserError(`bundle: empty secret (${bundle.width}x${bundle.height}, 0 tiles)`,
+      { code: "bundle.empty", width: bundle.width, height: bundle.height, tiles: 0 });
+  }
   bundle.tiles.forEach((tile, i) => validateTile(i, tile, bundle));
   if (bundle.tiles.reduce((n, t) => n + t.rect[2] * t.rect[3], 0) !== bundle.width * bundle.height) {
-    throw new UserError(`bundle: the tiles' areas do not add up to the ${bundle.width}x${bundle.height} secret`);
+    throw new UserError(`bundle: the tiles' areas do not add up to the ${bundle.width}x${bundle.height} secret`,
+      { code: "bundle.tile_areas", width: bundle.width, height: bundle.height });
   }
   const covered = new Uint8Array(bundle.width * bundle.height);
   for (const [x0, y0, w, h] of bundle.tiles.map((t) => t.rect)) {
     for (let y = y0; y < y0 + h; y++) {
       for (let x = x0; x < x0 + w; x++) {
-        if (covered[y * bundle.width + x]) throw new UserError("bundle: tile rectangles overlap");
+        if (covered[y * bundle.width + x]) throw new UserError("bundle: tile rectangles overlap", { code: "bundle.tiles_overlap" });
       }
     }
     for (let y = y0; y < y0 + h; y++) covered.fill(1, y * bundle.width + x0, y * bundle.width + x0 + w);
@@ -183,28 +202,33 @@ function validate(bundle) {
 export async function loadBundle(data, source = "secret.bundle") {
   const file = readSafetensors(data, source);
   const raw = file.metadata && typeof file.metadata === "object" ? file.metadata[METADATA_KEY] : undefined;
-  if (typeof raw !== "string") throw new UserError(`not a noisenerf bundle (no '${METADATA_KEY}' metadata): ${source}`);
+  if (typeof raw !== "string") {
+    throw new UserError(`not a noisenerf bundle (no '${METADATA_KEY}' metadata): ${source}`, { code: "bundle.not_noisenerf" });
+  }
   const meta = parseJson(raw, "bundle metadata", source);
   const tensors = new Map();
   for (const [name, info] of file.tensors) {
     if (!SAFETENSORS_DTYPES.includes(info.dtype)) {
-      throw new UserError(`bundle tensor ${repr(name)} is ${info.dtype}; noise is stored as ${SAFETENSORS_DTYPES.join(" or ")}: ${source}`);
+      throw new UserError(`bundle tensor ${show(name)} is ${info.dtype}; noise is stored as ${SAFETENSORS_DTYPES.join(" or ")}: ${source}`,
+        { code: "bundle.tensor_dtype", tensor: cut(name), dtype: cut(info.dtype) });
     }
     tensors.set(name, decodeTensor(info.dtype, info.shape, info.bytes));
   }
-  if (!isObject(meta)) throw new UserError(`bundle metadata must be a JSON object: ${source}`);
+  if (!isObject(meta)) throw new UserError(`bundle metadata must be a JSON object: ${source}`, { code: "bundle.metadata_not_object" });
   const version = checkedFormat(meta, source);
   const secret = meta.secret, noise = meta.noise;
-  if (!isObject(secret) || !isObject(noise)) throw new UserError("bundle: metadata needs 'secret' and 'noise' objects");
-  const [width, height] = checkedImageSize(secret.width ?? null, secret.height ?? null, "bundle: secret");
+  if (!isObject(secret) || !isObject(noise)) {
+    throw new UserError("bundle: metadata needs 'secret' and 'noise' objects", { code: "bundle.no_secret_or_noise" });
+  }
+  const [width, height] = checkedImageSize(secret.width ?? null, secret.height ?? null, "bundle: secret", { code: "bundle.secret_size" });
   const header = { ...noiseHeader(noise, READABLE_FORMATS[version]), format: version };
-  const tileData = checkedList(meta.tiles ?? null, "bundle: tiles", null, MAX_TILES);
+  const tileData = checkedList(meta.tiles ?? null, "bundle: tiles", null, MAX_TILES, { code: "bundle.tiles" });
   const areas = tileData.map((tile, i) => checkedRect(i, tile)).reduce((n, r) => n + r[2] * r[3], 0);
   const layout = LAYOUTS[header.layout];
   layout.checkStreams(tileData.map((tile) => (typeof tile.tensor === "string" ? tensors.get(tile.tensor) : undefined)),
     [width, height], areas, header.coefficients, header.dtype);
-  const fingerprint = checkedText(meta.model_fingerprint ?? null, "bundle: model_fingerprint");
-  const sha256 = checkedText(secret.sha256 ?? null, "bundle: sha256");
+  const fingerprint = checkedText(meta.model_fingerprint ?? null, "bundle: model_fingerprint", { code: "bundle.model_fingerprint" });
+  const sha256 = checkedText(secret.sha256 ?? null, "bundle: sha256", { code: "bundle.secret_sha256" });
   const tiles = [];
   for (let i = 0; i < tileData.length; i++) tiles.push(await parseTile(i, tileData[i], tensors, header));
   const bundle = { modelFingerprint: fingerprint, width, height, secretSha256: sha256, layout: header.layout,

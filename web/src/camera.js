@@ -1,36 +1,42 @@
 // Mirrors runtime/camera.py (cameras, ray directions, pixel centres, NDC) and runtime/rays.py (rays in the
 // field's space: view directions, then NDC). numpy computes these in float32; here every float32 step is a
-// Math.fround in numpy's operation order. The one matmul, pixel_rays' `dirs @ c2w[:3, :3].T`, is numpy's
-// float32 matmul, OpenBLAS's sgemm: on FMA hardware a fused multiply-add chain over k = 0, 1, 2, reproduced
-// here (fmaf32); the golden rays measure it (see web/test).
+// Math.fround in numpy's operation order. The one matmul, pixel_rays' `dirs @ c2w[:3, :3].T`, is a float32
+// multiply-add chain over k = 0, 1, 2; numpy's BLAS may fuse it (FMA) where this does not, which moves a
+// direction by an ulp at most and no revealed 8-bit value (web/test measures both).
 
 import { UserError } from "./errors.js";
 import { checkedFloat, checkedImageSize, num } from "./limits.js";
-import { fmaf32 } from "./float32.js";
 
 const f32 = Math.fround;
 
-/** Camera.from_dict: integer size within the caps, finite intrinsics, finite pose. */
+/** Camera.from_dict: integer size within the caps, finite intrinsics, finite pose. Keys are read in Python's order,
+ * each when Python reads it (a missing one: camera.missing_key); the size's and intrinsics' refusals are limits'. */
 export function cameraFromDict(data) {
-  if (data === null || typeof data !== "object" || Array.isArray(data)) throw new UserError("malformed camera: expected an object");
-  try {
-    for (const key of ["c2w", "width", "height", "fx", "fy", "cx", "cy"]) {
-      if (!Object.hasOwn(data, key)) throw new UserError(`malformed camera: '${key}'`);
-    }
-    let rows = data.c2w;
-    const bad = () => new UserError("malformed camera: c2w must be a finite 4x4 matrix");
-    if (!Array.isArray(rows) || !rows.every((row) => Array.isArray(row))) throw bad();
-    let matrix = rows.map((row) => row.map((v) => { const n = num(v); if (n === undefined || typeof v === "boolean") throw bad(); return n; }));
-    if (matrix.length === 3 && matrix.every((row) => row.length === 4)) matrix = [...matrix, [0, 0, 0, 1]];
-    if (matrix.length !== 4 || !matrix.every((row) => row.length === 4) || !matrix.flat().every(Number.isFinite)) throw bad();
-    const [width, height] = checkedImageSize(data.width, data.height, "camera");
-    const fx = checkedFloat(data.fx, "camera fx", 1e-6, 1e9), fy = checkedFloat(data.fy, "camera fy", 1e-6, 1e9);
-    const cx = checkedFloat(data.cx, "camera cx", -1e9, 1e9), cy = checkedFloat(data.cy, "camera cy", -1e9, 1e9);
-    return { c2w: matrix, width, height, fx, fy, cx, cy };
-  } catch (error) {
-    if (error instanceof UserError && !error.message.startsWith("malformed camera")) throw new UserError(`malformed camera: ${error.message}`);
-    throw error;
+  if (data === null || typeof data !== "object" || Array.isArray(data)) {
+    throw new UserError("malformed camera: expected an object", { code: "camera.not_object" });
   }
+  const get = (key) => {
+    if (!Object.hasOwn(data, key)) throw new UserError(`malformed camera: missing "${key}"`, { code: "camera.missing_key", key });
+    return data[key];
+  };
+  const bad = () => new UserError("malformed camera: c2w must be a finite 4x4 matrix", { code: "camera.bad_c2w" });
+  const rows = get("c2w");
+  if (!Array.isArray(rows) || !rows.every((row) => Array.isArray(row))) throw bad();
+  const values = rows.flat();
+  // numpy's array: booleans are numbers beside numbers (and beside the row a 3x4 pose gets), a matrix of them is not
+  if (rows.length === 4 && values.length > 0 && values.every((v) => typeof v === "boolean")) throw bad();
+  let matrix = rows.map((row) => row.map((v) => {
+    const n = typeof v === "boolean" ? Number(v) : num(v);
+    if (n === undefined) throw bad();
+    return n;
+  }));
+  if (matrix.length === 3 && matrix.every((row) => row.length === 4)) matrix = [...matrix, [0, 0, 0, 1]];
+  if (matrix.length !== 4 || !matrix.every((row) => row.length === 4) || !matrix.flat().every(Number.isFinite)) throw bad();
+  const size = [get("width"), get("height")];
+  const [width, height] = checkedImageSize(size[0], size[1], "camera", { code: "camera.size" });
+  const [fx, fy] = ["fx", "fy"].map((key) => checkedFloat(get(key), `camera ${key}`, 1e-6, 1e9, { code: "camera.focal", key }));
+  const [cx, cy] = ["cx", "cy"].map((key) => checkedFloat(get(key), `camera ${key}`, -1e9, 1e9, { code: "camera.center", key }));
+  return { c2w: matrix, width, height, fx, fy, cx, cy };
 }
 
 /** NDCSpace.from_dict. */
@@ -38,10 +44,10 @@ export function ndcFromDict(data) {
   const keys = data && typeof data === "object" && !Array.isArray(data) ? Object.keys(data) : null;
   const allowed = ["tan_half_fov_x", "tan_half_fov_y", "near_plane"];
   if (!keys || !keys.includes("tan_half_fov_x") || !keys.includes("tan_half_fov_y") || !keys.every((k) => allowed.includes(k))) {
-    throw new UserError("ndc must be an object with tan_half_fov_x, tan_half_fov_y and near_plane");
+    throw new UserError("ndc must be an object with tan_half_fov_x, tan_half_fov_y and near_plane", { code: "camera.bad_ndc" });
   }
   const space = { near_plane: 1.0 };
-  for (const [name, value] of Object.entries(data)) space[name] = checkedFloat(value, `ndc ${name}`, 1e-6, 1e6);
+  for (const [name, value] of Object.entries(data)) space[name] = checkedFloat(value, `ndc ${name}`, 1e-6, 1e6, { code: "camera.ndc_value", key: name });
   return space;
 }
 
@@ -60,7 +66,7 @@ export function cameraRays(camera, pixelCenter, start = 0, stop = camera.width *
     const dx = f32(f32(f32(i + pc) - cx) / fx);
     const at = (p - start) * 3;
     for (let r = 0; r < 3; r++) {
-      directions[at + r] = fmaf32(-1, R[3 * r + 2], fmaf32(dy, R[3 * r + 1], f32(dx * R[3 * r])));
+      directions[at + r] = f32(f32(f32(dx * R[3 * r]) + f32(dy * R[3 * r + 1])) - R[3 * r + 2]);
       origins[at + r] = t[r];
     }
   }
@@ -74,7 +80,7 @@ export function normalizeDirections(directions) {
   for (let k = 0; k < n; k++) {
     const x = directions[3 * k], y = directions[3 * k + 1], z = directions[3 * k + 2];
     const norm = f32(Math.sqrt(f32(f32(f32(x * x) + f32(y * y)) + f32(z * z))));
-    if (!(norm > 0)) throw new UserError("a ray has a zero-length direction");
+    if (!(norm > 0)) throw new UserError("a ray has a zero-length direction", { code: "camera.zero_direction" });
     out[3 * k] = f32(x / norm);
     out[3 * k + 1] = f32(y / norm);
     out[3 * k + 2] = f32(z / norm);

@@ -1,8 +1,8 @@
 // Mirrors runtime/graph.py: the builder the field kinds (src/fields/, runtime/fields/) write a model's graph with,
-// and the rule that binds a model file's graph to the one its architecture derives (check_graph), with the same
-// messages.
+// and the rule that binds a model file's graph to the one its architecture derives (check_graph), refusing with the
+// same codes and params.
 
-import { UserError, repr, tuple, PyFloat } from "./errors.js";
+import { UserError, show } from "./errors.js";
 import { FLOAT, INT64, tensorArray } from "./onnx.js";
 
 export const INPUT_NAMES = ["points", "viewdirs", "noise"];
@@ -57,8 +57,9 @@ export class GraphBuilder {
   }
 }
 
-function refuse(source, what) {
-  return new UserError(`${source}: the model's graph is not the one its scene exports: ${what}; export the scene again`);
+function refuse(source, what, refusal) {
+  return new UserError(`${source}: the model's graph is not the one its scene exports: ${what}; export the scene again`,
+    { code: refusal.code, ...refusal });
 }
 
 function describe(node) {
@@ -70,38 +71,51 @@ const sameList = (a, b) => a.length === b.length && a.every((v, i) => v === b[i]
 const sameNode = (a, b) => a.op === b.op && sameList(a.inputs, b.inputs) && sameList(a.outputs, b.outputs) &&
   a.attributes.length === b.attributes.length && a.attributes.every(([n, v], i) => n === b.attributes[i][0] && v === b.attributes[i][1]);
 const samePort = (a, b) => a !== null && a.name === b.name && a.elemType === b.elemType && sameList(a.shape, b.shape);
-const portRepr = (port) => (port === null ? null : tuple(port.name, tuple(...port.shape)));
+const portText = (port) => (port === null ? "null" : `${port.name} [${port.shape.join(", ")}]`);
+const cut = (text) => [...text].slice(0, 60).join(""); // a string the file controls, as a refusal's parameter
 
 /** check_graph: refuse a model file whose graph differs from `expected`; return its weights (name -> Float32Array). */
 export function checkGraph(file, expected, source) {
-  if (file.unexpected.length) throw refuse(source, `it holds ${file.unexpected[0]}`);
+  if (file.unexpected.length) {
+    throw refuse(source, `it holds ${file.unexpected[0]}`, { code: "graph.unexpected_field", field: file.unexpected[0] });
+  }
   for (const [kind, got, want] of [["inputs", file.inputs, expected.inputs], ["outputs", file.outputs, expected.outputs]]) {
     if (got.length !== want.length || !got.every((port, i) => samePort(port, want[i]))) {
-      throw refuse(source, `its ${kind} are ${repr(got.map(portRepr))}, expected ${repr(want.map(portRepr))}`);
+      throw refuse(source, `its ${kind} are ${got.map(portText).join(", ")}, expected ${want.map(portText).join(", ")}`,
+        { code: "graph.ports", ports: kind, names: got.slice(0, 16).map((port) => port && cut(port.name)),
+          expected: want.map((port) => port.name) });
     }
   }
   if (file.opsets.length !== 1 || file.opsets[0][0] !== "" || file.opsets[0][1] !== expected.opset) {
-    throw refuse(source, `it imports opsets ${repr(file.opsets.map(([d, v]) => tuple(d, v)))}, not [('', ${expected.opset})]`);
+    throw refuse(source, `it imports opsets ${show(file.opsets)}, not [["", ${expected.opset}]]`,
+      { code: "graph.opsets", opsets: file.opsets.slice(0, 16).map(([domain, version]) => [cut(domain), version]),
+        expected: expected.opset });
   }
   const n = Math.min(file.nodes.length, expected.nodes.length);
   for (let i = 0; i < n; i++) {
-    if (!sameNode(file.nodes[i], expected.nodes[i])) throw refuse(source, `node ${i} is ${describe(file.nodes[i])}, expected ${describe(expected.nodes[i])}`);
+    const [got, want] = [file.nodes[i], expected.nodes[i]];
+    if (!sameNode(got, want)) {
+      throw refuse(source, `node ${i} is ${describe(got)}, expected ${describe(want)}`,
+        { code: "graph.node", index: i, op: cut(got.op), expected: want.op });
+    }
   }
   if (file.nodes.length !== expected.nodes.length) {
     const more = file.nodes.length - expected.nodes.length;
-    throw refuse(source, `it has ${Math.abs(more)} ${more > 0 ? "more" : "fewer"} nodes than the ${expected.nodes.length} expected`);
+    throw refuse(source, `it has ${Math.abs(more)} ${more > 0 ? "more" : "fewer"} nodes than the ${expected.nodes.length} expected`,
+      { code: "graph.node_count", nodes: file.nodes.length, expected: expected.nodes.length });
   }
   const records = new Map();
   for (const record of file.initializers) {
-    if (records.has(record.name)) throw refuse(source, `initializer ${repr(record.name)} appears twice`);
+    if (records.has(record.name)) {
+      throw refuse(source, `initializer ${show(record.name)} appears twice`, { code: "graph.initializer_twice", name: cut(record.name) });
+    }
     records.set(record.name, record);
   }
   const wanted = new Set([...expected.weights.keys(), ...expected.constants.keys()]);
-  const extra = [...records.keys()].filter((name) => !wanted.has(name)).sort();
-  const missing = [...wanted].filter((name) => !records.has(name)).sort();
-  if (extra.length || missing.length) {
-    throw refuse(source, `initializer ${repr(extra.length ? extra[0] : missing[0])} is ${extra.length ? "extra" : "missing"}`);
-  }
+  const extra = [...records.keys()].filter((name) => !wanted.has(name)).sort(byCodePoint);
+  const missing = [...wanted].filter((name) => !records.has(name)).sort(byCodePoint);
+  if (extra.length) throw refuse(source, `initializer ${show(extra[0])} is extra`, { code: "graph.initializer_extra", name: cut(extra[0]) });
+  if (missing.length) throw refuse(source, `initializer ${show(missing[0])} is missing`, { code: "graph.initializer_missing", name: missing[0] });
   for (const [name, constant] of expected.constants) {
     const isInt = constant.dtype === "int64";
     const record = records.get(name);
@@ -110,15 +124,28 @@ export function checkGraph(file, expected, source) {
     const equal = sameList(record.dims, constant.shape) && gotValues.length === constant.values.length &&
       gotValues.every((v, i) => v === constant.values[i]);
     if (!equal) {
-      const show = (values) => repr(values.slice(0, 4).map((v) => (isInt ? v : new PyFloat(v))));
-      throw refuse(source, `constant ${repr(name)} holds ${show(gotValues)}…, expected ${show(constant.values)}…`);
+      const first = (values) => `[${values.slice(0, 4).join(", ")}]`;
+      throw refuse(source, `constant ${show(name)} holds ${first(gotValues)}…, expected ${first(constant.values)}…`,
+        { code: "graph.constant", name });
     }
   }
   const weights = new Map();
   for (const [name, shape] of expected.weights) {
     const record = records.get(name);
-    if (!sameList(record.dims, shape)) throw refuse(source, `weight ${repr(name)} has shape ${repr(record.dims)}, expected ${repr(shape)}`);
+    if (!sameList(record.dims, shape)) {
+      throw refuse(source, `weight ${show(name)} has shape ${show(record.dims)}, expected ${show(shape)}`,
+        { code: "graph.weight_shape", name, shape: record.dims, expected: shape });
+    }
     weights.set(name, { shape, values: tensorArray(record, source) });
   }
   return weights;
+}
+
+/** Python's sorted() of strings: by code point (JavaScript's sort compares UTF-16 units). */
+function byCodePoint(a, b) {
+  const [x, y] = [[...a], [...b]];
+  for (let i = 0; i < Math.min(x.length, y.length); i++) {
+    if (x[i] !== y[i]) return x[i].codePointAt(0) - y[i].codePointAt(0);
+  }
+  return x.length - y.length;
 }

@@ -2,8 +2,8 @@
 // the bundle is read and checked first, a sealed one's tag checked under the passphrase, then the model (graph and
 // fingerprint) on the whole file, then the bundle against the model and every tile's network, then every tile
 // renders (onnxruntime-web given only the checked graph pruned to those networks' outputs); a payload is opened
-// from the revealed pixels (cli/reveal.py write_payload). Every refusal is an Error (UserError) with the CLI's
-// one-line message.
+// from the revealed pixels (cli/reveal.py write_payload). Every refusal is a UserError with the stable code and
+// params runtime/ raises for the same input (src/errors.js) and a one-line message.
 
 import { sha256 as sha256Of } from "@noble/hashes/sha2.js";
 import { bytesToHex } from "@noble/hashes/utils.js";
@@ -42,9 +42,9 @@ export async function reveal({ model, bundle, passphrase = null, onProgress = nu
   const seal = secret.payload === null ? null : sealOf(secret.payload);
   let keys = null;
   const phrase = passphraseBytes(passphrase);
-  if (seal === null && phrase !== null) throw new UserError(NOT_SEALED);
+  if (seal === null && phrase !== null) throw new UserError(NOT_SEALED, { code: "seal.not_sealed" });
   if (seal !== null) {
-    if (phrase === null) throw new UserError(NO_PASSPHRASE);
+    if (phrase === null) throw new UserError(NO_PASSPHRASE, { code: "seal.no_passphrase" });
     keys = await unsealKeys(bundle, seal, phrase, onProgress && ((done) => onProgress({ stage: "kdf", done, total: 1 })));
   }
   const checked = checkModel(model, "model.onnx");
@@ -64,7 +64,7 @@ export async function reveal({ model, bundle, passphrase = null, onProgress = nu
     return { kind: "image", bytes: encodePng(revealed.pixels, width, height), name: "revealed.png", width, height,
       exact: revealed.exact, sha256: revealed.sha256, pixels: revealed.pixels };
   }
-  if (!revealed.exact) throw new UserError(INEXACT);
+  if (!revealed.exact) throw new UserError(INEXACT, { code: "payload.inexact" });
   const record = openPayload(revealed.pixels, width, height, secret.payload, checked.metadata.fingerprint, keys);
   const name = record.name.length ? new TextDecoder("utf-8").decode(record.name) : null;
   const sha256 = bytesToHex(sha256Of(record.body));

@@ -3,42 +3,46 @@
 // literals are JS numbers (BigInt beyond 2^53), every other number is a PyFloat; NaN and Infinity parse, as in
 // Python, and are refused where a number is used (limits.js).
 
-import { UserError, PyFloat, reprFloat } from "./errors.js";
+import { UserError, PyFloat } from "./errors.js";
 import { MAX_JSON_DEPTH } from "./limits.js";
 
 class JsonError extends Error {}
+
+const NUMBER = /-?(?:0|[1-9]\d*)(\.\d+)?([eE][-+]?\d+)?/y;
+const MAX_INT_DIGITS = 4300; // Python's int() refuses longer decimal strings, so its json.loads does
 
 export function loads(textValue) {
   let i = 0;
   const s = textValue;
   const ws = () => { while (i < s.length && " \t\n\r".includes(s[i])) i++; };
-  const fail = (what) => { throw new JsonError(`${what}: char ${i}`); };
-  let depth = 0, deepest = 0;
+  const fail = (what) => { throw new JsonError(`${what} at position ${i}`); };
+  let depth = 0, deepest = 0; // the containers around the value being read, the most around any (Python's json_depth)
   function value() {
     ws();
+    deepest = Math.max(deepest, depth);
     const c = s[i];
     if (c === "{") {
-      i++; depth++; deepest = Math.max(deepest, depth);
+      i++; depth++;
       if (depth > MAX_JSON_DEPTH + 1) throw new RangeError("too deep");
       const obj = {};
       ws();
       if (s[i] === "}") { i++; depth--; return obj; }
       for (;;) {
         ws();
-        if (s[i] !== '"') fail("Expecting property name enclosed in double quotes");
+        if (s[i] !== '"') fail("expected a property name in double quotes");
         const key = string();
         ws();
-        if (s[i] !== ":") fail("Expecting ':' delimiter");
+        if (s[i] !== ":") fail("expected ':' after a property name");
         i++;
         Object.defineProperty(obj, key, { value: value(), enumerable: true, writable: true, configurable: true });
         ws();
         if (s[i] === ",") { i++; continue; }
         if (s[i] === "}") { i++; depth--; return obj; }
-        fail("Expecting ',' delimiter");
+        fail("expected ',' or '}' after a property value");
       }
     }
     if (c === "[") {
-      i++; depth++; deepest = Math.max(deepest, depth);
+      i++; depth++;
       if (depth > MAX_JSON_DEPTH + 1) throw new RangeError("too deep");
       const arr = [];
       ws();
@@ -48,7 +52,7 @@ export function loads(textValue) {
         ws();
         if (s[i] === ",") { i++; continue; }
         if (s[i] === "]") { i++; depth--; return arr; }
-        fail("Expecting ',' delimiter");
+        fail("expected ',' or ']' after an array element");
       }
     }
     if (c === '"') return string();
@@ -56,8 +60,12 @@ export function loads(textValue) {
       ["Infinity", new PyFloat(Infinity)], ["-Infinity", new PyFloat(-Infinity)]]) {
       if (s.startsWith(word, i)) { i += word.length; return v; }
     }
-    const m = /^-?(?:0|[1-9]\d*)(\.\d+)?([eE][-+]?\d+)?/.exec(s.slice(i, i + 400));
-    if (!m) fail("Expecting value");
+    NUMBER.lastIndex = i;
+    const m = NUMBER.exec(s);
+    if (!m) fail(i >= s.length ? "unexpected end of input" : "unexpected character");
+    if (m[1] === undefined && m[2] === undefined && m[0].replace("-", "").length > MAX_INT_DIGITS) {
+      fail(`integer of more than ${MAX_INT_DIGITS} digits`);
+    }
     i += m[0].length;
     if (m[1] === undefined && m[2] === undefined) {
       const big = BigInt(m[0]);
@@ -69,7 +77,7 @@ export function loads(textValue) {
     i++;
     let out = "";
     for (;;) {
-      if (i >= s.length) fail("Unterminated string starting at");
+      if (i >= s.length) fail("unterminated string");
       const c = s[i];
       if (c === '"') { i++; return out; }
       if (c === "\\") {
@@ -78,26 +86,27 @@ export function loads(textValue) {
         if (e in map) { out += map[e]; i += 2; continue; }
         if (e === "u") {
           const hex = s.slice(i + 2, i + 6);
-          if (!/^[0-9a-fA-F]{4}$/.test(hex)) fail("Invalid \\uXXXX escape");
+          if (!/^[0-9a-fA-F]{4}$/.test(hex)) fail("bad \\u escape in a string");
           out += String.fromCharCode(parseInt(hex, 16)); i += 6; continue;
         }
-        fail("Invalid \\escape");
+        fail("bad escape in a string");
       }
-      if (c.charCodeAt(0) < 0x20) fail("Invalid control character at");
+      if (c.charCodeAt(0) < 0x20) fail("control character in a string");
       out += c; i++;
     }
   }
   const result = value();
   ws();
-  if (i !== s.length) fail("Extra data");
+  if (i !== s.length) fail("unexpected text after the JSON value");
   return { result, deepest };
 }
 
-/** parse_json: JSON text (or UTF-8 bytes) someone else made -> value, one UserError when malformed or deep. */
 /** isinstance(value, dict) of a value parsed here (a PyFloat is a float, not an object). */
 export const isJsonObject = (value) => value !== null && typeof value === "object" && !Array.isArray(value) &&
   !(value instanceof PyFloat);
 
+/** parse_json: JSON text (or UTF-8 bytes) someone else made -> value, one UserError when malformed (json.invalid)
+ * or deep (json.too_deep). */
 export function parseJson(input, what, source = "") {
   let data;
   try {
@@ -107,9 +116,10 @@ export function parseJson(input, what, source = "") {
     data = result;
   } catch (error) {
     if (error instanceof RangeError) {
-      throw new UserError(`${what} is nested deeper than ${MAX_JSON_DEPTH} levels${source ? `: ${source}` : ""}`);
+      throw new UserError(`${what} is nested deeper than ${MAX_JSON_DEPTH} levels${source ? `: ${source}` : ""}`,
+        { code: "json.too_deep", depth: MAX_JSON_DEPTH });
     }
-    throw new UserError(`${what} is not valid JSON${source ? `: ${source}` : ""} (${error.message.split(/\s+/).join(" ").slice(0, 160)})`);
+    throw new UserError(`${what} is not valid JSON${source ? `: ${source}` : ""} (${error.message})`, { code: "json.invalid" });
   }
   return data;
 }
@@ -182,4 +192,30 @@ function floatJson(x) {
   if (Number.isNaN(x)) return "NaN";
   if (!Number.isFinite(x)) return x > 0 ? "Infinity" : "-Infinity";
   return reprFloat(x);
+}
+
+/** A float as Python's json.dumps writes it (its repr: shortest round trip, Python's exponent rules), which the
+ * seal's canonical JSON must reproduce byte for byte. */
+function reprFloat(x) {
+  if (Number.isNaN(x)) return "nan";
+  if (!Number.isFinite(x)) return x > 0 ? "inf" : "-inf";
+  if (x === 0) return Object.is(x, -0) ? "-0.0" : "0.0";
+  const [mantissa, exp] = x.toExponential().split("e");
+  const e = Number(exp);
+  const negative = mantissa.startsWith("-");
+  const digits = mantissa.replace("-", "").replace(".", "");
+  let body;
+  if (e >= -4 && e < 16) {
+    if (e >= 0) {
+      const intPart = digits.length > e + 1 ? digits.slice(0, e + 1) : digits.padEnd(e + 1, "0");
+      const frac = digits.length > e + 1 ? digits.slice(e + 1) : "0";
+      body = `${intPart}.${frac}`;
+    } else {
+      body = `0.${"0".repeat(-e - 1)}${digits}`;
+    }
+  } else {
+    const m = digits.length > 1 ? `${digits[0]}.${digits.slice(1)}` : digits;
+    body = `${m}e${e < 0 ? "-" : "+"}${String(Math.abs(e)).padStart(2, "0")}`;
+  }
+  return (negative ? "-" : "") + body;
 }

@@ -5,10 +5,9 @@
 // file format and asks the layout; no other module branches on a layout's name.
 
 import xz from "xz-decompress";
-import { UserError, repr, tuple, reprCut } from "./errors.js";
-import { fmaf32 } from "./float32.js";
+import { UserError, show } from "./errors.js";
 import {
-  MAX_COMPACT_COEFFICIENTS, MAX_RAY_LAYOUT_SAMPLES, MAX_SAMPLES_PER_RAY, checkedExpansion, checkedFloat, checkedInt,
+  MAX_COMPACT_COEFFICIENTS, MAX_RAY_LAYOUT_SAMPLES, MAX_SAMPLES_PER_RAY, checkedExpansion, checkedFloat, checkedInt, cut,
 } from "./limits.js";
 
 const { XzReadableStream } = xz;
@@ -31,14 +30,15 @@ export function widened(halves) {
   return values;
 }
 
-// xz-embedded's error codes (enum xz_ret) in liblzma's words, as Python's lzma gives them. Its dictionaries stop at
-// 64 MiB; the next size a stream can state, 96 MiB, is over runtime's MAX_XZ_MEMORY too.
-const XZ_ERRORS = { 2: "Unsupported integrity check", 3: "Cannot allocate memory", 4: "Memory usage limit exceeded",
-  5: "Input format not supported by decoder", 6: "Invalid or unsupported options", 7: "Corrupt input data" };
+// xz-embedded's error codes (enum xz_ret). Its dictionaries stop at 64 MiB; the next size a stream can state, 96 MiB,
+// is over runtime's MAX_XZ_MEMORY too.
+const XZ_ERRORS = { 2: "unsupported integrity check", 3: "cannot allocate memory", 4: "dictionary over the decoder's memory",
+  5: "not an xz stream", 6: "unsupported options", 7: "corrupt data" };
 const XZ_BUF_ERROR = 8; // the stream ended early, or more followed it: Python reads on and finds the length wrong
 
-/** unpack_coefficients: the xz stream of byte planes -> Int8Array/Int16Array (h·w·k, row-major (h, w, k)). */
-export async function unpackCoefficients(packed, shape, dtype, what) {
+/** unpack_coefficients: the xz stream of byte planes -> Int8Array/Int16Array (h·w·k, row-major (h, w, k)). tile: the
+ * tile's number, for the refusal. */
+export async function unpackCoefficients(packed, shape, dtype, what, tile = null) {
   const [height, width, k] = shape;
   const item = dtype === "int16" ? 2 : 1;
   const expected = height * width * k * item;
@@ -61,12 +61,14 @@ export async function unpackCoefficients(packed, shape, dtype, what) {
   } catch (error) {
     const code = Number(/error code (\d+)/.exec(String(error?.message ?? error))?.[1]);
     if (code !== XZ_BUF_ERROR) {
-      throw new UserError(`${what}: compressed coefficients are corrupt (${XZ_ERRORS[code] ?? "Corrupt input data"})`);
+      throw new UserError(`${what}: compressed coefficients are corrupt (${XZ_ERRORS[code] ?? "corrupt data"})`,
+        { code: "compact.xz_corrupt", tile });
     }
     data = null;
   }
   if (data === null || data.length !== expected) {
-    throw new UserError(`${what}: compressed coefficients do not hold exactly ${repr(tuple(height, width, k))} ${dtype} values`);
+    throw new UserError(`${what}: compressed coefficients do not hold exactly ${height}x${width}x${k} ${dtype} values`,
+      { code: "compact.xz_size", tile, shape: [height, width, k], dtype });
   }
   const n = height * width;
   const out = dtype === "int16" ? new Int16Array(n * k) : new Int8Array(n * k);
@@ -81,13 +83,13 @@ export async function unpackCoefficients(packed, shape, dtype, what) {
 
 /** expand_coefficients: noise of m compact pixels (coefficients m·k), float32 (one multiply by the scale, then the
  * matmul offset + params @ basisᵀ), escaped pixels' stored noise in place. -> Float32Array (m·dims).
- * numpy's float32 matmul is OpenBLAS's sgemm, which on FMA hardware (Haswell and later) accumulates
- * k = 0..K-1 with one fused multiply-add each: the order reproduced here (web/test checks it bit for bit). */
+ * Summed in float32 over k = 0..K-1, numpy's order; numpy's BLAS may fuse the multiply-adds where this does not,
+ * which moves noise by float32 rounding and no revealed 8-bit value (web/test measures both). */
 export function expandCoefficients(coefficients, k, basis) {
   const dims = basis.offset.length, m = coefficients.length / k;
   const out = new Float32Array(m * dims);
   const scale = f32(basis.scale), matrix = basis.basis, offset = basis.offset;
-  // A zero basis entry adds +0 to a sum that is never −0, so leaving it out changes no bit; a compact tile's
+  // A zero basis entry adds +0 to a sum that is never −0, so leaving it out changes nothing; a compact tile's
   // basis is zero on every γ(x) row (its noise moves the view direction only): those rows are the offset for
   // every pixel (`fixed`). The others are `live`: terms[first[i] .. first[i + 1]) are live row i's nonzero
   // columns and values, in the order numpy sums them.
@@ -106,8 +108,8 @@ export function expandCoefficients(coefficients, k, basis) {
     out.set(fixed, at);
     for (let i = 0; i < live.length; i++) {
       let t = from[i];
-      let dot = f32(params[column[t]] * value[t]) + 0; // fmaf(a, b, +0): the product rounded once, −0 made +0
-      for (t++; t < from[i + 1]; t++) dot = fmaf32(params[column[t]], value[t], dot);
+      let dot = f32(params[column[t]] * value[t]) + 0; // −0 made +0, as a sum from zero makes it
+      for (t++; t < from[i + 1]; t++) dot = f32(dot + f32(params[column[t]] * value[t]));
       out[at + live[i]] = f32(offset[live[i]] + dot);
     }
   }
@@ -137,19 +139,23 @@ const VECTOR = {
   storedShape: (h, w, nSamples, perVector) => [h, w, perVector],
   readHeader(noise) {
     if (noise.coefficients !== undefined && noise.coefficients !== null) {
-      throw new UserError("bundle: coefficients per pixel are given for, and only for, the compact layout");
+      throw new UserError("bundle: coefficients per pixel are given for, and only for, the compact layout",
+        { code: "bundle.coefficients_layout", layout: this.name });
     }
     return null;
   },
   checkStreams() {},
   async readTile(name, data, tensor) { return { tensor: tensor(name) }; },
-  /** A tile's noise against its stated shape and dtype, finite. */
-  checkNoise(what, noise, pixels, dims, k, shape, dtype) {
+  /** Tile number `tile`'s noise against its stated shape and dtype, finite. */
+  checkNoise(tile, noise, pixels, dims, k, shape, dtype) {
     const stored = noise.tensor;
     if (!sameShape(stored.shape, shape) || stored.dtype !== dtype) {
-      throw new UserError(`${what} noise is ${stored.dtype} ${repr(tuple(...stored.shape))}, expected ${dtype} ${repr(tuple(...shape))}`);
+      throw new UserError(`bundle: tile ${tile} noise is ${stored.dtype} [${stored.shape}], expected ${dtype} [${shape}]`,
+        { code: "bundle.tile_noise_shape", tile, dtype: stored.dtype, shape: stored.shape, expected_dtype: dtype, expected_shape: shape });
     }
-    if (!allFinite(stored.values)) throw new UserError(`${what} noise holds NaN or Inf`);
+    if (!allFinite(stored.values)) {
+      throw new UserError(`bundle: tile ${tile} noise holds NaN or Inf`, { code: "bundle.tile_noise_not_finite", tile });
+    }
   },
   /** The checked noise as a render reads it. */
   loaded(noise) { noise.values = noise.tensor.values; },
@@ -167,60 +173,78 @@ const VECTOR = {
 const COMPACT = {
   ...VECTOR,
   readHeader(noise, dims) {
-    const k = checkedInt(noise.coefficients ?? null, "bundle: coefficients per pixel", 1, MAX_COMPACT_COEFFICIENTS);
-    if (noise.codec !== CODEC) throw new UserError(`bundle: unknown coefficient codec ${reprCut(noise.codec ?? null, 40)} (expected '${CODEC}')`);
+    const k = checkedInt(noise.coefficients ?? null, "bundle: coefficients per pixel", 1, MAX_COMPACT_COEFFICIENTS,
+      { code: "compact.coefficients" });
+    const codec = noise.codec;
+    if (codec !== CODEC) {
+      throw new UserError(`bundle: unknown coefficient codec ${show(codec ?? null, 40)} (expected ${show(CODEC)})`,
+        { code: "compact.codec", ...(typeof codec === "string" ? { codec: cut(codec) } : {}), expected: CODEC });
+    }
     const most = Math.min(dims, MAX_COMPACT_COEFFICIENTS);
-    if (k > most) throw new UserError(`bundle: ${k} coefficients per pixel, expected 1 to ${most}`);
+    if (k > most) {
+      throw new UserError(`bundle: ${k} coefficients per pixel, expected 1 to ${most}`,
+        { code: "compact.coefficients", value: k, low: 1, high: most });
+    }
     return k;
   },
   /** The tiles' areas against the secret, then their streams against what they state (before any is inflated). */
   checkStreams(streams, [width, height], tilePixels, k, dtype) {
-    if (tilePixels !== width * height) throw new UserError(`bundle: the tiles' areas do not add up to the ${width}x${height} secret`);
+    if (tilePixels !== width * height) {
+      throw new UserError(`bundle: the tiles' areas do not add up to the ${width}x${height} secret`,
+        { code: "bundle.tile_areas", width, height });
+    }
     const packed = streams.reduce((n, stream) => n + (stream === undefined ? 0 : stream.values.byteLength), 0);
     checkedExpansion(packed, tilePixels * k * (dtype === "int16" ? 2 : 1), "bundle");
   },
-  /** Branch escapes from format 3 on (a format 2 tile has none). */
-  async readTile(name, data, tensor, shape, dtype, what, version) {
-    const basis = tensor(`${name}_basis`), offset = tensor(`${name}_offset`);
-    const scale = checkedFloat(data.scale ?? null, `${what} scale`, FLOAT32_TINY, FLOAT32_MAX);
-    const escapes = tensor(`${name}_escapes`), escapeNoise = tensor(`${name}_escape_noise`);
+  /** Tile number `tile`'s tensors, in runtime's order (a missing one is refused as there); branch escapes from
+   * format 3 on (a format 2 tile has none). */
+  async readTile(name, data, tensor, shape, dtype, tile, version) {
+    const what = `bundle: tile ${tile}`;
     const branch = version >= BRANCH_ESCAPES_FROM
       ? { branchEscapes: tensor(`${name}_branch_escapes`), branchEscapeNoise: tensor(`${name}_branch_escape_noise`) }
       : { branchEscapes: { dtype: "int32", shape: [0], values: new Int32Array(0) },
         branchEscapeNoise: { dtype: "float16", shape: [0, 0], values: new Uint16Array(0) } };
+    const basis = tensor(`${name}_basis`), offset = tensor(`${name}_offset`);
+    const scale = checkedFloat(data.scale ?? null, `${what} scale`, FLOAT32_TINY, FLOAT32_MAX, { code: "compact.scale", tile });
+    const escapes = tensor(`${name}_escapes`), escapeNoise = tensor(`${name}_escape_noise`);
     const packed = tensor(name, "uint8", 1);
-    const coefficients = await unpackCoefficients(packed.values, shape, dtype, what);
+    const coefficients = await unpackCoefficients(packed.values, shape, dtype, what, tile);
     return { coefficients, shape, dtype, basis: { basis, offset, scale, escapes, escapeNoise, ...branch } };
   },
   /** The basis (dims, k), offset (dims,) float32, escape noise (e, dims) and branch escape noise (b, w), w ≤ dims,
    * float16, all finite; the escapes (e,) and branch escapes (b,) int32, each strictly increasing inside the tile,
    * none in both (the coefficients were decoded to their stated shape). */
-  checkNoise(what, noise, pixels, dims, k) {
-    const basis = noise.basis;
+  checkNoise(tile, noise, pixels, dims, k) {
+    const what = `bundle: tile ${tile}`, basis = noise.basis;
     for (const [name, indices] of [["escapes", basis.escapes], ["branch escapes", basis.branchEscapes]]) {
       if (indices.shape.length !== 1 || indices.dtype !== "int32") {
-        throw new UserError(`${what} ${name} are ${indices.dtype} ${repr(tuple(...indices.shape))}, expected int32 (e,)`);
+        throw new UserError(`${what} ${name} are ${indices.dtype} [${indices.shape}], expected int32 with one dimension`,
+          { code: "compact.escapes_type", tile, part: name, dtype: indices.dtype, shape: indices.shape });
       }
       const v = indices.values;
       if (v.length && (v[0] < 0 || v[v.length - 1] >= pixels || v.some((x, j) => j > 0 && x <= v[j - 1]))) {
-        throw new UserError(`${what} ${name} must be strictly increasing pixel indices inside the tile`);
+        throw new UserError(`${what} ${name} must be strictly increasing pixel indices inside the tile`,
+          { code: "compact.escapes_order", tile, part: name });
       }
     }
     const e = basis.escapes.values, escaped = new Set(e);
     if (basis.branchEscapes.values.some((p) => escaped.has(p))) {
-      throw new UserError(`${what}: a pixel is both an escape and a branch escape`);
+      throw new UserError(`${what}: a pixel is both an escape and a branch escape`, { code: "compact.escape_twice", tile });
     }
     const branchShape = basis.branchEscapeNoise.shape, width = branchShape.length === 2 ? branchShape[1] : -1;
     if (!(width >= 0 && width <= dims)) {
-      throw new UserError(`${what} branch escape noise is ${repr(tuple(...branchShape))}, expected (b, w), w ≤ ${dims}`);
+      throw new UserError(`${what} branch escape noise is [${branchShape}], expected [b, w] with w ≤ ${dims}`,
+        { code: "compact.branch_width", tile, shape: branchShape, dims });
     }
     for (const [name, value, want, dtype] of [["basis", basis.basis, [dims, k], "float32"], ["offset", basis.offset, [dims], "float32"],
       ["escape noise", basis.escapeNoise, [e.length, dims], "float16"],
       ["branch escape noise", basis.branchEscapeNoise, [basis.branchEscapes.values.length, width], "float16"]]) {
       if (!sameShape(value.shape, want) || value.dtype !== dtype) {
-        throw new UserError(`${what} ${name} is ${value.dtype} ${repr(tuple(...value.shape))}, expected ${dtype} ${repr(tuple(...want))}`);
+        throw new UserError(`${what} ${name} is ${value.dtype} [${value.shape}], expected ${dtype} [${want}]`,
+          { code: "compact.tensor_shape", tile, part: name, dtype: value.dtype, shape: value.shape, expected_dtype: dtype,
+            expected_shape: want });
       }
-      if (!allFinite(value.values)) throw new UserError(`${what} ${name} holds NaN or Inf`);
+      if (!allFinite(value.values)) throw new UserError(`${what} ${name} holds NaN or Inf`, { code: "compact.not_finite", tile, part: name });
     }
   },
   loaded(noise) {
@@ -260,7 +284,10 @@ export const LAYOUTS = {
 
 /** layout_named: the layout of this name, refusing one not among those allowed (a bundle format's). */
 export function layoutNamed(name, among = Object.keys(LAYOUTS)) {
-  if (!among.includes(name)) throw new UserError(`bundle: unknown noise layout ${reprCut(name, 40)} (expected one of ${repr(tuple(...among))})`);
+  if (!among.includes(name)) {
+    throw new UserError(`bundle: unknown noise layout ${show(name, 40)} (expected one of ${among.join(", ")})`,
+      { code: "bundle.noise_layout", layout: cut(name), expected: among });
+  }
   return LAYOUTS[name];
 }
 

@@ -4,7 +4,7 @@
 
 import { sha256 } from "@noble/hashes/sha2.js";
 import { bytesToHex } from "@noble/hashes/utils.js";
-import { UserError, repr, PyFloat } from "./errors.js";
+import { UserError, PyFloat, show } from "./errors.js";
 import { isJsonObject as isObject, parseJson, dumpsSorted } from "./json.js";
 import { parseModel } from "./onnx.js";
 import { checkGraph } from "./graph.js";
@@ -15,75 +15,122 @@ import { samplingFromDict } from "./sampling.js";
 
 export const MODEL_FORMAT_VERSION = 2;
 const METADATA_KEY = "noisenerf", VERSION_KEY = "noisenerf_format_version";
-class Malformed extends Error {}
+const MAX_HIERARCHY_SAMPLES = 1024; // runtime/pdf.py
 
-function renderConfigFromDict(data) {
-  if (!isObject(data)) throw new UserError("malformed render config: expected an object");
-  for (const key of ["background", "sampling", "pixel_center"]) {
-    if (!Object.hasOwn(data, key)) throw new UserError(`malformed render config: missing '${key}'`);
+/** Malformed metadata (Python's KeyError, TypeError and ValueError in from_metadata_props), with the code and params
+ * of the refusal it becomes. */
+class Malformed extends Error {
+  constructor(why, code = "model.metadata_malformed", params = {}) {
+    super(why);
+    this.code = code;
+    this.params = params;
   }
-  const background = checkedList(data.background, "render background", 3);
-  const sampling = samplingFromDict(data.sampling);
+}
+
+/** Python's truth of a JSON value (`data.get("ndc")`: an empty object, list or string, 0 and 0.0 are false). */
+const truthy = (value) => !(value === null || value === undefined || value === false || value === 0 || value === 0n ||
+  value === "" || (value instanceof PyFloat && value.value === 0) || (Array.isArray(value) && !value.length) ||
+  (isObject(value) && !Object.keys(value).length));
+
+/** RenderConfig.from_dict, reading the keys in Python's order. */
+function renderConfigFromDict(data) {
+  if (!isObject(data)) throw new UserError("malformed render config: expected an object", { code: "render.not_object" });
+  const need = (key) => {
+    if (!Object.hasOwn(data, key)) throw new UserError(`malformed render config: missing "${key}"`, { code: "render.missing_key", key });
+    return data[key];
+  };
+  const background = checkedList(need("background"), "render background", 3, undefined, { code: "render.background" });
+  const sampling = samplingFromDict(need("sampling"));
   return {
     sampling,
-    background: background.map((v) => checkedFloat(v, "render background", 0.0, 1.0)),
-    ndc: data.ndc ? ndcFromDict(data.ndc) : null,
-    pixelCenter: checkedFloat(data.pixel_center, "render pixel_center", 0.0, 1.0),
-    earlyStop: checkedFloat(data.early_stop ?? new PyFloat(1e-4), "render early_stop", 0.0, 1.0),
+    background: background.map((v) => checkedFloat(v, "render background", 0.0, 1.0, { code: "render.background" })),
+    ndc: truthy(data.ndc) ? ndcFromDict(data.ndc) : null,
+    pixelCenter: checkedFloat(need("pixel_center"), "render pixel_center", 0.0, 1.0, { code: "render.pixel_center" }),
+    earlyStop: checkedFloat(Object.hasOwn(data, "early_stop") ? data.early_stop : new PyFloat(1e-4), "render early_stop",
+      0.0, 1.0, { code: "render.early_stop" }),
   };
 }
 
+/** Hierarchy(**data): exactly n_coarse and n_importance (other keys are malformed metadata), whole numbers in range. */
 function hierarchyFromDict(data) {
-  if (!isObject(data)) throw new Malformed("TypeError('hierarchy')");
+  if (!isObject(data) || Object.keys(data).length !== 2 || !Object.hasOwn(data, "n_coarse") || !Object.hasOwn(data, "n_importance")) {
+    throw new Malformed("hierarchy must be an object of n_coarse and n_importance");
+  }
   const { n_coarse: nCoarse, n_importance: nImportance } = data;
   const counts = [nCoarse, nImportance];
-  if (!counts.every((n) => typeof n === "number" && Number.isInteger(n)) || !(nCoarse >= 3 && nCoarse <= 1024 && nImportance >= 1 && nImportance <= 1024)) {
-    throw new UserError(`hierarchical sampling needs whole numbers 3 <= n_coarse <= 1024 and 1 <= n_importance <= 1024, got (${counts.map(repr).join(", ")})`);
+  if (!counts.every((n) => typeof n === "number" && Number.isInteger(n)) ||
+      !(nCoarse >= 3 && nCoarse <= MAX_HIERARCHY_SAMPLES && nImportance >= 1 && nImportance <= MAX_HIERARCHY_SAMPLES)) {
+    throw new UserError(`hierarchical sampling needs whole numbers 3 <= n_coarse <= ${MAX_HIERARCHY_SAMPLES} and ` +
+      `1 <= n_importance <= ${MAX_HIERARCHY_SAMPLES}, got ${show(counts)}`, { code: "sampling.bad_hierarchy", most: MAX_HIERARCHY_SAMPLES });
   }
   return { nCoarse, nImportance };
 }
 
+/** grid_from_dict's checks (the cube itself is not needed here). */
 function checkGrid(data) {
-  if (!isObject(data) || typeof data.occupancy !== "string") throw new UserError("grid must be an object with aabb, resolution and occupancy");
-  const resolution = checkedInt(data.resolution ?? null, "grid resolution", 1, MAX_GRID_RESOLUTION);
-  const aabb = checkedList(data.aabb ?? null, "grid aabb", 6).map((v) => checkedFloat(v, "grid aabb", -1e9, 1e9));
-  if (![0, 1, 2].every((a) => aabb[a] < aabb[a + 3])) throw new UserError(`grid aabb must have min < max on every axis, got ${repr(aabb.map((v) => new PyFloat(v)))}`);
-  if (!/^[A-Za-z0-9+/]*={0,2}$/.test(data.occupancy) || data.occupancy.length % 4) throw new Malformed("Error('Incorrect padding')");
+  if (!isObject(data) || typeof data.occupancy !== "string") {
+    throw new UserError("grid must be an object with aabb, resolution and occupancy", { code: "model.grid_malformed" });
+  }
+  const resolution = checkedInt(data.resolution ?? null, "grid resolution", 1, MAX_GRID_RESOLUTION, { code: "model.grid_resolution" });
+  const aabb = checkedList(data.aabb ?? null, "grid aabb", 6, undefined, { code: "model.grid_aabb" })
+    .map((v) => checkedFloat(v, "grid aabb", -1e9, 1e9, { code: "model.grid_aabb" }));
+  if (![0, 1, 2].every((a) => aabb[a] < aabb[a + 3])) {
+    throw new UserError(`grid aabb must have min < max on every axis, got ${show(aabb)}`, { code: "model.grid_aabb_order", aabb });
+  }
+  if (!/^[A-Za-z0-9+/]*={0,2}$/.test(data.occupancy) || data.occupancy.length % 4) throw new Malformed("occupancy is not base64");
   const bytes = (data.occupancy.length / 4) * 3 - (data.occupancy.match(/=*$/)[0].length);
-  const cells = resolution ** 3;
-  if (bytes !== Math.floor((cells + 7) / 8)) throw new Malformed(`ValueError('occupancy holds ${bytes} bytes, a ${resolution}^3 grid needs ${Math.floor((cells + 7) / 8)}')`);
+  const needed = Math.floor((resolution ** 3 + 7) / 8);
+  if (bytes !== needed) {
+    throw new Malformed(`occupancy holds ${bytes} bytes, a ${resolution}^3 grid needs ${needed}`, "model.occupancy_size",
+      { bytes, resolution, needed });
+  }
   return { aabb, resolution };
 }
 
-/** ModelMetadata.from_metadata_props. */
+/** ModelMetadata.from_metadata_props, reading the metadata in Python's order. */
 export function metadataFromProps(props, source) {
-  if (!props.has(METADATA_KEY) || !props.has(VERSION_KEY)) throw new UserError(`${source} is not a noisenerf model (no '${METADATA_KEY}' metadata)`);
-  if (props.get(VERSION_KEY) !== String(MODEL_FORMAT_VERSION)) {
-    throw new UserError(`${source} has model format version ${repr(props.get(VERSION_KEY))}; this noisenerf reads ` +
-      `version ${MODEL_FORMAT_VERSION} (export the scene again with \`noisenerf export\`)`);
+  if (!props.has(METADATA_KEY) || !props.has(VERSION_KEY)) {
+    throw new UserError(`${source} is not a noisenerf model (no "${METADATA_KEY}" metadata)`, { code: "model.not_noisenerf" });
+  }
+  const version = props.get(VERSION_KEY);
+  if (version !== String(MODEL_FORMAT_VERSION)) {
+    throw new UserError(`${source} has model format version ${show(version)}; this noisenerf reads ` +
+      `version ${MODEL_FORMAT_VERSION} (export the scene again with \`noisenerf export\`)`,
+    { code: "model.format_version", version: [...version].slice(0, 60).join("") });
   }
   const data = parseJson(props.get(METADATA_KEY), `${source}: noisenerf metadata`);
+  const need = (object, key) => {
+    if (!isObject(object)) throw new Malformed(`expected an object holding "${key}"`);
+    if (!Object.hasOwn(object, key)) throw new Malformed(`missing "${key}"`);
+    return object[key];
+  };
   try {
-    if (!isObject(data) || data.format_version !== MODEL_FORMAT_VERSION) throw new Malformed(`ValueError('format_version disagrees with ${VERSION_KEY}')`);
-    for (const key of ["architecture", "hierarchy", "cameras", "fingerprint", "noise_dims", "render", "grid"]) {
-      if (!Object.hasOwn(data, key)) throw new Malformed(`KeyError('${key}')`);
+    const formatVersion = isObject(data) ? need(data, "format_version") : null;
+    const number = formatVersion instanceof PyFloat ? formatVersion.value
+      : typeof formatVersion === "number" || typeof formatVersion === "bigint" ? Number(formatVersion) : NaN;
+    if (!isObject(data) || number !== MODEL_FORMAT_VERSION) {
+      throw new Malformed(`format_version disagrees with ${VERSION_KEY}`, "model.metadata_version");
     }
-    if (!isObject(data.architecture) || !isObject(data.architecture.coarse) || !Object.hasOwn(data.architecture, "fine")) {
-      throw new Malformed("KeyError('architecture')");
+    const coarse = need(need(data, "architecture"), "coarse");
+    if (!isObject(coarse)) throw new Malformed("the coarse architecture is not an object");
+    const architecture = { coarse: { ...coarse }, fine: need(data.architecture, "fine") };
+    const hierarchy = need(data, "hierarchy") !== null ? hierarchyFromDict(data.hierarchy) : null;
+    if ((architecture.fine === null) !== (hierarchy === null)) {
+      throw new Malformed("a fine network and hierarchical sampling go together", "model.fine_hierarchy");
     }
-    const architecture = { coarse: { ...data.architecture.coarse }, fine: data.architecture.fine };
-    const hierarchy = data.hierarchy !== null ? hierarchyFromDict(data.hierarchy) : null;
-    if ((architecture.fine === null) !== (hierarchy === null)) throw new Malformed("ValueError('a fine network and hierarchical sampling go together')");
-    const cameras = checkedList(data.cameras, "cameras", null, MAX_CAMERAS);
-    const fingerprint = typeof data.fingerprint === "string" ? data.fingerprint : repr(data.fingerprint);
-    const noiseDims = checkedInt(data.noise_dims, "noise_dims", 1, MAX_NOISE_DIMS);
-    const renderConfig = renderConfigFromDict(data.render);
+    const cameras = checkedList(need(data, "cameras"), "cameras", null, MAX_CAMERAS, { code: "model.cameras" });
+    const fingerprint = need(data, "fingerprint");
+    const noiseDims = checkedInt(need(data, "noise_dims"), "noise_dims", 1, MAX_NOISE_DIMS, { code: "model.noise_dims_range" });
+    const renderConfig = renderConfigFromDict(need(data, "render"));
     const parsedCameras = cameras.map(cameraFromDict);
-    checkGrid(data.grid);
-    return { fingerprint, architecture, noiseDims, renderConfig, hierarchy, cameras: parsedCameras };
+    checkGrid(need(data, "grid"));
+    return { fingerprint: typeof fingerprint === "string" ? fingerprint : JSON.stringify(fingerprint), architecture,
+      noiseDims, renderConfig, hierarchy, cameras: parsedCameras };
   } catch (error) {
-    if (error instanceof Malformed) throw new UserError(`${source}: malformed noisenerf metadata (${error.message})`);
-    if (error instanceof UserError) throw new UserError(`${source}: ${error.message}`);
+    if (error instanceof Malformed) {
+      throw new UserError(`${source}: malformed noisenerf metadata (${error.message})`, { code: error.code, ...error.params });
+    }
+    if (error instanceof UserError) throw new UserError(`${source}: ${error.message}`, { code: error.code, ...error.params });
     throw error;
   }
 }
@@ -111,13 +158,13 @@ export function checkModel(data, source = "model.onnx") {
   try {
     expected = fieldGraph(metadata.architecture, metadata.noiseDims);
   } catch (error) {
-    if (error instanceof UserError) throw new UserError(`${source}: ${error.message}`);
+    if (error instanceof UserError) throw new UserError(`${source}: ${error.message}`, { code: error.code, ...error.params });
     throw error;
   }
   const weights = checkGraph(file, expected, source);
   if (weightsFingerprint(weights, metadata.architecture) !== metadata.fingerprint) {
     throw new UserError(`${source}: its weights do not match its fingerprint ${shortFingerprint(metadata.fingerprint)} ` +
-      "(the model was changed after export); export the scene again");
+      "(the model was changed after export); export the scene again", { code: "model.weights_changed" });
   }
   return { file, metadata, networks: metadata.architecture.fine === null ? ["coarse"] : ["coarse", "fine"] };
 }
@@ -125,9 +172,12 @@ export function checkModel(data, source = "model.onnx") {
 /** check_bundle: refuse a bundle hidden in another model, or with noise the field cannot take. */
 export function checkBundle(model, bundle) {
   if (bundle.modelFingerprint !== model.metadata.fingerprint) {
-    throw new UserError(`bundle was made for model ${shortFingerprint(bundle.modelFingerprint)}, this model is ${shortFingerprint(model.metadata.fingerprint)}`);
+    throw new UserError(`bundle was made for model ${shortFingerprint(bundle.modelFingerprint)}, this model is ` +
+      shortFingerprint(model.metadata.fingerprint),
+    { code: "model.other_model", bundle: bundle.modelFingerprint.slice(0, 12), model: model.metadata.fingerprint.slice(0, 12) });
   }
   if (bundle.noiseDims !== model.metadata.noiseDims) {
-    throw new UserError(`bundle noise has ${bundle.noiseDims} dims, this model takes ${model.metadata.noiseDims}`);
+    throw new UserError(`bundle noise has ${bundle.noiseDims} dims, this model takes ${model.metadata.noiseDims}`,
+      { code: "model.noise_dims", bundle: bundle.noiseDims, model: model.metadata.noiseDims });
   }
 }

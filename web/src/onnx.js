@@ -11,7 +11,9 @@
 //   TensorProto dims 1, data_type 2, float_data 4, int64_data 7, name 8, raw_data 9, external_data 13,
 //              data_location 14
 
-import { UserError, repr } from "./errors.js";
+import { UserError, show } from "./errors.js";
+
+const cut = (text) => [...text].slice(0, 60).join(""); // a string the file controls, as a refusal's parameter
 
 export const FLOAT = 1;
 export const INT64 = 7;
@@ -156,8 +158,9 @@ export function readTensor(data) {
 /** TensorRecord.array: the values as a Float32Array (or BigInt64Array for INT64) of dims' size. */
 export function tensorArray(record, source, dataType = FLOAT) {
   if (record.dataType !== dataType) {
-    throw new UserError(`${source}: initializer ${repr(record.name)} has ONNX data type ${record.dataType}, ` +
-      `expected ${dataType} (noisenerf weights are float32)`);
+    throw new UserError(`${source}: initializer ${show(record.name)} has ONNX data type ${record.dataType}, ` +
+      `expected ${dataType} (noisenerf weights are float32)`,
+    { code: "onnx.data_type", name: cut(record.name), data_type: record.dataType, expected: dataType });
   }
   const count = record.dims.reduce((a, b) => a * b, 1);
   const size = dataType === FLOAT ? 4 : 8;
@@ -175,15 +178,16 @@ export function tensorArray(record, source, dataType = FLOAT) {
     values = typed ?? (dataType === FLOAT ? new Float32Array(0) : new BigInt64Array(0));
   }
   if (values.length !== count) {
-    throw new UserError(`${source}: initializer ${repr(record.name)} holds ${values.length} values, its dims ` +
-      `${repr(record.dims)} need ${count}`);
+    throw new UserError(`${source}: initializer ${show(record.name)} holds ${values.length} values, its dims ` +
+      `${show(record.dims)} need ${count}`,
+    { code: "onnx.value_count", name: cut(record.name), values: values.length, dims: record.dims, needed: count });
   }
   return values;
 }
 
 function refuseUnsupported(message, number, source) {
   const what = UNSUPPORTED.get(`${message} ${number}`);
-  if (what) throw new UserError(`${source} holds ${what}, which a noisenerf model never has`);
+  if (what) throw new UserError(`${source} holds ${what}, which a noisenerf model never has`, { code: "onnx.unsupported", holds: what });
 }
 
 function* nodeTensors(node, source) {
@@ -222,7 +226,9 @@ export function readNode(data) {
     else if (number !== 3 && number !== 6) attributes.push([`field ${number}`, "unexpected"]);
   }
   if (domain !== "" && domain !== "ai.onnx") op = `${domain}.${op}`;
-  const key = ([name, value]) => `(${repr(name)}, ${repr(value)})`;
+  // Python sorts the (name, value) pairs by their str(): by name, then value (only the order of a node that is refused
+  // anyway can differ: an attribute set equal to the expected one sorts by name in both)
+  const key = ([name, value]) => JSON.stringify([name, String(value)]);
   attributes.sort((a, b) => (key(a) < key(b) ? -1 : key(a) > key(b) ? 1 : 0));
   return { op, inputs, outputs, attributes };
 }
@@ -288,12 +294,12 @@ export function parseModel(data, source) {
   } catch (error) {
     if (error instanceof UserError) throw error;
     const detail = error instanceof TypeError ? "invalid UTF-8" : error.message;
-    throw new UserError(`${source} is not a loadable ONNX model (not ONNX, or truncated): ${detail}`);
+    throw new UserError(`${source} is not a loadable ONNX model (not ONNX, or truncated): ${detail}`, { code: "onnx.malformed" });
   }
   const external = [...initializers, ...attributes].filter((t) => t.external).map((t) => t.name || "(unnamed)");
   if (external.length) {
-    throw new UserError(`${source} keeps tensor ${repr(external[0])} in external data; a noisenerf model must be ` +
-      "one self-contained .onnx file");
+    throw new UserError(`${source} keeps tensor ${show(external[0])} in external data; a noisenerf model must be ` +
+      "one self-contained .onnx file", { code: "onnx.external_data", tensor: cut(external[0]) });
   }
   return { data, source, metadataProps: props, initializers, nodes, inputs: ports[11], outputs: ports[12], opsets,
     irVersion, unexpected };

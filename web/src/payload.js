@@ -22,7 +22,8 @@ export const INEXACT = "the revealed pixels do not reproduce the payload's SHA-2
 export function checkedPayload(data) {
   const keys = isJsonObject(data) ? Object.keys(data).sort() : [];
   if (!isJsonObject(data) || !pyEqual(data.version ?? null, PAYLOAD_VERSION) || keys.length !== 2 || keys[0] !== "sealed" || keys[1] !== "version") {
-    throw new UserError(`bundle: payload must be an object with version ${PAYLOAD_VERSION} and sealed`);
+    throw new UserError(`bundle: payload must be an object with version ${PAYLOAD_VERSION} and sealed`,
+      { code: "payload.malformed", version: PAYLOAD_VERSION });
   }
   sealOf(data);
   return data;
@@ -37,22 +38,23 @@ const equalBytes = (a, b) => a.length === b.length && a.every((v, i) => v === b[
 
 /** unpack_record: the record at the start of `data` (padding after it ignored); INEXACT unless it checks. */
 export function unpackRecord(data) {
-  if (data.length < RECORD_SIZE) throw new UserError(INEXACT);
+  if (data.length < RECORD_SIZE) throw new UserError(INEXACT, { code: "payload.inexact" });
   const view = new DataView(data.buffer, data.byteOffset, data.byteLength);
   const version = data[4], kind = data[5], nameLength = view.getUint16(6), length = view.getBigUint64(8);
   const width = view.getUint32(16), height = view.getUint32(20), digest = data.subarray(24, 56);
   const end = BigInt(RECORD_SIZE + nameLength) + length;
   if (!equalBytes(data.subarray(0, 4), MAGIC) || version !== RECORD_VERSION || kind >= KINDS.length || end > BigInt(data.length)) {
-    throw new UserError(INEXACT);
+    throw new UserError(INEXACT, { code: "payload.inexact" });
   }
   const body = data.slice(RECORD_SIZE + nameLength, Number(end));
   if (!equalBytes(sha256(body), digest) || (KINDS[kind] === "image" && width * height * 3 !== Number(length))) {
-    throw new UserError(INEXACT);
+    throw new UserError(INEXACT, { code: "payload.inexact" });
   }
   if (nameLength > MAX_NAME_BYTES) {
-    throw new UserError(`the payload's file name is ${nameLength} bytes; a record holds at most ${MAX_NAME_BYTES}`);
+    throw new UserError(`the payload's file name is ${nameLength} bytes; a record holds at most ${MAX_NAME_BYTES}`,
+      { code: "payload.name_too_long", name_bytes: nameLength, most: MAX_NAME_BYTES });
   }
-  if (KINDS[kind] === "image") checkedImageSize(width, height, "the payload's image");
+  if (KINDS[kind] === "image") checkedImageSize(width, height, "the payload's image", { code: "payload.image_size" });
   return { kind: KINDS[kind], body, name: data.slice(RECORD_SIZE, RECORD_SIZE + nameLength), width, height };
 }
 

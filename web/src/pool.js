@@ -15,7 +15,7 @@ import { LocalRenderer, OnnxField, prunedNetworks } from "./reveal.js";
 /** The worker's side: a handler of the driver's messages, {id, type: "init", wasmBinary?} | {id, type: "open",
  * networks} (a renderer with no session yet) | {id, type: "session", network, model} (the model pruned to the
  * network's outputs) | {id, type: "chunk", job} | {id, type: "close"} -> Promise<[reply, transfer]>, the reply
- * {id, result} or {id, error, userError}. Messages are answered one at a time, in order. */
+ * {id, result} or {id, error, refusal} (refusal: a UserError's {code, params}, else null). Messages are answered one at a time, in order. */
 export function fieldWorker() {
   let renderer = null, queue = Promise.resolve();
   const answer = async ({ id, type, ...data }) => {
@@ -50,7 +50,9 @@ export function fieldWorker() {
       }
       throw new Error(`unknown message ${String(type)}`);
     } catch (error) {
-      return [{ id, error: String(error?.message ?? error), userError: error instanceof UserError }, []];
+      // a refusal goes as data (structured clone keeps an Error's message, not its code and params)
+      const refusal = error instanceof UserError ? { code: error.code, params: error.params } : null;
+      return [{ id, error: String(error?.message ?? error), refusal }, []];
     }
   };
   return (data) => {
@@ -84,12 +86,12 @@ export class FieldPool {
     }
   }
 
-  answered(worker, { id, result, error, userError }) {
+  answered(worker, { id, result, error, refusal }) {
     const call = worker.waiting.get(id);
     if (!call) return;
     worker.waiting.delete(id);
     if (error === undefined) call.resolve(result);
-    else call.reject(userError ? new UserError(error) : new Error(error));
+    else call.reject(refusal ? new UserError(error, { code: refusal.code, ...refusal.params }) : new Error(error));
   }
 
   /** A worker that died (out of memory, a crash) fails everything it was given, and all it is given after. */

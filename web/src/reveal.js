@@ -9,7 +9,7 @@
 import * as ort from "onnxruntime-web";
 import { sha256 } from "@noble/hashes/sha2.js";
 import { bytesToHex } from "@noble/hashes/utils.js";
-import { UserError, repr, tuple } from "./errors.js";
+import { UserError } from "./errors.js";
 import { OUTPUT_NAMES, COARSE_OUTPUT_NAMES, INPUT_NAMES } from "./graph.js";
 import { parseModel, prunedModel } from "./onnx.js";
 import { cameraRayBatch } from "./camera.js";
@@ -83,7 +83,8 @@ export class OnnxField {
       try {
         result = await this.session(network).run(feeds, [rgbName, sigmaName]);
       } catch (error) {
-        throw new UserError(`model.onnx failed to evaluate: ${String(error.message ?? error).split(/\s+/).join(" ").slice(0, 200)}`);
+        throw new UserError(`model.onnx failed to evaluate: ${String(error.message ?? error).split(/\s+/).join(" ").slice(0, 200)}`,
+          { code: "session.evaluate_failed" });
       }
       rgb.set(result[rgbName].data, start * 3);
       sigma.set(result[sigmaName].data, start);
@@ -204,7 +205,8 @@ export async function renderTile(tile, bundle, config, renderer, network, progre
 export function tileNetwork(tile, networks) {
   const name = tile.network ?? renderNetwork(networks);
   if (!networks.includes(name)) {
-    throw new UserError(`bundle tile at ${repr(tuple(tile.rect[0], tile.rect[1]))} needs the ${name} network; this model has only ${networks.join(" and ")}`);
+    throw new UserError(`bundle tile at (${tile.rect[0]}, ${tile.rect[1]}) needs the ${name} network; this model has only ${networks.join(" and ")}`,
+      { code: "reveal.missing_network", at: [tile.rect[0], tile.rect[1]], network: name, networks: [...networks] });
   }
   return name;
 }

@@ -10,22 +10,22 @@ export const LAST_DELTA = 1e10;
 /** SamplingConfig (checked) from metadata. */
 export function samplingFromDict(data) {
   const keys = data && typeof data === "object" && !Array.isArray(data) ? Object.keys(data).sort() : null;
-  if (!keys || keys.join() !== "far,n_samples,near") throw new UserError("sampling must be an object with near, far and n_samples");
-  return samplingConfig(checkedFloat(data.near, "sampling near"), checkedFloat(data.far, "sampling far"),
-    checkedInt(data.n_samples, "sampling n_samples", 1, MAX_SAMPLES_PER_RAY));
+  if (!keys || keys.join() !== "far,n_samples,near") throw new UserError("sampling must be an object with near, far and n_samples", { code: "sampling.not_object" });
+  return samplingConfig(checkedFloat(data.near, "sampling near", -Infinity, Infinity, { code: "sampling.near" }),
+    checkedFloat(data.far, "sampling far", -Infinity, Infinity, { code: "sampling.far" }),
+    checkedInt(data.n_samples, "sampling n_samples", 1, MAX_SAMPLES_PER_RAY, { code: "sampling.n_samples" }));
 }
 
 export function samplingConfig(near, far, nSamples) {
   if (!(Number.isFinite(near) && Number.isFinite(far) && near >= 0 && near < far)) {
-    throw new UserError(`sampling needs 0 <= near < far, got near=${pyNumber(near)}, far=${pyNumber(far)}`);
+    throw new UserError(`sampling needs 0 <= near < far, got near=${near}, far=${far}`, { code: "sampling.bad_range", near, far });
   }
   if (!(nSamples >= 1 && nSamples <= MAX_SAMPLES_PER_RAY)) {
-    throw new UserError(`sampling needs 1 to ${MAX_SAMPLES_PER_RAY} samples per ray, got ${nSamples}`);
+    throw new UserError(`sampling needs 1 to ${MAX_SAMPLES_PER_RAY} samples per ray, got ${nSamples}`,
+      { code: "sampling.bad_count", n_samples: nSamples, most: MAX_SAMPLES_PER_RAY });
   }
   return { near, far, nSamples };
 }
-
-function pyNumber(x) { return Number.isInteger(x) ? `${x}.0` : String(x); }
 
 /** sample_positions: (n_samples,) float32, near and far included (numpy's linspace). */
 export function samplePositions(config) {

@@ -9,7 +9,7 @@ import { hmac } from "@noble/hashes/hmac.js";
 import { sha256 } from "@noble/hashes/sha2.js";
 import { bytesToHex } from "@noble/hashes/utils.js";
 import { chacha20poly1305 } from "@noble/ciphers/chacha.js";
-import { UserError, repr } from "./errors.js";
+import { UserError } from "./errors.js";
 import { canonicalJson, isJsonObject as isObject, parseJson, pyEqual } from "./json.js";
 import { checkedInt } from "./limits.js";
 
@@ -21,7 +21,7 @@ export const MAC_KEY = "noisenerf_seal_mac";
 export const WRONG = "wrong passphrase, or the bundle or model was altered";
 export const MAX_KDF_MEMORY = 2 ** 29;
 export const MAX_KDF_WORK = 2 ** 24;
-// cli/reveal.py's refusal without a passphrase, up to its command-line hints (a page has a passphrase field)
+// runtime/api.py's refusal without a passphrase, without the CLI's ways of giving one (a page has a passphrase field)
 export const NO_PASSPHRASE = "the bundle is sealed: give its passphrase";
 export const EMPTY_PASSPHRASE = "the passphrase is empty";
 export const NOT_SEALED = "a passphrase was given but the bundle is not sealed (a sealed bundle stripped of its seal reads so); "
@@ -29,14 +29,15 @@ export const NOT_SEALED = "a passphrase was given but the bundle is not sealed (
 
 /** ScryptParams.from_dict: parameters read from a bundle, refused beyond MAX_KDF_MEMORY or MAX_KDF_WORK. */
 export function scryptParams(data) {
-  if (!isObject(data) || data.name !== KDF) throw new UserError(`bundle: sealed payload needs a ${KDF} kdf object`);
-  const log2n = checkedInt(data.log2_n ?? null, "bundle: kdf log2_n", 1, 30);
-  const r = checkedInt(data.r ?? null, "bundle: kdf r", 1, 64);
-  const p = checkedInt(data.p ?? null, "bundle: kdf p", 1, 64);
+  if (!isObject(data) || data.name !== KDF) throw new UserError(`bundle: sealed payload needs a ${KDF} kdf object`, { code: "seal.bad_kdf", kdf: KDF });
+  const log2n = checkedInt(data.log2_n ?? null, "bundle: kdf log2_n", 1, 30, { code: "seal.kdf_log2_n" });
+  const r = checkedInt(data.r ?? null, "bundle: kdf r", 1, 64, { code: "seal.kdf_r" });
+  const p = checkedInt(data.p ?? null, "bundle: kdf p", 1, 64, { code: "seal.kdf_p" });
   const memory = 128 * r * 2 ** log2n, work = 2 ** log2n * r * p;
   if (memory > MAX_KDF_MEMORY || work > MAX_KDF_WORK) {
     throw new UserError(`bundle: kdf asks for ${Math.floor(memory / 2 ** 20)} MiB and n·r·p = ${work}; at most ` +
-      `${MAX_KDF_MEMORY / 2 ** 20} MiB and ${MAX_KDF_WORK} are allowed`);
+      `${MAX_KDF_MEMORY / 2 ** 20} MiB and ${MAX_KDF_WORK} are allowed`, { code: "seal.kdf_too_costly",
+      memory_mib: Math.floor(memory / 2 ** 20), work, max_memory_mib: MAX_KDF_MEMORY / 2 ** 20, max_work: MAX_KDF_WORK });
   }
   return { log2n, r, p };
 }
@@ -49,7 +50,7 @@ function decoded(text, what, length) {
   if (typeof text === "string" && text.length < 64 && /^[A-Za-z0-9+/]*={0,2}$/.test(text) && text.length % 4 === 0) {
     value = Uint8Array.from(atob(text), (c) => c.charCodeAt(0));
   }
-  if (value === null || value.length !== length) throw new UserError(`bundle: sealed payload ${what} must be ${length} bytes in base64`);
+  if (value === null || value.length !== length) throw new UserError(`bundle: sealed payload ${what} must be ${length} bytes in base64`, { code: "seal.bad_base64", what, length });
   return value;
 }
 
@@ -61,10 +62,10 @@ function sealDict(seal) {
 
 /** Seal.from_dict: known cipher, capped KDF, salt and nonce of the right lengths, nothing else. */
 export function sealFromDict(data) {
-  if (!isObject(data) || data.cipher !== CIPHER) throw new UserError(`bundle: sealed payload needs cipher ${repr(CIPHER)}`);
+  if (!isObject(data) || data.cipher !== CIPHER) throw new UserError(`bundle: sealed payload needs cipher "${CIPHER}"`, { code: "seal.bad_cipher", cipher: CIPHER });
   const seal = { kdf: scryptParams(data.kdf), salt: decoded(data.salt, "salt", SALT_BYTES),
     nonce: decoded(data.nonce, "nonce", NONCE_BYTES) };
-  if (!pyEqual(sealDict(seal), data)) throw new UserError("bundle: sealed payload object has unexpected fields");
+  if (!pyEqual(sealDict(seal), data)) throw new UserError("bundle: sealed payload object has unexpected fields", { code: "seal.unexpected_fields" });
   return seal;
 }
 
@@ -78,7 +79,7 @@ export function passphraseBytes(passphrase) {
 
 /** derive_keys: scrypt(passphrase, salt) -> 64 bytes, the cipher key then the bundle key. onProgress(0..1). */
 export async function deriveKeys(passphrase, seal, onProgress = null) {
-  if (!passphrase || passphrase.length === 0) throw new UserError(EMPTY_PASSPHRASE);
+  if (!passphrase || passphrase.length === 0) throw new UserError(EMPTY_PASSPHRASE, { code: "seal.empty_passphrase" });
   const material = await scryptAsync(passphrase, seal.salt, { N: 2 ** seal.kdf.log2n, r: seal.kdf.r, p: seal.kdf.p,
     dkLen: 64, maxmem: MAX_KDF_MEMORY + 4096, ...(onProgress ? { onProgress } : {}) });
   return { cipher: material.slice(0, 32), bundle: material.slice(32) };
@@ -87,9 +88,15 @@ export async function deriveKeys(passphrase, seal, onProgress = null) {
 /** split_safetensors: the parsed header (Python's JSON: ints apart from floats) and the tensor data. */
 function splitSafetensors(data, source) {
   const size = data.length >= 8 ? Number(new DataView(data.buffer, data.byteOffset, 8).getBigUint64(0, true)) : -1;
-  if (!(size > 0 && size <= data.length - 8)) throw new UserError(`not a readable safetensors bundle: ${source}`);
-  const header = parseJson(data.subarray(8, 8 + size), "bundle header", source);
-  if (!isObject(header) || !isObject(header.__metadata__ ?? {})) throw new UserError(`not a readable safetensors bundle: ${source}`);
+  if (!(size > 0 && size <= data.length - 8)) throw new UserError(`not a readable safetensors bundle: ${source}`, { code: "bundle.not_safetensors" });
+  let header;
+  try {
+    header = parseJson(data.subarray(8, 8 + size), "bundle header", source);
+  } catch (error) {
+    if (!(error instanceof UserError)) throw error;
+    throw new UserError(`not a readable safetensors bundle: ${source} (${error.message})`, { code: "bundle.not_safetensors" });
+  }
+  if (!isObject(header) || !isObject(header.__metadata__ ?? {})) throw new UserError(`not a readable safetensors bundle: ${source}`, { code: "bundle.not_safetensors" });
   return { header, body: data.subarray(8 + size) };
 }
 
@@ -108,7 +115,7 @@ export function checkBundleTag(data, keys, source = "secret.bundle") {
   const stored = (header.__metadata__ ?? {})[MAC_KEY];
   // Python's hmac.compare_digest; the tag is public, so a plain comparison leaks nothing a recipient lacks
   if (typeof stored !== "string" || !/^[\x00-\x7f]*$/.test(stored) || stored !== bundleTag(header, body, keys)) {
-    throw new UserError(WRONG);
+    throw new UserError(WRONG, { code: "seal.wrong_passphrase" });
   }
 }
 
@@ -129,6 +136,6 @@ export function decrypt(ciphertext, keys, seal, associated) {
   try {
     return chacha20poly1305(keys.cipher, seal.nonce, associated).decrypt(ciphertext);
   } catch {
-    throw new UserError(WRONG);
+    throw new UserError(WRONG, { code: "seal.wrong_passphrase" });
   }
 }

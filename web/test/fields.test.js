@@ -1,14 +1,15 @@
 // The field kinds (src/fields/) against the graphs the Python runtime derives (runtime/fields): tests/test_web.py
 // writes field_graph(architecture) as JSON for hash grids and their variants (fine, beside an MLP, other widths,
 // degrees and level layouts), for imported nerfacto fields of both implementations and their variants (proposal
-// networks, SH conventions, dense or hashed levels), and Python's message for architectures out of the caps. The
-// JavaScript must derive the same nodes, constants (values to the bit), weights, ports and opset, and refuse with the same line.
+// networks, SH conventions, dense or hashed levels), and Python's refusal of architectures out of the caps. The
+// JavaScript must derive the same nodes, constants (values to the bit), weights, ports and opset, and refuse with the
+// same code and params.
 
 import { test } from "node:test";
 import assert from "node:assert/strict";
 import fs from "node:fs";
 import path from "node:path";
-import { UserError } from "../src/errors.js";
+import { sameRefusal } from "./refusals.js";
 import { parseJson } from "../src/json.js";
 import { fieldGraph } from "../src/fields/index.js";
 import { gridLevels } from "../src/fields/hashgrid.js";
@@ -28,10 +29,10 @@ const asJson = (graph) => ({
 });
 
 for (const [i, golden] of (manifest.graphs ?? []).entries()) {
-  const { architecture, noise_dims: noiseDims, message, ...want } = golden;
-  test(`field graph ${i}: ${message ? "refused" : "derived"} as Python does: ${architecture.slice(0, 100)}`, { skip }, () => {
+  const { architecture, noise_dims: noiseDims, code, params, message, ...want } = golden;
+  test(`field graph ${i}: ${code ? `refused (${code})` : "derived"} as Python does: ${architecture.slice(0, 100)}`, { skip }, () => {
     const derive = () => fieldGraph(parseJson(architecture, "architecture"), noiseDims);
-    if (message) assert.throws(derive, (error) => error instanceof UserError && error.message === message);
+    if (code) assert.throws(derive, (error) => sameRefusal(error, golden));
     else assert.deepStrictEqual(asJson(derive()), want);
   });
 }

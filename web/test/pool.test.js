@@ -1,6 +1,6 @@
 // The worker pool (src/pool.js, here over Node's worker_threads: src/node/pool.js) against the Python runtime's
 // golden pixels: chunks rendered out of order in two workers stitch to the same bytes; a worker's refusal reaches
-// the caller as the same UserError.
+// the caller as the same UserError (its code and params too).
 
 import { test, after } from "node:test";
 import assert from "node:assert/strict";
@@ -76,6 +76,7 @@ test("a worker's refusal is the caller's UserError, and the pool renders on afte
   const tile = bundle.tiles[0], config = checked.metadata.renderConfig;
   await assert.rejects(workers.render(chunkJob(tile, bundle, config, "nonexistent", 0, 1)), (error) => {
     assert.ok(error instanceof UserError);
+    assert.equal(error.code, "session.evaluate_failed"); // the code crosses the worker boundary as data
     assert.match(error.message, /^model\.onnx failed to evaluate: /);
     return true;
   });

@@ -9,6 +9,7 @@ import assert from "node:assert/strict";
 import fs from "node:fs";
 import path from "node:path";
 import { reveal } from "../src/index.js";
+import { sameRefusal } from "./refusals.js";
 import { loadBundle, tileRows } from "../src/bundle.js";
 import { checkModel } from "../src/model.js";
 import { cameraRayBatch } from "../src/camera.js";
@@ -26,16 +27,18 @@ function golden(folder, entry) {
 
 function compare(got, want) {
   assert.equal(got.length, want.length);
-  let maxDiff = 0, unequal = 0;
+  let maxDiff = 0, unequal = 0, scale = 0;
   for (let i = 0; i < got.length; i++) {
     const d = Math.abs(got[i] - want[i]);
     if (!(d <= maxDiff)) maxDiff = Number.isNaN(d) ? Infinity : d;
     if (got[i] !== want[i]) unequal++;
+    scale = Math.max(scale, Math.abs(want[i]));
   }
-  return { maxDiff, unequal, total: got.length };
+  return { maxDiff, unequal, total: got.length, scale };
 }
 
 const summary = {};
+const FLOAT32_APART = 2 ** -20; // a few ulps of the largest value a tile holds
 
 for (const [name, fixture] of Object.entries(manifest.fixtures)) {
   const folder = path.join(root ?? "", name);
@@ -58,12 +61,15 @@ for (const [name, fixture] of Object.entries(manifest.fixtures)) {
     }
     await renderer.release();
     const reduce = (list) => list.reduce((a, b) => ({ maxDiff: Math.max(a.maxDiff, b.maxDiff), unequal: a.unequal + b.unequal,
-      total: a.total + b.total }), { maxDiff: 0, unequal: 0, total: 0 });
+      total: a.total + b.total, scale: Math.max(a.scale, b.scale) }), { maxDiff: 0, unequal: 0, total: 0, scale: 0 });
     summary[name] = Object.fromEntries(Object.entries(stats).map(([k, v]) => [k, reduce(v)]));
     t.diagnostic(`${name}: ${JSON.stringify(summary[name])}`);
-    // bit-exact ports: numpy's float32 order, OpenBLAS's fused multiply-adds included (src/float32.js)
-    assert.equal(summary[name].rays.unequal, 0, `rays differ by up to ${summary[name].rays.maxDiff}`);
-    assert.equal(summary[name].noise.unequal, 0, `noise differs by up to ${summary[name].noise.maxDiff}`);
+    // numpy's float32 order, without the multiply-adds its BLAS may fuse: float32 rounding apart (what the
+    // product promises, the 8-bit pixels, is checked byte for byte below)
+    for (const what of ["rays", "noise"]) {
+      const { maxDiff, scale } = summary[name][what];
+      assert.ok(maxDiff <= FLOAT32_APART * Math.max(1, scale), `${what} differ by ${maxDiff} (largest value ${scale})`);
+    }
     // the field itself is onnxruntime-web's WASM build, not Python's onnxruntime: close, not equal
     assert.ok(summary[name].colors.maxDiff <= 1e-4, `colours differ by ${summary[name].colors.maxDiff}`);
   });
@@ -100,18 +106,12 @@ for (const [name, payload] of Object.entries(manifest.payloads ?? {})) {
   });
 }
 
-// cli/reveal.py's message without a passphrase ends with its command-line hints; the library's is its start
-const NO_PASSPHRASE = "the bundle is sealed: give its passphrase";
-
 for (const tampered of manifest.tampered) {
-  test(`refused as noisenerf-reveal refuses it: ${tampered.case}`, { skip }, async () => {
+  test(`refused as noisenerf-reveal refuses it: ${tampered.case} (${tampered.code})`, { skip }, async () => {
     const folder = path.join(root, tampered.folder);
     await assert.rejects(reveal({ model: new Uint8Array(fs.readFileSync(path.join(folder, "model.onnx"))),
-      bundle: new Uint8Array(fs.readFileSync(path.join(folder, "secret.bundle"))), passphrase: tampered.passphrase }), (error) => {
-      if (tampered.message.startsWith(NO_PASSPHRASE)) assert.equal(error.message, NO_PASSPHRASE);
-      else assert.equal(error.message, tampered.message);
-      return true;
-    });
+      bundle: new Uint8Array(fs.readFileSync(path.join(folder, "secret.bundle"))), passphrase: tampered.passphrase }),
+    (error) => sameRefusal(error, tampered));
   });
 }
 

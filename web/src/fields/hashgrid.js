@@ -12,7 +12,7 @@
 // directions, rows optionally negated) and the two MLPs (checkedMlps, fieldMlps) are shared with the nerfacto kind
 // (src/fields/nerfacto.js), as runtime/fields/hashgrid.py shares them.
 
-import { UserError, formatG } from "../errors.js";
+import { UserError } from "../errors.js";
 import {
   MAX_FIELD_DEPTH, MAX_FIELD_WIDTH, MAX_HASH_FEATURES, MAX_HASH_LEVELS, MAX_HASH_RESOLUTION, MAX_LOG2_TABLE,
   MAX_TABLE_VALUES, checkedFloat, checkedInt, checkedList,
@@ -87,27 +87,36 @@ export const HASHGRID = {
   opset: 18,
 
   checked(config, what) {
-    if (!hasExactly(config, KEYS)) throw new UserError(`the ${what} network's architecture must have exactly ${[...KEYS].sort().join(", ")}`);
-    const int = (key, low, high) => checkedInt(config[key], `${what} ${key}`, low, high);
+    if (!hasExactly(config, KEYS)) {
+      throw new UserError(`the ${what} network's architecture must have exactly ${[...KEYS].sort().join(", ")}`,
+        { code: "field.keys", network: what, kind: this.name });
+    }
+    const int = (key, low, high, code) => checkedInt(config[key], `${what} ${key}`, low, high, { code });
     const checked = {
       kind: this.name,
-      levels: int("levels", 1, MAX_HASH_LEVELS),
-      features: int("features", 1, MAX_HASH_FEATURES),
-      log2_table: int("log2_table", 3, MAX_LOG2_TABLE),
-      base_resolution: int("base_resolution", 1, MAX_HASH_RESOLUTION),
-      per_level_scale: checkedFloat(config.per_level_scale, `${what} per_level_scale`, 1.0, 8.0),
+      levels: int("levels", 1, MAX_HASH_LEVELS, "field.levels"),
+      features: int("features", 1, MAX_HASH_FEATURES, "field.features"),
+      log2_table: int("log2_table", 3, MAX_LOG2_TABLE, "field.log2_table"),
+      base_resolution: int("base_resolution", 1, MAX_HASH_RESOLUTION, "field.base_resolution"),
+      per_level_scale: checkedFloat(config.per_level_scale, `${what} per_level_scale`, 1.0, 8.0, { code: "field.per_level_scale" }),
       ...checkedMlps(config, what),
-      aabb: checkedList(config.aabb, "aabb", 6).map((v) => checkedFloat(v, `${what} aabb`, -1e9, 1e9)),
+      aabb: checkedList(config.aabb, "aabb", 6, undefined, { code: "field.aabb" })
+        .map((v) => checkedFloat(v, `${what} aabb`, -1e9, 1e9, { code: "field.aabb" })),
     };
     if (![0, 1, 2].every((a) => checked.aabb[a] < checked.aabb[a + 3])) {
-      throw new UserError(`the ${what} network's aabb must have min < max on every axis`);
+      throw new UserError(`the ${what} network's aabb must have min < max on every axis`, { code: "field.aabb_order", network: what });
     }
     const finest = checked.per_level_scale ** (checked.levels - 1) * checked.base_resolution;
     if (!Number.isFinite(finest) || finest > MAX_HASH_RESOLUTION) {
-      throw new UserError(`the ${what} network's finest level has ${formatG(finest)} vertices a side, more than ${MAX_HASH_RESOLUTION}`);
+      throw new UserError(`the ${what} network's finest level has ${finest.toPrecision(6)} vertices a side, more than ${MAX_HASH_RESOLUTION}`,
+        { code: "field.finest_resolution", network: what, levels: checked.levels, base_resolution: checked.base_resolution,
+          per_level_scale: checked.per_level_scale, most: MAX_HASH_RESOLUTION });
     }
     const values = configLevels(checked).totalRows * checked.features;
-    if (values > MAX_TABLE_VALUES) throw new UserError(`the ${what} network's tables hold ${values} values, more than ${MAX_TABLE_VALUES}`);
+    if (values > MAX_TABLE_VALUES) {
+      throw new UserError(`the ${what} network's tables hold ${values} values, more than ${MAX_TABLE_VALUES}`,
+        { code: "field.table_values", network: what, values, most: MAX_TABLE_VALUES });
+    }
     return checked;
   },
 
@@ -131,11 +140,11 @@ export const HASHGRID = {
 
 /** checked_mlps: the widths of a hash-grid field's two MLPs and its SH degree, within the caps. */
 export function checkedMlps(config, what) {
-  const int = (key, low, high) => checkedInt(config[key], `${what} ${key}`, low, high);
-  const width = (key, low = 1) => int(key, low, MAX_FIELD_WIDTH);
+  const int = (key, low, high, code) => checkedInt(config[key], `${what} ${key}`, low, high, { code });
+  const width = (key, low = 1) => int(key, low, MAX_FIELD_WIDTH, "field.width");
   return { density_hidden: width("density_hidden"), geo_features: width("geo_features", 0),
-    sh_degree: int("sh_degree", 1, MAX_SH_DEGREE), colour_hidden: width("colour_hidden"),
-    colour_layers: int("colour_layers", 1, MAX_FIELD_DEPTH) };
+    sh_degree: int("sh_degree", 1, MAX_SH_DEGREE, "field.sh_degree"), colour_hidden: width("colour_hidden"),
+    colour_layers: int("colour_layers", 1, MAX_FIELD_DEPTH, "field.colour_layers") };
 }
 
 /** field_mlps: noise on [grid features ‖ SH], the density MLP to [raw density ‖ geometric feature], the colour MLP

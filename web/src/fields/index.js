@@ -1,11 +1,11 @@
 // Mirrors runtime/fields/__init__.py: the field kinds a scene's networks may be, one registered kind per
 // architecture family (a network whose architecture names no "kind" is an `mlp`). A kind owns its architecture's
-// keys and caps (`checked`, with Python's messages), its noise segments (`segments`), its part of the graph
+// keys and caps (`checked`, refusing with Python's codes and params), its noise segments (`segments`), its part of the graph
 // (`build`) and the opset that part needs, and its proposal sampler (`proposalSampler`: null for a field rendered
 // with the scene's own sampling; nerfacto's proposal networks are outputs sigma_proposal0, …); `fieldGraph` composes
 // a model's networks into the one graph check_graph (src/graph.js) binds the model file to.
 
-import { UserError, repr } from "../errors.js";
+import { UserError, show } from "../errors.js";
 import { isJsonObject } from "../json.js";
 import { COARSE_OUTPUT_NAMES, OUTPUT_NAMES, BATCH, GraphBuilder, port, proposalOutput } from "../graph.js";
 import { MLP } from "./mlp.js";
@@ -31,7 +31,8 @@ export function fieldKind(config, what) {
   const name = isJsonObject(config) && Object.hasOwn(config, "kind") ? config.kind : DEFAULT_KIND;
   const kinds = fieldKinds();
   if (typeof name !== "string" || !Object.hasOwn(kinds, name)) {
-    throw new UserError(`the ${what} network is of kind ${repr(name)}; this noisenerf knows ${repr(Object.keys(kinds).sort())}`);
+    throw new UserError(`the ${what} network is of kind ${show(name)}; this noisenerf knows ${Object.keys(kinds).sort().join(", ")}`,
+      { code: "field.unknown_kind", network: what, kind: typeof name === "string" ? [...name].slice(0, 60).join("") : null });
   }
   return kinds[name];
 }
@@ -54,7 +55,7 @@ export function fieldGraph(architecture, noiseWidth) {
   }
   const samplers = Object.fromEntries(Object.entries(kinds).map(([name, kind]) => [name, kind.proposalSampler(checked[name])]));
   if (Object.values(samplers).some((sampler) => sampler !== null) && Object.hasOwn(checked, "fine")) {
-    throw new UserError("a network with proposal networks cannot be beside a fine network");
+    throw new UserError("a network with proposal networks cannot be beside a fine network", { code: "field.proposals_beside_fine" });
   }
   if (samplers.coarse !== null) outputs.push(...samplers.coarse.proposal_samples.map((_, i) => port(proposalOutput(i), [BATCH])));
   const inputs = [port("points", [BATCH, 3]), port("viewdirs", [BATCH, 3]), port("noise", [BATCH, noiseWidth])];

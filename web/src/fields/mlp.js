@@ -48,14 +48,19 @@ export const MLP = {
   checked(config, what) {
     if (!hasExactly(config, KEYS)) {
       throw new UserError(`the ${what} network's architecture must have exactly depth, width, skips, xyz_freqs, ` +
-        "dir_freqs and use_viewdirs");
+        "dir_freqs and use_viewdirs", { code: "field.keys", network: what, kind: this.name });
     }
-    const depth = checkedInt(config.depth, `${what} depth`, 1, MAX_FIELD_DEPTH);
-    const skips = checkedList(config.skips, "skips", null, depth).map((skip) => checkedInt(skip, `${what} skip`, 0, depth - 1));
-    if (typeof config.use_viewdirs !== "boolean") throw new UserError(`the ${what} network's use_viewdirs must be true or false`);
-    const width = checkedInt(config.width, `${what} width`, 2, MAX_FIELD_WIDTH);
+    const depth = checkedInt(config.depth, `${what} depth`, 1, MAX_FIELD_DEPTH, { code: "field.depth" });
+    const skips = checkedList(config.skips, "skips", null, depth, { code: "field.skips" })
+      .map((skip) => checkedInt(skip, `${what} skip`, 0, depth - 1, { code: "field.skips" }));
+    if (typeof config.use_viewdirs !== "boolean") {
+      throw new UserError(`the ${what} network's use_viewdirs must be true or false`, { code: "field.use_viewdirs", network: what });
+    }
+    const width = checkedInt(config.width, `${what} width`, 2, MAX_FIELD_WIDTH, { code: "field.width" });
     const freqs = {};
-    for (const key of ["xyz_freqs", "dir_freqs"]) freqs[key] = checkedInt(config[key], `${what} ${key}`, 0, MAX_FREQUENCIES);
+    for (const key of ["xyz_freqs", "dir_freqs"]) {
+      freqs[key] = checkedInt(config[key], `${what} ${key}`, 0, MAX_FREQUENCIES, { code: "field.frequencies" });
+    }
     return { depth, width, skips: [...new Set(skips)].sort((a, b) => a - b), use_viewdirs: config.use_viewdirs, ...freqs };
   },
 

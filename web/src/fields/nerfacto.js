@@ -10,7 +10,7 @@
 // Float32 constants are numpy's to the bit: the scales, JSON floats, are rounded through float32 (Math.fround) as the
 // Python check rounds them, density.scale is float32(density_scale), the torch SH's signs multiply the float32 matrix.
 
-import { UserError, reprFloat } from "../errors.js";
+import { UserError } from "../errors.js";
 import {
   MAX_FIELD_WIDTH, MAX_HASH_FEATURES, MAX_HASH_LEVELS, MAX_HASH_RESOLUTION, MAX_LOG2_TABLE, MAX_PROPOSAL_NETWORKS,
   MAX_SAMPLES_PER_RAY, MAX_TABLE_VALUES, checkedFloat, checkedInt, checkedList,
@@ -39,34 +39,51 @@ const cellOffset = (implementation) => (implementation === "tcnn" ? 0.5 : 0.0);
 
 /** checked_grid: a grid's features, log2_table and float32 scales (one per level), within the caps. */
 function checkedGrid(config, implementation, what) {
-  const scales = checkedList(config.scales, `${what} scales`, null, MAX_HASH_LEVELS);
-  if (!scales.length) throw new UserError(`the ${what}'s grid needs at least one level`);
+  const scales = checkedList(config.scales, `${what} scales`, null, MAX_HASH_LEVELS, { code: "field.scales" });
+  if (!scales.length) throw new UserError(`the ${what}'s grid needs at least one level`, { code: "field.no_levels", network: what });
   const lowest = implementation === "torch" ? 1.0 : 0.0;
-  const values = scales.map((v) => f32(checkedFloat(v, `${what} scales`, lowest, BigInt(MAX_HASH_RESOLUTION - 2))));
+  const values = scales.map((v) => f32(checkedFloat(v, `${what} scales`, lowest, BigInt(MAX_HASH_RESOLUTION - 2),
+    { code: "field.scales" })));
   if (values.some((finer, l) => l > 0 && finer < values[l - 1])) {
-    throw new UserError(`the ${what}'s scales must not decrease from level to level`); // dense levels come first
+    throw new UserError(`the ${what}'s scales must not decrease from level to level`, // dense levels come first
+      { code: "field.scales_decrease", network: what });
   }
-  return { features: checkedInt(config.features, `${what} features`, 1, MAX_HASH_FEATURES),
-    log2_table: checkedInt(config.log2_table, `${what} log2_table`, 3, MAX_LOG2_TABLE), scales: values };
+  return { features: checkedInt(config.features, `${what} features`, 1, MAX_HASH_FEATURES, { code: "field.features" }),
+    log2_table: checkedInt(config.log2_table, `${what} log2_table`, 3, MAX_LOG2_TABLE, { code: "field.log2_table" }),
+    scales: values };
 }
 
 function checkedProposal(config, implementation, what) {
-  if (!hasExactly(config, PROPOSAL_KEYS)) throw new UserError(`the ${what} must have exactly ${exactly(PROPOSAL_KEYS)}`);
+  if (!hasExactly(config, PROPOSAL_KEYS)) {
+    throw new UserError(`the ${what} must have exactly ${exactly(PROPOSAL_KEYS)}`, { code: "field.proposal_keys", network: what });
+  }
   return { ...checkedGrid(config, implementation, what),
-    hidden: checkedInt(config.hidden, `${what} hidden`, 1, MAX_FIELD_WIDTH) };
+    hidden: checkedInt(config.hidden, `${what} hidden`, 1, MAX_FIELD_WIDTH, { code: "field.width" }) };
 }
 
 /** checked_sampler: samples per proposal stage (one per network), the field's samples, the PDF's histogram padding,
  * the ray interval of ordinary renders. */
 function checkedSampler(config, proposals, what) {
-  if (!hasExactly(config, SAMPLER_KEYS)) throw new UserError(`the ${what} network's sampler must have exactly ${exactly(SAMPLER_KEYS)}`);
-  const stages = checkedList(config.proposal_samples, `${what} proposal_samples`, proposals);
-  const near = checkedFloat(config.near, `${what} sampler near`, 0.0, 1e9);
-  const far = checkedFloat(config.far, `${what} sampler far`, 0.0, 1e9);
-  if (!(near < far)) throw new UserError(`the ${what} network's sampler needs near < far, got ${reprFloat(near)}, ${reprFloat(far)}`);
-  return { proposal_samples: stages.map((n) => checkedInt(n, `${what} proposal_samples`, 1, MAX_SAMPLES_PER_RAY)),
-    samples: checkedInt(config.samples, `${what} sampler samples`, 1, MAX_SAMPLES_PER_RAY),
-    histogram_padding: checkedFloat(config.histogram_padding, `${what} histogram_padding`, 0.0, 1.0), near, far };
+  if (!hasExactly(config, SAMPLER_KEYS)) {
+    throw new UserError(`the ${what} network's sampler must have exactly ${exactly(SAMPLER_KEYS)}`,
+      { code: "field.sampler_keys", network: what });
+  }
+  const stages = checkedList(config.proposal_samples, `${what} proposal_samples`, proposals, undefined,
+    { code: "field.proposal_samples" });
+  const near = checkedFloat(config.near, `${what} sampler near`, 0.0, 1e9, { code: "field.sampler_near" });
+  const far = checkedFloat(config.far, `${what} sampler far`, 0.0, 1e9, { code: "field.sampler_far" });
+  if (!(near < far)) {
+    throw new UserError(`the ${what} network's sampler needs near < far, got ${near}, ${far}`,
+      { code: "field.near_far", network: what, near, far });
+  }
+  return {
+    proposal_samples: stages.map((n) => checkedInt(n, `${what} proposal_samples`, 1, MAX_SAMPLES_PER_RAY,
+      { code: "field.proposal_samples" })),
+    samples: checkedInt(config.samples, `${what} sampler samples`, 1, MAX_SAMPLES_PER_RAY, { code: "field.sampler_samples" }),
+    histogram_padding: checkedFloat(config.histogram_padding, `${what} histogram_padding`, 0.0, 1.0,
+      { code: "field.histogram_padding" }),
+    near, far,
+  };
 }
 
 /** contracted_unit: nerfstudio's L∞ scene contraction of `points`, then (x + 2)/4, points off the open unit cube at 0.
@@ -116,20 +133,32 @@ export const NERFACTO = {
   opset: 18,
 
   checked(config, what) {
-    if (!hasExactly(config, KEYS)) throw new UserError(`the ${what} network's architecture must have exactly ${exactly(KEYS)}`);
+    if (!hasExactly(config, KEYS)) {
+      throw new UserError(`the ${what} network's architecture must have exactly ${exactly(KEYS)}`,
+        { code: "field.keys", network: what, kind: this.name });
+    }
     const implementation = config.implementation;
     if (typeof implementation !== "string" || !IMPLEMENTATIONS.includes(implementation)) {
-      throw new UserError(`the ${what} network's implementation must be one of ${IMPLEMENTATIONS.join(", ")}`);
+      throw new UserError(`the ${what} network's implementation must be one of ${IMPLEMENTATIONS.join(", ")}`,
+        { code: "field.implementation", network: what,
+          implementation: typeof implementation === "string" ? [...implementation].slice(0, 60).join("") : null });
     }
     const checked = { kind: this.name, implementation, ...checkedGrid(config, implementation, `${what} network`),
-      ...checkedMlps(config, what), density_scale: checkedFloat(config.density_scale, `${what} density_scale`, 1e-12, 1e12) };
-    const proposals = checkedList(config.proposals, `${what} proposals`, null, MAX_PROPOSAL_NETWORKS);
-    if (!proposals.length) throw new UserError(`the ${what} network needs a proposal network (its sampler has a stage per network)`);
+      ...checkedMlps(config, what),
+      density_scale: checkedFloat(config.density_scale, `${what} density_scale`, 1e-12, 1e12, { code: "field.density_scale" }) };
+    const proposals = checkedList(config.proposals, `${what} proposals`, null, MAX_PROPOSAL_NETWORKS, { code: "field.proposals" });
+    if (!proposals.length) {
+      throw new UserError(`the ${what} network needs a proposal network (its sampler has a stage per network)`,
+        { code: "field.no_proposals", network: what });
+    }
     checked.proposals = proposals.map((proposal, i) => checkedProposal(proposal, implementation, `${what} proposal network ${i}`));
     checked.sampler = checkedSampler(config.sampler, proposals.length, what);
     const values = [checked, ...checked.proposals].reduce((sum, grid) => (
       sum + gridLayout(implementation, grid.scales, grid.log2_table).totalRows * grid.features), 0);
-    if (values > MAX_TABLE_VALUES) throw new UserError(`the ${what} network's tables hold ${values} values, more than ${MAX_TABLE_VALUES}`);
+    if (values > MAX_TABLE_VALUES) {
+      throw new UserError(`the ${what} network's tables hold ${values} values, more than ${MAX_TABLE_VALUES}`,
+        { code: "field.table_values", network: what, values, most: MAX_TABLE_VALUES });
+    }
     return checked;
   },
 

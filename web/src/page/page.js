@@ -11,6 +11,7 @@
 
 import { workerCode, wasmBase64 } from "noisenerf-embedded";
 import { FIELD_WORKER, REVEAL_WORKER } from "./roles.js";
+import { UserError } from "../errors.js";
 
 const MOST_WORKERS = 16; // beyond the cores there are, more workers only hold more memory
 let worker = null, ready = null, nextId = 0, workerUrl = null;
@@ -36,9 +37,8 @@ function startWorker() {
       pending.delete(data.id);
       if (data.type === "done") call.resolve(data.result);
       else {
-        const error = new Error(data.message);
-        if (data.userError) error.name = "UserError";
-        call.reject(error);
+        call.reject(data.userError ? new UserError(data.message, { ...data.params, code: data.code ?? null })
+          : new Error(data.message));
       }
     }
   };

@@ -4,7 +4,8 @@
 // The reveal worker's messages in: {id, type: "init", wasmBinary?} | {id, type: "pool", ports} | {type:
 // "fieldFailed", index, message} | {id, type: "inspect", bundle} | {id, type: "reveal", model, bundle,
 // passphrase}. Out: {id, type: "progress", progress} | {id, type: "done", result} | {id, type: "error", message,
-// userError}. A refusal is a UserError: its message is the CLI's line. A field worker's one message in: {port}.
+// userError, code, params}. A refusal is a UserError: structured cloning keeps no Error's own properties, so its code
+// and params travel as data and page.js rebuilds it. A field worker's one message in: {port}.
 
 import { reveal, inspectBundle, UserError } from "../index.js";
 import { FieldPool, fieldWorker } from "../pool.js";
@@ -50,7 +51,8 @@ async function handle({ id, type, ...data }) {
   } catch (error) {
     const userError = error instanceof UserError;
     self.postMessage({ id, type: "error", userError,
-      message: userError ? error.message : `unexpected error: ${String(error?.message ?? error)}` });
+      message: userError ? error.message : `unexpected error: ${String(error?.message ?? error)}`,
+      ...(userError ? { code: error.code, params: error.params } : {}) });
   }
 }
 
