@@ -21,8 +21,8 @@ stored beside the coefficients: 58 bytes with its index for the NeRF MLP) or, wh
 full 90 values (184 bytes), so every pixel is still exact (train/hide/exact_solver.solve_pixels).
 
 Why k = 5: every coefficient costs bytes at every pixel and each escape tens to hundreds, so k trades bytes
-per pixel against escapes: k = 4 lets so many pixels escape that the worst keys grow and hides take 1.8×
-as long, k = 6 costs a coefficient's bytes at every pixel to save escapes that branch escapes made cheap.
+per pixel against escapes: k = 4 lets so many pixels escape that the worst keys grow and hides slow down,
+k = 6 costs a coefficient's bytes at every pixel to save escapes that branch escapes made cheap.
 int8 coefficients leave most pixels unreachable on their lattice. The measurements are in the README
 ("Formats") and the bench's `keys` experiment.
 """

@@ -116,9 +116,8 @@ class ExactSolver(Solver):
         """One torch thread on a CPU. The Levenberg–Marquardt loop is thousands of small ops; with torch's
         OpenMP pool of one thread per core, every op is a parallel region whose idle threads spin, and on
         a machine whose cores are shared that spinning took the solver's own CPU (README, "Predictable
-        speed": a 64×64 hide 25–54 s instead of ~2 s beside other busy processes). One thread measured
-        1.35 s quiet against 1.1 s for two, ~2 s beside two busy loops against 4.6–6.7 s, and makes the
-        bundle's bytes independent of the machine's core count."""
+        speed", has the figures). One thread costs little on a quiet machine, much less than a pool on a busy
+        one, and makes the bundle's bytes independent of the machine's core count."""
         if device.type != "cpu":
             yield
             return

@@ -24,8 +24,8 @@ from noisenerf.train.hide.run import hide
 from noisenerf.train.scene.scene import Scene
 from noisenerf.train.hide.tiling import tile_rects
 
-# The exact hide's rate for payload pixels on 2 CPU cores, the basis of the time a hide announces: a random
-# 1 MiB file (592 × 591 px, 4 tiles) hid on the lego small fit in 19.3 s (README, "Hide a file").
+# The exact hide's rate for payload pixels on 2 CPU cores, the basis of the time a hide announces (measured
+# on a random 1 MiB file: README, "Hide a file").
 PAYLOAD_PIXELS_PER_SECOND = 18_000
 
 

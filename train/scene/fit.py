@@ -3,7 +3,7 @@
 Presets (`--field` picks a kind's default preset; without either, `hashgrid`: DEFAULT_FIELD):
 - `small` (the `mlp` kind's default): one 6×128 MLP (nerf-pytorch compatible: netdepth 6, netwidth 128,
   skip at 4), 128 uniform samples per ray of which only those in occupied grid cells and before the ray
-  turns opaque are evaluated. Chosen for 2 CPU cores: ≈4× the training throughput of 8×256.
+  turns opaque are evaluated. Chosen for 2 CPU cores: several times the training throughput of 8×256.
 - `paper`: nerf-pytorch's lego setup, 8×256 coarse + fine, 64 + 128 hierarchical samples.
 - `hashgrid` (the `hashgrid` kind's): Instant-NGP's field (16 levels × 2 features, 2^17 rows a level,
   resolutions 16 to 1024, SH degree 4, 64-wide MLPs) spanning the dataset's box, with the same sampler,
@@ -100,10 +100,9 @@ PRESETS = {
                           occupancy=OccupancyConfig(warmup_steps=100)),
 }
 DEFAULT_PRESETS = {"mlp": "small", "hashgrid": "hashgrid"}  # the preset `--field KIND` fits with
-# the kind new fits take without --field or --preset: on lego at 200 px in 15 minutes on 2 cores it scores
-# 2.8 dB above the small preset, keys are no larger and every camera takes every hard secret
-# (README "Field kinds"); the MLP stays the choice for a smaller model file (0.6 MB against 13 MB) and
-# faster reveals (~2.4×)
+# the kind new fits take without --field or --preset: in the same minutes it fits better than the small
+# preset, its keys are no larger and every camera takes every hard secret (README "Field kinds" has the
+# figures); the MLP stays the choice for a smaller model file and faster reveals
 DEFAULT_FIELD = "hashgrid"
 
 
