@@ -164,20 +164,11 @@ def cmd_make_dataset(args) -> None:
     emit({"dataset": str(path)}, args.json, [f"dataset: {path}"])
 
 
-def build_parser() -> argparse.ArgumentParser:
-    parser = OneLineParser(prog=PROG, description=__doc__.splitlines()[0])
-    sub = parser.add_subparsers(dest="command", required=True)
+def device_argument(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--device", default="auto", help="auto (CUDA if present, else CPU), cpu, or cuda")
 
-    def add(name: str, handler, help_text: str) -> argparse.ArgumentParser:
-        p = sub.add_parser(name, help=help_text, description=help_text)
-        p.set_defaults(handler=handler)
-        p.add_argument("--json", action="store_true", help="print one JSON object on stdout")
-        return p
 
-    def add_device(p: argparse.ArgumentParser) -> None:
-        p.add_argument("--device", default="auto", help="auto (CUDA if present, else CPU), cpu, or cuda")
-
-    p = add("fit", cmd_fit, "fit a NeRF to a NeRF-Synthetic, LLFF or capture (transforms.json) dataset")
+def fit_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("data_dir")
     p.add_argument("-o", "--output", required=True, help="scene directory to write (resumes if it holds a checkpoint)")
     p.add_argument("--field", choices=("mlp", "hashgrid"),
@@ -191,22 +182,24 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int)
     p.add_argument("--no-skip", action="store_true", help="no occupancy grid or early termination (comparison)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
-    add_device(p)
+    device_argument(p)
 
-    p = add("import-nerf-pytorch", cmd_import, "convert a nerf-pytorch checkpoint into a scene directory")
+
+def import_nerf_pytorch_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("checkpoint")
     p.add_argument("--config", required=True, help="the nerf-pytorch config .txt the checkpoint was trained with")
     p.add_argument("--data-dir", help="dataset folder (default: the config's datadir)")
     p.add_argument("-o", "--output", required=True)
 
-    p = add("import-nerfstudio", cmd_import_nerfstudio,
-            "convert a nerfstudio nerfacto run directory into a scene directory")
+
+def import_nerfstudio_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("run_dir", help="outputs/<experiment>/nerfacto/<timestamp>: config.yml, dataparser_transforms.json, "
                                    "nerfstudio_models/")
     p.add_argument("--data", help="the dataset folder holding transforms.json (default: the run's recorded path)")
     p.add_argument("-o", "--output", required=True)
 
-    p = add("hide", cmd_hide, "hide a secret image (or any file) in a scene; writes the secret bundle")
+
+def hide_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("scene_dir")
     p.add_argument("secret", nargs="?", help="PNG/JPEG/TIFF/EXR; RGBA is composited over white")
     p.add_argument("--file", help="hide this file's bytes instead of an image (revealed byte for byte)")
@@ -243,18 +236,21 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.add_argument("--verbose", action="store_true", help="--executor ray: let Ray's own log lines through to stderr "
                                                           "(off: our lines are the only ones)")
-    add_device(p)
+    device_argument(p)
 
-    p = add("export", cmd_export, "export a scene's frozen field as one ONNX file with a noise input")
+
+def export_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("scene_dir")
     p.add_argument("-o", "--output", required=True)
 
-    p = add("demo", cmd_demo, "hide, export and reveal on the embedded demo scene and a generated secret")
+
+def demo_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("-o", "--output", default="noisenerf-demo", help="folder for the demo's files")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
-    add_device(p)
+    device_argument(p)
 
-    p = add("bench", cmd_bench, "measure everything BENCHMARKS.md reports; writes it with CSVs and plots")
+
+def bench_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--scene", required=True, help="scene directory (the README's Benchmarks section fits it)")
     p.add_argument("--secret", required=True, help="the secret image most experiments hide")
     p.add_argument("--data", help="dataset whose test views the skipping experiment renders and the fields one fits")
@@ -278,14 +274,45 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--nerfstudio-data", help="nerfstudio: its dataset folder (transforms.json)")
     p.add_argument("--nerfstudio-golden", help="nerfstudio: tools/nerfstudio_goldens.py's folder for that run")
     p.add_argument("--only", help="comma-separated experiments, run with those they need (default: all)")
-    add_device(p)
+    device_argument(p)
     p.add_argument("--stress", action="store_true", help="also run the full numerical stress suite")
     p.add_argument("-o", "--output", default="bench", help="folder for BENCHMARKS.md, CSVs and plots")
 
-    p = add("make-dataset", cmd_make_dataset, "write the procedural NeRF-Synthetic-format dataset")
+
+def make_dataset_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("-o", "--output", required=True)
     p.add_argument("--size", type=int, default=64)
     p.add_argument("--seed", type=int, default=0)
+
+
+COMMANDS = (  # (command, handler, help, its arguments)
+    ("fit", cmd_fit, "fit a NeRF to a NeRF-Synthetic, LLFF or capture (transforms.json) dataset",
+     fit_arguments),
+    ("import-nerf-pytorch", cmd_import, "convert a nerf-pytorch checkpoint into a scene directory",
+     import_nerf_pytorch_arguments),
+    ("import-nerfstudio", cmd_import_nerfstudio, "convert a nerfstudio nerfacto run directory into a scene directory",
+     import_nerfstudio_arguments),
+    ("hide", cmd_hide, "hide a secret image (or any file) in a scene; writes the secret bundle",
+     hide_arguments),
+    ("export", cmd_export, "export a scene's frozen field as one ONNX file with a noise input",
+     export_arguments),
+    ("demo", cmd_demo, "hide, export and reveal on the embedded demo scene and a generated secret",
+     demo_arguments),
+    ("bench", cmd_bench, "measure everything BENCHMARKS.md reports; writes it with CSVs and plots",
+     bench_arguments),
+    ("make-dataset", cmd_make_dataset, "write the procedural NeRF-Synthetic-format dataset",
+     make_dataset_arguments),
+)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = OneLineParser(prog=PROG, description=__doc__.splitlines()[0])
+    sub = parser.add_subparsers(dest="command", required=True)
+    for name, handler, help_text, add_arguments in COMMANDS:
+        p = sub.add_parser(name, help=help_text, description=help_text)
+        p.set_defaults(handler=handler)
+        p.add_argument("--json", action="store_true", help="print one JSON object on stdout")
+        add_arguments(p)
     return parser
 
 
