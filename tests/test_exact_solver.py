@@ -20,7 +20,7 @@ from noisenerf.train.hide.exact import (ExactProblem, NoiseSpace, chord_start, d
 from noisenerf.train.hide.plan import HideConfig, plan
 from noisenerf.train.hide.secret_view import BranchView, SecretView
 from noisenerf.train.hide.settings import CompactSettings, ExactSettings
-from noisenerf.train.hide.executors import LocalExecutor
+from noisenerf.train.hide.executors import LocalExecutor, sendable
 from noisenerf.train.hide.jobs import FieldWeights, Job, JobRunner
 from noisenerf.train.scene.procedural import DEMO_SCENE, procedural_secret
 from noisenerf.train.scene.scene import load_scene
@@ -241,6 +241,18 @@ def test_local_executor_spreads_jobs_over_other_processes_and_stops_on_an_error(
         for worker in executor.workers:  # killed (say, out of memory) before they finish: no endless wait
             os.kill(worker.pid, signal.SIGKILL)
         list(executor.results())
+
+
+class Unpicklable(Exception):
+    def __init__(self, what: str, where: int):  # pickling rebuilds it from args alone: fails
+        super().__init__(f"{what} at {where}")
+
+
+def test_a_worker_error_that_cannot_be_pickled_reaches_the_driver_named():
+    error = sendable(Unpicklable("bad", 3))
+    assert type(error) is RuntimeError and str(error) == "Unpicklable: bad at 3"
+    refusal = UserError("m", code="a.b", n=1)
+    assert sendable(refusal) is refusal
 
 
 def test_a_basis_that_ignores_what_it_missed_is_refused():

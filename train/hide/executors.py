@@ -58,7 +58,17 @@ def worker_loop(weights: FieldWeights, todo, done) -> None:
         try:
             done.put((number, pickle.dumps(runner.run(weights, *pickle.loads(pickled))), None))
         except Exception as error:  # the job's own error, raised in the driver
-            done.put((number, None, error))
+            done.put((number, None, sendable(error)))
+
+
+def sendable(error: Exception) -> Exception:
+    """The error itself if it survives pickling (the queue's feeder thread would drop it silently, leaving the
+    driver waiting), else a RuntimeError naming it."""
+    try:
+        pickle.loads(pickle.dumps(error))
+    except Exception:
+        return RuntimeError(f"{type(error).__name__}: {error}")
+    return error
 
 
 class LocalExecutor(Executor):
