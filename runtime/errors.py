@@ -31,6 +31,10 @@ class UserError(Exception):
         self.code = code
         self.params = {name: plain(value) for name, value in params.items()}
 
+    def reworded(self, message: str) -> UserError:
+        """The same refusal (code and params) with another message, e.g. the file it came from in front."""
+        return type(self)(message, self.code, **self.params)
+
 
 class InexactResult(UserError):
     """A result the program knows to be wrong (an exact hide that left pixels off): exit code 3, so a

@@ -147,7 +147,7 @@ class ModelMetadata:
             code, params = getattr(error, "refusal", ("model.metadata_malformed", {}))
             raise UserError(f"{source}: malformed noisenerf metadata ({error!r})", code=code, **params) from None
         except UserError as error:
-            raise UserError(f"{source}: {error}", code=error.code, **error.params) from None
+            raise error.reworded(f"{source}: {error}") from None
 
 
 @dataclass(frozen=True, eq=False)
@@ -229,7 +229,7 @@ def expected_graph(metadata: ModelMetadata, source: str) -> FieldGraph:
     try:
         return field_graph(metadata.architecture, metadata.noise_dims)
     except UserError as error:
-        raise UserError(f"{source}: {error}", code=error.code, **error.params) from None
+        raise error.reworded(f"{source}: {error}") from None
 
 
 def short_fingerprint(fingerprint: str) -> str:

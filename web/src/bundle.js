@@ -2,11 +2,11 @@
 // metadata checked with the same messages and caps before anything is allocated (formats 1–3), each tile's noise
 // read, checked and cut into chunks by its layout (src/layouts.js).
 
-import { UserError, PyFloat, show } from "./errors.js";
+import { UserError, PyFloat, cut, show } from "./errors.js";
 import { isJsonObject as isObject, parseJson } from "./json.js";
 import { LAYOUTS, chunkRows, layoutNamed } from "./layouts.js";
 import {
-  MAX_CAMERAS, MAX_IMAGE_SIDE, MAX_NOISE_DIMS, MAX_TILES, checkedImageSize, checkedInt, checkedList, cut, num,
+  MAX_CAMERAS, MAX_IMAGE_SIDE, MAX_NOISE_DIMS, MAX_TILES, checkedImageSize, checkedInt, checkedList, num,
 } from "./limits.js";
 import { cameraFromDict } from "./camera.js";
 import { samplingFromDict } from "./sampling.js";

@@ -20,7 +20,15 @@ export class UserError extends Error {
     this.code = code;
     this.params = plain(params);
   }
+
+  /** The same refusal (code and params) with another message, e.g. the file it came from in front. */
+  reworded(message) {
+    return new UserError(message, { code: this.code, ...this.params });
+  }
 }
+
+/** A string read from a file as a refusal's param: its first n code points (Python's value[:n]). */
+export const cut = (text, n = 60) => [...text].slice(0, n).join("");
 
 /** A value quoted in a message, cut to `n` characters: strings and structures as JSON, floats as numbers. */
 export function show(value, n = 60) {
@@ -30,7 +38,7 @@ export function show(value, n = 60) {
   } catch {
     text = String(value);
   }
-  return [...text].slice(0, n).join("");
+  return cut(text, n);
 }
 
 /** A JSON number written with a fraction or exponent (16.0, 1e3): a float, as Python parses it, told from an

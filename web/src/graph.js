@@ -2,7 +2,7 @@
 // and the rule that binds a model file's graph to the one its architecture derives (check_graph), refusing with the
 // same codes and params.
 
-import { UserError, show } from "./errors.js";
+import { UserError, cut, show } from "./errors.js";
 import { FLOAT, INT64, tensorArray } from "./onnx.js";
 
 export const INPUT_NAMES = ["points", "viewdirs", "noise"];
@@ -72,7 +72,6 @@ const sameNode = (a, b) => a.op === b.op && sameList(a.inputs, b.inputs) && same
   a.attributes.length === b.attributes.length && a.attributes.every(([n, v], i) => n === b.attributes[i][0] && v === b.attributes[i][1]);
 const samePort = (a, b) => a !== null && a.name === b.name && a.elemType === b.elemType && sameList(a.shape, b.shape);
 const portText = (port) => (port === null ? "null" : `${port.name} [${port.shape.join(", ")}]`);
-const cut = (text) => [...text].slice(0, 60).join(""); // a string the file controls, as a refusal's parameter
 
 /** check_graph: refuse a model file whose graph differs from `expected`; return its weights (name -> Float32Array). */
 export function checkGraph(file, expected, source) {

@@ -5,9 +5,9 @@
 // file format and asks the layout; no other module branches on a layout's name.
 
 import xz from "xz-decompress";
-import { UserError, show } from "./errors.js";
+import { UserError, cut, show } from "./errors.js";
 import {
-  MAX_COMPACT_COEFFICIENTS, MAX_RAY_LAYOUT_SAMPLES, MAX_SAMPLES_PER_RAY, checkedExpansion, checkedFloat, checkedInt, cut,
+  MAX_COMPACT_COEFFICIENTS, MAX_RAY_LAYOUT_SAMPLES, MAX_SAMPLES_PER_RAY, checkedExpansion, checkedFloat, checkedInt,
 } from "./limits.js";
 
 const { XzReadableStream } = xz;

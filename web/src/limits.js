@@ -27,8 +27,6 @@ export const MAX_JSON_DEPTH = 32;
 
 const isInt = (v) => (typeof v === "number" && Number.isInteger(v)) || typeof v === "bigint";
 
-/** A string read from a file as a refusal's param: its first n code points (Python's value[:n]). */
-export const cut = (text, n = 60) => [...text].slice(0, n).join("");
 
 /** These numbers (ints, BigInts, PyFloats) as a refusal's params, those that are not finite floats left out. */
 export function finiteParams(numbers) {

@@ -4,7 +4,7 @@
 
 import { sha256 } from "@noble/hashes/sha2.js";
 import { bytesToHex } from "@noble/hashes/utils.js";
-import { UserError, PyFloat, show } from "./errors.js";
+import { UserError, PyFloat, cut, show } from "./errors.js";
 import { isJsonObject as isObject, parseJson, dumpsSorted } from "./json.js";
 import { parseModel } from "./onnx.js";
 import { checkGraph } from "./graph.js";
@@ -96,7 +96,7 @@ export function metadataFromProps(props, source) {
   if (version !== String(MODEL_FORMAT_VERSION)) {
     throw new UserError(`${source} has model format version ${show(version)}; this noisenerf reads ` +
       `version ${MODEL_FORMAT_VERSION} (export the scene again with \`noisenerf export\`)`,
-    { code: "model.format_version", version: [...version].slice(0, 60).join("") });
+    { code: "model.format_version", version: cut(version) });
   }
   const data = parseJson(props.get(METADATA_KEY), `${source}: noisenerf metadata`);
   const need = (object, key) => {
@@ -130,7 +130,7 @@ export function metadataFromProps(props, source) {
     if (error instanceof Malformed) {
       throw new UserError(`${source}: malformed noisenerf metadata (${error.message})`, { code: error.code, ...error.params });
     }
-    if (error instanceof UserError) throw new UserError(`${source}: ${error.message}`, { code: error.code, ...error.params });
+    if (error instanceof UserError) throw error.reworded(`${source}: ${error.message}`);
     throw error;
   }
 }
@@ -158,7 +158,7 @@ export function checkModel(data, source = "model.onnx") {
   try {
     expected = fieldGraph(metadata.architecture, metadata.noiseDims);
   } catch (error) {
-    if (error instanceof UserError) throw new UserError(`${source}: ${error.message}`, { code: error.code, ...error.params });
+    if (error instanceof UserError) throw error.reworded(`${source}: ${error.message}`);
     throw error;
   }
   const weights = checkGraph(file, expected, source);

@@ -11,9 +11,8 @@
 //   TensorProto dims 1, data_type 2, float_data 4, int64_data 7, name 8, raw_data 9, external_data 13,
 //              data_location 14
 
-import { UserError, show } from "./errors.js";
+import { UserError, cut, show } from "./errors.js";
 
-const cut = (text) => [...text].slice(0, 60).join(""); // a string the file controls, as a refusal's parameter
 
 export const FLOAT = 1;
 export const INT64 = 7;

@@ -5,7 +5,7 @@
 // with the scene's own sampling; nerfacto's proposal networks are outputs sigma_proposal0, …); `fieldGraph` composes
 // a model's networks into the one graph check_graph (src/graph.js) binds the model file to.
 
-import { UserError, show } from "../errors.js";
+import { UserError, cut, show } from "../errors.js";
 import { isJsonObject } from "../json.js";
 import { COARSE_OUTPUT_NAMES, OUTPUT_NAMES, BATCH, GraphBuilder, port, proposalOutput } from "../graph.js";
 import { MLP } from "./mlp.js";
@@ -32,7 +32,7 @@ export function fieldKind(config, what) {
   const kinds = fieldKinds();
   if (typeof name !== "string" || !Object.hasOwn(kinds, name)) {
     throw new UserError(`the ${what} network is of kind ${show(name)}; this noisenerf knows ${Object.keys(kinds).sort().join(", ")}`,
-      { code: "field.unknown_kind", network: what, kind: typeof name === "string" ? [...name].slice(0, 60).join("") : null });
+      { code: "field.unknown_kind", network: what, kind: typeof name === "string" ? cut(name) : null });
   }
   return kinds[name];
 }

@@ -10,7 +10,7 @@
 // Float32 constants are numpy's to the bit: the scales, JSON floats, are rounded through float32 (Math.fround) as the
 // Python check rounds them, density.scale is float32(density_scale), the torch SH's signs multiply the float32 matrix.
 
-import { UserError } from "../errors.js";
+import { UserError, cut } from "../errors.js";
 import {
   MAX_FIELD_WIDTH, MAX_HASH_FEATURES, MAX_HASH_LEVELS, MAX_HASH_RESOLUTION, MAX_LOG2_TABLE, MAX_PROPOSAL_NETWORKS,
   MAX_SAMPLES_PER_RAY, MAX_TABLE_VALUES, checkedFloat, checkedInt, checkedList,
@@ -141,7 +141,7 @@ export const NERFACTO = {
     if (typeof implementation !== "string" || !IMPLEMENTATIONS.includes(implementation)) {
       throw new UserError(`the ${what} network's implementation must be one of ${IMPLEMENTATIONS.join(", ")}`,
         { code: "field.implementation", network: what,
-          implementation: typeof implementation === "string" ? [...implementation].slice(0, 60).join("") : null });
+          implementation: typeof implementation === "string" ? cut(implementation) : null });
     }
     const checked = { kind: this.name, implementation, ...checkedGrid(config, implementation, `${what} network`),
       ...checkedMlps(config, what),
