@@ -1,7 +1,7 @@
 """Refusals of the recipient's half carry a stable code in both languages (runtime/errors.py, web/src/errors.js).
 
 Every UserError raised under runtime/ names its code (a literal `area.what`, or a name a helper was given), every
-`new UserError(...)` under web/src/ too, and a code the JavaScript raises is one the Python runtime raises: the
+`new UserError(...)` under web/src/ too, and a code the JavaScript writes anywhere is one the Python runtime raises: the
 two are tied by code and params (tests/test_web.py compares them on every tampered fixture), not by spelling."""
 
 from __future__ import annotations
@@ -29,6 +29,19 @@ def python_refusals() -> list[tuple[str, int, ast.expr | None]]:
                 code = next((keyword.value for keyword in node.keywords if keyword.arg == "code"), None)
                 found.append((str(path.relative_to(REPO)), node.lineno, code))
     return found
+
+
+def python_codes() -> set[str]:
+    """Every code runtime/ raises: `code=` literals, and `area.what` literals given to a helper that raises
+    (refuse(source, why, "graph.node", ...), os_failure(..., "file.read_failed"))."""
+    codes = set()
+    for path in (REPO / "runtime").rglob("*.py"):
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.Call):
+                values = [*node.args, *(keyword.value for keyword in node.keywords if keyword.arg == "code")]
+                codes |= {value.value for value in values if isinstance(value, ast.Constant)
+                          and isinstance(value.value, str) and CODE.match(value.value)}
+    return codes
 
 
 def call_arguments(text: str, start: int) -> str:
@@ -94,12 +107,13 @@ def test_every_python_refusal_of_the_runtime_names_its_code():
 
 
 def test_every_javascript_refusal_names_a_code_python_raises():
-    python = {code.value for _, _, code in python_refusals() if isinstance(code, ast.Constant)}
+    python = python_codes()
     refusals = javascript_refusals()
     assert len(refusals) > 80
     missing = [f"{file}:{line}" for file, line, arguments in refusals if not re.search(r"\bcode\b", arguments)]
     assert not missing, f"new UserError without a code at {missing}"
-    codes = {code for _, _, arguments in refusals for code in re.findall(r'\bcode: "([^"]*)"', arguments)}
+    codes = {code for path in (REPO / "web" / "src").rglob("*.js")  # at the call, or given to a helper that makes one
+             for code in re.findall(r'\bcode: "([^"]*)"', path.read_text())}
     assert codes and all(CODE.match(code) for code in codes), sorted(codes)
     assert not codes - python, f"codes the JavaScript raises and Python never does: {sorted(codes - python)}"
 

@@ -27,6 +27,15 @@ export class UserError extends Error {
   }
 }
 
+/** An error as a message a worker posts (structured cloning keeps an Error's message, not its code and params):
+ * {message, refusal: {code, params} for a UserError, else null}. */
+export const postedError = (error) => ({ message: String(error?.message ?? error),
+  refusal: error instanceof UserError ? { code: error.code, params: error.params } : null });
+
+/** The error a postedError describes, rebuilt on the other side. */
+export const receivedError = ({ message, refusal }) => (refusal
+  ? new UserError(message, { ...refusal.params, code: refusal.code }) : new Error(message));
+
 /** A string read from a file as a refusal's param: its first n code points (Python's value[:n]). */
 export const cut = (text, n = 60) => [...text].slice(0, n).join("");
 

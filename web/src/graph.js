@@ -4,6 +4,7 @@
 
 import { UserError, cut, show } from "./errors.js";
 import { FLOAT, INT64, tensorArray } from "./onnx.js";
+import { pyCompare } from "./json.js";
 
 export const INPUT_NAMES = ["points", "viewdirs", "noise"];
 export const OUTPUT_NAMES = ["rgb", "sigma"];
@@ -57,9 +58,9 @@ export class GraphBuilder {
   }
 }
 
-function refuse(source, what, refusal) {
+function refuse(source, what, { code, ...params }) {
   return new UserError(`${source}: the model's graph is not the one its scene exports: ${what}; export the scene again`,
-    { code: refusal.code, ...refusal });
+    { code, ...params });
 }
 
 function describe(node) {
@@ -111,8 +112,8 @@ export function checkGraph(file, expected, source) {
     records.set(record.name, record);
   }
   const wanted = new Set([...expected.weights.keys(), ...expected.constants.keys()]);
-  const extra = [...records.keys()].filter((name) => !wanted.has(name)).sort(byCodePoint);
-  const missing = [...wanted].filter((name) => !records.has(name)).sort(byCodePoint);
+  const extra = [...records.keys()].filter((name) => !wanted.has(name)).sort(pyCompare);
+  const missing = [...wanted].filter((name) => !records.has(name)).sort(pyCompare);
   if (extra.length) throw refuse(source, `initializer ${show(extra[0])} is extra`, { code: "graph.initializer_extra", name: cut(extra[0]) });
   if (missing.length) throw refuse(source, `initializer ${show(missing[0])} is missing`, { code: "graph.initializer_missing", name: missing[0] });
   for (const [name, constant] of expected.constants) {
@@ -138,13 +139,4 @@ export function checkGraph(file, expected, source) {
     weights.set(name, { shape, values: tensorArray(record, source) });
   }
   return weights;
-}
-
-/** Python's sorted() of strings: by code point (JavaScript's sort compares UTF-16 units). */
-function byCodePoint(a, b) {
-  const [x, y] = [[...a], [...b]];
-  for (let i = 0; i < Math.min(x.length, y.length); i++) {
-    if (x[i] !== y[i]) return x[i].codePointAt(0) - y[i].codePointAt(0);
-  }
-  return x.length - y.length;
 }

@@ -145,9 +145,10 @@ function dumpString(s) {
   return out + '"';
 }
 
-// Python sorts str keys by code point; JS's < compares UTF-16 code units (they differ past U+FFFF)
+// Python sorts strings by code point; JS's < compares UTF-16 code units (they differ past U+FFFF)
 const codePoints = (s) => Array.from(s, (ch) => ch.codePointAt(0));
-function pyCompare(a, b) {
+/** Python's order of two strings (sorted()), for Array.sort. */
+export function pyCompare(a, b) {
   const x = codePoints(a), y = codePoints(b);
   for (let i = 0; i < Math.min(x.length, y.length); i++) if (x[i] !== y[i]) return x[i] - y[i];
   return x.length - y.length;

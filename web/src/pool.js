@@ -9,13 +9,13 @@
 // fieldWorker. They speak over endpoints {post(message, transfer), listen(onMessage, onError), terminate()}.
 
 import * as ort from "onnxruntime-web";
-import { UserError } from "./errors.js";
+import { postedError, receivedError } from "./errors.js";
 import { LocalRenderer, OnnxField, prunedNetworks } from "./reveal.js";
 
 /** The worker's side: a handler of the driver's messages, {id, type: "init", wasmBinary?} | {id, type: "open",
  * networks} (a renderer with no session yet) | {id, type: "session", network, model} (the model pruned to the
  * network's outputs) | {id, type: "chunk", job} | {id, type: "close"} -> Promise<[reply, transfer]>, the reply
- * {id, result} or {id, error, refusal} (refusal: a UserError's {code, params}, else null). Messages are answered one at a time, in order. */
+ * {id, result} or {id, error} (error: src/errors.js postedError). Messages are answered one at a time, in order. */
 export function fieldWorker() {
   let renderer = null, queue = Promise.resolve();
   const answer = async ({ id, type, ...data }) => {
@@ -50,9 +50,7 @@ export function fieldWorker() {
       }
       throw new Error(`unknown message ${String(type)}`);
     } catch (error) {
-      // a refusal goes as data (structured clone keeps an Error's message, not its code and params)
-      const refusal = error instanceof UserError ? { code: error.code, params: error.params } : null;
-      return [{ id, error: String(error?.message ?? error), refusal }, []];
+      return [{ id, error: postedError(error) }, []];
     }
   };
   return (data) => {
@@ -86,12 +84,12 @@ export class FieldPool {
     }
   }
 
-  answered(worker, { id, result, error, refusal }) {
+  answered(worker, { id, result, error }) {
     const call = worker.waiting.get(id);
     if (!call) return;
     worker.waiting.delete(id);
     if (error === undefined) call.resolve(result);
-    else call.reject(refusal ? new UserError(error, { code: refusal.code, ...refusal.params }) : new Error(error));
+    else call.reject(receivedError(error));
   }
 
   /** A worker that died (out of memory, a crash) fails everything it was given, and all it is given after. */

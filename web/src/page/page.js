@@ -11,7 +11,7 @@
 
 import { workerCode, wasmBase64 } from "noisenerf-embedded";
 import { FIELD_WORKER, REVEAL_WORKER } from "./roles.js";
-import { UserError } from "../errors.js";
+import { receivedError } from "../errors.js";
 
 const MOST_WORKERS = 16; // beyond the cores there are, more workers only hold more memory
 let worker = null, ready = null, nextId = 0, workerUrl = null;
@@ -37,8 +37,7 @@ function startWorker() {
       pending.delete(data.id);
       if (data.type === "done") call.resolve(data.result);
       else {
-        call.reject(data.userError ? new UserError(data.message, { ...data.params, code: data.code ?? null })
-          : new Error(data.message));
+        call.reject(receivedError(data));
       }
     }
   };

@@ -4,10 +4,11 @@
 // The reveal worker's messages in: {id, type: "init", wasmBinary?} | {id, type: "pool", ports} | {type:
 // "fieldFailed", index, message} | {id, type: "inspect", bundle} | {id, type: "reveal", model, bundle,
 // passphrase}. Out: {id, type: "progress", progress} | {id, type: "done", result} | {id, type: "error", message,
-// userError, code, params}. A refusal is a UserError: structured cloning keeps no Error's own properties, so its code
-// and params travel as data and page.js rebuilds it. A field worker's one message in: {port}.
+// refusal} (src/errors.js postedError: a UserError's code and params travel as data, page.js rebuilds it). A field
+// worker's one message in: {port}.
 
-import { reveal, inspectBundle, UserError } from "../index.js";
+import { reveal, inspectBundle } from "../index.js";
+import { postedError } from "../errors.js";
 import { FieldPool, fieldWorker } from "../pool.js";
 import { FIELD_WORKER } from "./roles.js";
 
@@ -49,10 +50,9 @@ async function handle({ id, type, ...data }) {
       self.postMessage({ id, type: "done", result }, [...new Set(transfer)]);
     }
   } catch (error) {
-    const userError = error instanceof UserError;
-    self.postMessage({ id, type: "error", userError,
-      message: userError ? error.message : `unexpected error: ${String(error?.message ?? error)}`,
-      ...(userError ? { code: error.code, params: error.params } : {}) });
+    const posted = postedError(error);
+    if (!posted.refusal) posted.message = `unexpected error: ${posted.message}`;
+    self.postMessage({ id, type: "error", ...posted });
   }
 }
 
