@@ -100,8 +100,8 @@ def tiny_fit(kind: str):
     from noisenerf.train.scene.random_scene import SMALL_HASHGRID
 
     preset = PRESETS["small"] if kind == "mlp" else dataclasses.replace(PRESETS["hashgrid"], field=SMALL_HASHGRID)
-    return dataclasses.replace(preset, batch_rays=256, n_samples=32, warmup_rays=128, warmup_samples=16,
-                               empty_points=256, precrop_steps=10,
+    return dataclasses.replace(preset, batch_rays=256, n_samples=32, render_samples=None, warmup_rays=128,
+                               warmup_samples=16, empty_points=256, precrop_steps=10,
                                occupancy=OccupancyConfig(resolution=16, warmup_steps=20, update_every=8))
 
 

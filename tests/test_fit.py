@@ -14,6 +14,7 @@ from helpers import assert_refused, tiny_fit
 from noisenerf.runtime.errors import UserError
 from noisenerf.train.scene.datasets import load_dataset
 from noisenerf.train.scene.fit import Budget, Fitter, fit
+from noisenerf.train.scene.occupancy import carve
 from noisenerf.train.scene.procedural import write_procedural_dataset
 from noisenerf.train.scene.random_scene import SMALL_HASHGRID
 from noisenerf.train.scene.scene import load_scene
@@ -97,6 +98,20 @@ def test_fit_json_is_one_object_on_stdout(dataset, tmp_path):
     assert result.returncode == 0, result.stderr
     report = json.loads(result.stdout)
     assert report["steps"] == 3 and np.isfinite(report["test"]["psnr"])
+
+
+def test_a_scene_renders_with_its_render_samples_through_the_finer_final_grid(dataset, tmp_path):
+    config = dataclasses.replace(TINY_HASHGRID, render_samples=48,
+                                 occupancy=dataclasses.replace(TINY_HASHGRID.occupancy, final_resolution=32))
+    report = quiet_fit(dataset, tmp_path / "scene", 60, config)
+    scene = load_scene(tmp_path / "scene")
+    assert scene.config.render.sampling.n_samples == 48 and scene.config.grid_resolution == 32
+    test_pixels = sum(dataset.cameras[i].width * dataset.cameras[i].height for i in dataset.splits["test"])
+    assert report["test"]["samples_dense"] == 48 * test_pixels  # the report renders as recipients will
+    train = list(dataset.splits["train"])
+    hull = carve([dataset.cameras[i] for i in train], dataset.alphas[train], dataset.aabb, 32)
+    assert scene.grid.occupied.shape == (32, 32, 32) and scene.grid.occupied.any()
+    assert not (scene.grid.occupied & ~hull).any()  # only the hull's cells were evaluated
 
 
 def test_a_hashgrid_fit_records_its_kind_and_the_datasets_box(dataset, tmp_path):

@@ -28,6 +28,13 @@ class OccupancyConfig:
     warmup_steps: int = 32
     update_fraction: float = 0.25
     final_samples_per_cell: int = 4
+    # the saved grid's cells per side (None: resolution); built once at the end, it can afford to be finer
+    # than the grid kept while fitting, and a finer grid misses fewer thin structures and skips more
+    final_resolution: int | None = None
+
+    @property
+    def saved_resolution(self) -> int:
+        return self.final_resolution or self.resolution
 
     def to_dict(self) -> dict:
         return dataclasses.asdict(self)
@@ -58,15 +65,19 @@ def cell_densities(field: Field, aabb: np.ndarray, resolution: int, cells: np.nd
 
 
 def build_occupancy_grid(field: Field, aabb, resolution: int, step_size: float,
-                         config: OccupancyConfig = OccupancyConfig(), seed: int = 0) -> OccupancyGrid:
-    """A grid from scratch: the max density over several jittered points per cell, thresholded."""
+                         config: OccupancyConfig = OccupancyConfig(), seed: int = 0,
+                         within: np.ndarray | None = None) -> OccupancyGrid:
+    """A grid from scratch: the max density over several jittered points per cell, thresholded. Only the
+    cells `within` allows ((resolution,)*3 bool, e.g. a visual hull) are evaluated; the rest are empty."""
     aabb = np.asarray(aabb, dtype=np.float32)
     rng = np.random.default_rng(seed)
-    cells = np.arange(resolution ** 3)
-    density = np.zeros(resolution ** 3, dtype=np.float32)
+    cells = np.arange(resolution ** 3) if within is None else np.flatnonzero(within)
+    density = np.zeros(cells.size, dtype=np.float32)
     for _ in range(config.final_samples_per_cell):
         density = np.maximum(density, cell_densities(field, aabb, resolution, cells, rng))
-    return OccupancyGrid(aabb, occupied_cells(density * step_size, config.opacity_threshold).reshape((resolution,) * 3))
+    occupied = np.zeros(resolution ** 3, dtype=bool)
+    occupied[cells] = occupied_cells(density * step_size, config.opacity_threshold)
+    return OccupancyGrid(aabb, occupied.reshape((resolution,) * 3))
 
 
 class OccupancyTracker:
