@@ -249,7 +249,8 @@ class Fitter:
         return torch.from_numpy(t).to(self.device)
 
     def scene(self, final: bool) -> Scene:
-        """The scene as it stands; `final` rebuilds the occupancy grid densely from the field."""
+        """The scene as it stands; `final` rebuilds the occupancy grid from the field at the saved resolution,
+        evaluating the visual hull's cells only (all cells without one)."""
         occupancy = self.config.occupancy
         if not final and self.config.skipping and self.fine is None:
             config = dataclasses.replace(self.scene_config, grid_resolution=occupancy.resolution)
