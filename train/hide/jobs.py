@@ -29,7 +29,7 @@ VIEWS_KEPT = 2  # secret views a process keeps: a worker's jobs mostly come tile
 
 @dataclass(frozen=True, eq=False)  # arrays have no truth value
 class FieldWeights:
-    """The network a hide renders, as plain arrays: what goes to the workers once (a pool's initializer,
+    """The network a hide renders, as plain arrays: what goes to the workers once (a local worker's start,
     Ray's object store), never with each job. `key` names it in a worker's caches."""
 
     key: str
@@ -67,7 +67,7 @@ def loaded_field(weights: FieldWeights, device: torch.device) -> Field:
 class JobRunner:
     """Runs jobs in one process, keeping what consecutive jobs share: the last network loaded and the VIEWS_KEPT
     latest secret views. Whoever runs jobs owns one: an executor for the jobs it runs in the driver's process
-    (whose driver assembles tiles with the same views), each pool worker's loop, each Ray worker process."""
+    (whose driver assembles tiles with the same views), each local worker's loop, each Ray worker process."""
 
     def __init__(self):
         self.fields: OrderedDict = OrderedDict()  # (weights key, device) -> Field, one kept
