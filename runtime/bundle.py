@@ -12,10 +12,12 @@
               render network, the fine one where there is one), and for a payload (a file, or a sealed
               secret) the optional "payload" object that runtime.payload defines and validates.
 
-Versions: noisenerf writes format 3 and reads formats 1 to 3. Format 1 (every bundle written before the
-compact layout) holds only the ray and sample layouts, which formats 2 and 3 keep unchanged, so it reveals
+Versions: noisenerf writes format 4 and reads formats 1 to 4. Format 1 (every bundle written before the
+compact layout) holds only the ray and sample layouts, which formats 2 to 4 keep unchanged, so it reveals
 as it always did; format 3's compact tiles add branch escapes (tile_NNNN_branch_escapes and
-_branch_escape_noise), which a format 2 tile has none of. A format this version does not know (a newer
+_branch_escape_noise), which a format 2 tile has none of; format 4's store their coefficients as differences
+from an interlaced prediction (codec "xz-interlaced-residuals", runtime/interlaced.py) where formats 2 and 3
+store them as they are ("xz-byte-planes"). A format this version does not know (a newer
 writer's) is refused in one line naming it.
 
 The bundle holds noise and metadata only: without the model's exact weights it renders nothing.
@@ -44,10 +46,12 @@ from noisenerf.runtime.payload import checked_payload
 from noisenerf.runtime.sealing import split_safetensors
 from noisenerf.runtime.sampling import SamplingConfig
 
-BUNDLE_FORMAT_VERSION = 3
+BUNDLE_FORMAT_VERSION = 4
 METADATA_KEY = "noisenerf_bundle"
-# format -> the layouts it may hold (format 3: compact tiles add branch escapes, runtime/layouts.py)
-READABLE_FORMATS = {1: ("ray", "sample"), 2: ("ray", "sample", "compact"), 3: ("ray", "sample", "compact")}
+# format -> the layouts it may hold (format 3: compact tiles add branch escapes; format 4: their coefficients are
+# stored as interlaced differences; runtime/layouts.py)
+READABLE_FORMATS = {1: ("ray", "sample"), 2: ("ray", "sample", "compact"), 3: ("ray", "sample", "compact"),
+                    4: ("ray", "sample", "compact")}
 SAFETENSORS_DTYPES = ("F16", "F32", "U8", "I32")  # float noise, bases and offsets, compressed coefficients, escapes
 def secret_digest(pixels: np.ndarray) -> str:
     """SHA-256 of an 8-bit RGB image's bytes, (height, width, 3) uint8 row-major."""
@@ -154,7 +158,7 @@ def validate_noise_header(layout: str, dtype: str, dims: int, coefficients: int 
     """A bundle's noise description as it would be written must read back (noise_header) as itself."""
     written = {"layout": layout, "dims": dims, "dtype": dtype,
                **(LAYOUTS[layout].header(coefficients) if layout in LAYOUTS else {})}
-    if noise_header(written, tuple(LAYOUTS))["coefficients"] != coefficients:
+    if noise_header(written, tuple(LAYOUTS), BUNDLE_FORMAT_VERSION)["coefficients"] != coefficients:
         raise UserError("bundle: coefficients per pixel are given for, and only for, the compact layout",
                         code="bundle.coefficients_layout", layout=layout)
 
@@ -252,12 +256,13 @@ def checked_format(meta: dict, path: Path) -> int:
     return version
 
 
-def noise_header(noise: dict, layouts: tuple[str, ...]) -> dict:
-    """The bundle's noise description, type- and range-checked. -> {layout, dims, dtype, coefficients}."""
+def noise_header(noise: dict, layouts: tuple[str, ...], version: int) -> dict:
+    """The noise description of a bundle of format `version`, type- and range-checked. -> {layout, dims, dtype,
+    coefficients}."""
     layout = layout_named(checked_text(noise.get("layout"), "bundle: noise layout", "bundle.noise_layout"), layouts)
     dims = checked_int(noise.get("dims"), "bundle: noise dims", 1, MAX_NOISE_DIMS, code="bundle.noise_dims")
     dtype = checked_text(noise.get("dtype"), "bundle: noise dtype", "bundle.noise_dtype")
-    coefficients = layout.read_header(noise, dims)
+    coefficients = layout.read_header(noise, dims, version)
     if dtype not in layout.dtypes:
         raise UserError(f"bundle: unknown noise dtype {dtype!r:.40} for the {layout.name} layout (expected one of "
                         f"{layout.dtypes})", code="bundle.noise_dtype", dtype=dtype[:60], layout=layout.name,
@@ -275,7 +280,7 @@ def parse_bundle(meta, tensors: dict[str, np.ndarray], path: Path) -> Bundle:
         raise UserError("bundle: metadata needs 'secret' and 'noise' objects", code="bundle.no_secret_or_noise")
     width, height = checked_image_size(secret.get("width"), secret.get("height"), "bundle: secret",
                                        code="bundle.secret_size")
-    header = {**noise_header(noise, READABLE_FORMATS[version]), "format": version}
+    header = {**noise_header(noise, READABLE_FORMATS[version], version), "format": version}
     tiles = checked_list(meta.get("tiles"), "bundle: tiles", most=MAX_TILES, code="bundle.tiles")
     areas = np.array([w * h for _, _, w, h in (checked_rect(i, tile) for i, tile in enumerate(tiles))], np.int64)
     layout = LAYOUTS[header["layout"]]

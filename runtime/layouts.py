@@ -7,8 +7,9 @@ types (what a tile holds) live here too. runtime/bundle.py keeps the file format
     sample   (h, w, n_samples, dims) floats: one vector per sample (the paper's)
     compact  per pixel k integer coefficients of a per-tile basis, stored as an xz stream of byte planes
              (coefficient-major, then byte, then row-major pixels, little-endian: planes of like bytes compress
-             best) with the basis (dims, k), offset (dims,) and scale: noise = offset + (coefficients · scale)
-             basisᵀ in float32; pixels the basis could not reach "escape": with their full float16 noise, or
+             best; from format 4 the planes hold each coefficient's zigzag difference from its interlaced
+             prediction, runtime/interlaced.py) with the basis (dims, k), offset (dims,) and scale: noise =
+             offset + (coefficients · scale) basisᵀ in float32; pixels the basis could not reach "escape": with their full float16 noise, or
              (format 3) as "branch escapes" with float16 values for the noise's trailing w dims alone (the
              direction segment the view branch takes), the leading ones being the offset's
 """
@@ -22,17 +23,24 @@ from typing import Callable
 
 import numpy as np
 
+from noisenerf.runtime import interlaced
 from noisenerf.runtime.errors import UserError
 from noisenerf.runtime.limits import (MAX_COMPACT_COEFFICIENTS, MAX_RAY_LAYOUT_SAMPLES, MAX_SAMPLES_PER_RAY,
                                       MAX_XZ_MEMORY, checked_expansion, checked_float, checked_int)
 
 DTYPES = {"float16": np.float16, "float32": np.float32, "int8": np.int8, "int16": np.int16}
 XZ_PRESET = 6  # xz level of the coefficient planes (9 saved under 1 % more on photos, at twice the time)
-CODEC = "xz-byte-planes"
+PLANES_CODEC, INTERLACED_CODEC = "xz-byte-planes", "xz-interlaced-residuals"
+INTERLACED_FROM = 4  # the bundle format from which compact tiles store interlaced differences (INTERLACED_CODEC)
 # a compact bundle's coefficients, up to this many bytes unpacked, stay unpacked from the load's check to the render
 # (one xz decode for ordinary secrets); beyond, tiles are unpacked again one at a time, so memory stays bounded
 KEPT_UNPACKED_BYTES = 1 << 26
 BRANCH_ESCAPES_FROM = 3  # the bundle format from which compact tiles store branch escapes
+
+
+def codec_of(version: int) -> str:
+    """The coefficient codec a compact tile of bundle format `version` states and is read with."""
+    return INTERLACED_CODEC if version >= INTERLACED_FROM else PLANES_CODEC
 TensorGetter = Callable[..., np.ndarray]  # (name, dtype=None, ndim=None) -> a tile's tensor, or a UserError
 
 
@@ -96,6 +104,13 @@ def unpack_coefficients(packed: np.ndarray, shape: tuple[int, int, int], dtype: 
     return planes.transpose(1, 2, 0).astype(DTYPES[dtype])
 
 
+def unpacked_stream(packed: np.ndarray, shape: tuple[int, int, int], dtype: str, codec: str, what: str,
+                    tile: int | None = None) -> np.ndarray:
+    """A compact tile's coefficients (h, w, k) from its stream, as `codec` stored them."""
+    planes = unpack_coefficients(packed, shape, dtype, what, tile)
+    return interlaced.decode(planes) if codec == INTERLACED_CODEC else planes
+
+
 @dataclass(frozen=True)
 class VectorNoise:
     """The ray and sample layouts' noise, as stored: float vectors, (h, w, dims) one per ray or
@@ -151,21 +166,25 @@ class CompactNoise:
     dtype: np.dtype  # int16 or int8
     basis: CompactBasis
     unpacked: np.ndarray | None = None  # the coefficients, where load_bundle kept them (KEPT_UNPACKED_BYTES)
+    codec: str = INTERLACED_CODEC  # what the stream holds: interlaced differences, or (formats 2, 3) the planes
 
     @staticmethod
     def of(coefficients: np.ndarray, basis: CompactBasis) -> CompactNoise:
-        """Coefficients (h, w, k) int16 or int8, packed."""
-        return CompactNoise(pack_coefficients(coefficients), coefficients.shape, coefficients.dtype, basis)
+        """Coefficients (h, w, k) int16 or int8, packed as the newest format stores them."""
+        return CompactNoise(pack_coefficients(interlaced.encode(coefficients)), coefficients.shape,
+                            coefficients.dtype, basis)
 
     def coefficients(self) -> np.ndarray:
         """The unpacked coefficients (h, w, k)."""
-        return unpack_coefficients(self.packed, self.shape, self.dtype.name, "bundle: compact tile")
+        return unpacked_stream(self.packed, self.shape, self.dtype.name, self.codec, "bundle: compact tile")
 
     def loaded(self) -> CompactCoefficients:
         unpacked = self.coefficients() if self.unpacked is None else self.unpacked
         return CompactCoefficients(unpacked, self.basis)
 
     def tensors(self, name: str) -> dict[str, np.ndarray]:
+        if self.codec != INTERLACED_CODEC:  # a bundle is written in the newest format only
+            raise ValueError(f"a compact tile read as {self.codec} cannot be written as format {INTERLACED_FROM}")
         return {name: self.packed, f"{name}_basis": np.ascontiguousarray(self.basis.basis),
                 f"{name}_offset": np.ascontiguousarray(self.basis.offset),
                 f"{name}_escapes": np.ascontiguousarray(self.basis.escapes),
@@ -203,8 +222,9 @@ class NoiseLayout:
         """The layout's part of the bundle's noise metadata beyond layout, dims and dtype."""
         return {}
 
-    def read_header(self, noise: dict, dims: int) -> int | None:
-        """Its part of a bundle's noise metadata, checked -> coefficients per pixel (compact) or None."""
+    def read_header(self, noise: dict, dims: int, version: int) -> int | None:
+        """Its part of the noise metadata of a bundle of format `version`, checked -> coefficients per pixel
+        (compact) or None."""
         if noise.get("coefficients") is not None:
             raise UserError("bundle: coefficients per pixel are given for, and only for, the compact layout",
                             code="bundle.coefficients_layout", layout=self.name)
@@ -261,16 +281,16 @@ class CompactLayout(NoiseLayout):
         return noise.shape[-1]
 
     def header(self, coefficients: int | None) -> dict:
-        return {"coefficients": coefficients, "codec": CODEC}
+        return {"coefficients": coefficients, "codec": INTERLACED_CODEC}
 
-    def read_header(self, noise: dict, dims: int) -> int:
+    def read_header(self, noise: dict, dims: int, version: int) -> int:
         coefficients = checked_int(noise.get("coefficients"), "bundle: coefficients per pixel", 1,
                                    MAX_COMPACT_COEFFICIENTS, code="compact.coefficients")
-        codec = noise.get("codec")
-        if codec != CODEC:
-            raise UserError(f"bundle: unknown coefficient codec {codec!r:.40} (expected {CODEC!r})",
+        codec, expected = noise.get("codec"), codec_of(version)
+        if codec != expected:
+            raise UserError(f"bundle: unknown coefficient codec {codec!r:.40} (expected {expected!r})",
                             code="compact.codec", **({"codec": codec[:60]} if isinstance(codec, str) else {}),
-                            expected=CODEC)
+                            expected=expected)
         if coefficients > min(dims, MAX_COMPACT_COEFFICIENTS):
             raise UserError(f"bundle: {coefficients} coefficients per pixel, expected 1 to "
                             f"{min(dims, MAX_COMPACT_COEFFICIENTS)}", code="compact.coefficients", value=coefficients,
@@ -310,8 +330,9 @@ class CompactLayout(NoiseLayout):
                                                  tile=tile),
                              escapes=tensor(f"{name}_escapes"), escape_noise=tensor(f"{name}_escape_noise"), **branch)
         packed = tensor(name, dtype=np.uint8, ndim=1)
-        unpacked = unpack_coefficients(packed, shape, dtype, what, tile)
-        return CompactNoise(packed, shape, np.dtype(DTYPES[dtype]), basis, unpacked if keep_unpacked else None)
+        unpacked = unpacked_stream(packed, shape, dtype, codec_of(version), what, tile)
+        return CompactNoise(packed, shape, np.dtype(DTYPES[dtype]), basis, unpacked if keep_unpacked else None,
+                            codec_of(version))
 
     def check_noise(self, tile: int, noise: TileNoise, pixels: int, dims: int, coefficients: int | None) -> None:
         """The basis (dims, k), offset (dims,) float32, escape noise (e, dims) and branch escape noise (b, w),

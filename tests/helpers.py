@@ -205,6 +205,25 @@ def rewrite_bundle(source: Path, target: Path, edit) -> Path:
     return target
 
 
+def as_older_compact_format(version: int):
+    """An edit for rewrite_bundle: a compact bundle as format `version` (2 or 3) stored it, its coefficients as
+    plain byte planes (codec xz-byte-planes) and, for format 2, no branch escape tensors."""
+    from noisenerf.runtime import interlaced
+    from noisenerf.runtime.layouts import DTYPES, PLANES_CODEC, pack_coefficients, unpack_coefficients
+
+    def edit(meta, tensors):
+        noise = meta["noise"]
+        for tile in meta["tiles"]:
+            name, (_, _, width, height) = tile["tensor"], tile["rect"]
+            codes = unpack_coefficients(tensors[name], (height, width, noise["coefficients"]), noise["dtype"], "test")
+            tensors[name] = pack_coefficients(interlaced.decode(codes).astype(DTYPES[noise["dtype"]]))
+            if version < 3:
+                del tensors[f"{name}_branch_escapes"], tensors[f"{name}_branch_escape_noise"]
+        meta.update(format_version=version)
+        noise.update(codec=PLANES_CODEC)
+    return edit
+
+
 # ---- images and dataset folders -------------------------------------------------------------------
 
 def write_raw(path: Path, pixels: np.ndarray, pixel_type: str = "uint8", unassociated: bool = False) -> Path:

@@ -9,8 +9,9 @@ import numpy as np
 import pytest
 import torch
 
-from helpers import assert_refused, rewrite_bundle, run_reveal
+from helpers import as_older_compact_format, assert_refused, rewrite_bundle, run_reveal
 from noisenerf.cli.demo import DEMO_VIEW
+from noisenerf.runtime import interlaced
 from noisenerf.runtime.bundle import load_bundle
 from noisenerf.runtime.layouts import CompactBasis, expand_coefficients, pack_coefficients, unpack_coefficients
 from noisenerf.runtime.errors import UserError
@@ -99,9 +100,9 @@ def test_format_1_ray_bundle_still_reveals_and_newer_formats_are_refused(demo):
     rewrite_bundle(folder / "compact.bundle", folder / "v1compact.bundle", as_format(1))
     with pytest.raises(UserError, match="unknown noise layout 'compact'"):
         load_bundle(folder / "v1compact.bundle")
-    rewrite_bundle(folder / "compact.bundle", folder / "v4.bundle", as_format(4))
-    result = run_reveal(model, folder / "v4.bundle", "-o", folder / "v4.png")
-    assert_refused(result, folder / "v4.png", "bundle format 4")
+    rewrite_bundle(folder / "compact.bundle", folder / "v5.bundle", as_format(5))
+    result = run_reveal(model, folder / "v5.bundle", "-o", folder / "v5.png")
+    assert_refused(result, folder / "v5.png", "bundle format 5")
     assert "a newer noisenerf is needed" in result.stderr
 
 
@@ -111,18 +112,47 @@ def test_a_format_2_compact_bundle_reveals_exactly_without_branch_escapes(demo):
     folder, secret, reports, model = demo
     assert all(tile["branch_escaped"] == 0 for tile in reports["compact"]["tiles"])  # as a format 2 writer left it
 
-    def as_format_2(meta, tensors):
-        meta.update(format_version=2)
-        for name in [name for name in tensors if "_branch_escape" in name]:
-            del tensors[name]
-
-    rewrite_bundle(folder / "compact.bundle", folder / "v2.bundle", as_format_2)
+    rewrite_bundle(folder / "compact.bundle", folder / "v2.bundle", as_older_compact_format(2))
     result = run_reveal(model, folder / "v2.bundle", "-o", folder / "v2.png", "--json")
     assert result.returncode == 0 and json.loads(result.stdout)["exact"] is True
     rewrite_bundle(folder / "compact.bundle", folder / "v3_missing.bundle",
                    lambda meta, tensors: tensors.pop("tile_0000_branch_escapes"))
     with pytest.raises(UserError, match="tensor 'tile_0000_branch_escapes' is missing"):
         load_bundle(folder / "v3_missing.bundle")
+
+
+def test_a_format_3_compact_bundle_reveals_the_same_pixels_from_its_plain_planes(demo):
+    """Format 3 stored the coefficients themselves (xz-byte-planes); the same coefficients so stored reveal the
+    same exact pixels, and either codec stated under the other format is refused."""
+    folder, secret, _, model = demo
+    rewrite_bundle(folder / "compact.bundle", folder / "v3.bundle", as_older_compact_format(3))
+    now, before = load_bundle(folder / "compact.bundle"), load_bundle(folder / "v3.bundle")
+    for tile_now, tile_before in zip(now.tiles, before.tiles):
+        assert np.array_equal(tile_now.noise.coefficients(), tile_before.noise.coefficients())
+        assert not np.array_equal(tile_now.noise.packed, tile_before.noise.packed)
+    result = run_reveal(model, folder / "v3.bundle", "-o", folder / "v3.png", "--json")
+    assert result.returncode == 0 and json.loads(result.stdout)["exact"] is True
+    for version, source in ((3, "compact.bundle"), (4, "v3.bundle")):
+        rewrite_bundle(folder / source, folder / "mixed.bundle", lambda meta, tensors: meta.update(format_version=version))
+        with pytest.raises(UserError, match="unknown coefficient codec"):
+            load_bundle(folder / "mixed.bundle")
+
+
+@pytest.mark.parametrize("dtype", [np.int16, np.int8])
+def test_interlaced_differences_round_trip_every_integer_and_shrink_smooth_planes(dtype):
+    """Any coefficients, the storage range's ends and odd sizes included, come back exactly; a smooth plane's
+    differences are small, a 1×1 tile's is the value itself."""
+    rng = np.random.default_rng(3)
+    limit = np.iinfo(dtype).max
+    for height, width in ((1, 1), (1, 9), (9, 1), (7, 13), (33, 70)):
+        anything = rng.integers(-limit - 1, limit + 1, (height, width, 5)).astype(dtype)
+        anything.flat[:4] = [-limit - 1, limit, -limit - 1, limit]
+        assert np.array_equal(interlaced.decode(interlaced.encode(anything)), anything)
+    smooth = np.cumsum(np.cumsum(rng.integers(-1, 2, (40, 40, 3)), 0), 1).astype(dtype)
+    codes = interlaced.encode(smooth)
+    assert np.array_equal(interlaced.decode(codes), smooth)
+    assert np.abs(interlaced.unzigzag(codes)).mean() < 0.5 * np.abs(smooth.astype(np.int64)).mean()
+    assert interlaced.unzigzag(interlaced.encode(np.array([[[-7, 5]]], dtype)))[0, 0].tolist() == [-7, 5]
 
 
 def test_pixels_the_basis_misses_but_the_view_branch_reaches_are_stored_as_branch_escapes(demo_scene, demo_model,

@@ -36,7 +36,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from helpers import flip_first_float32, make_tiny_scene, write_nerfstudio_run
+from helpers import as_older_compact_format, flip_first_float32, make_tiny_scene, rewrite_bundle, write_nerfstudio_run
 
 REPO = Path(__file__).resolve().parents[1]
 WEB = REPO / "web"
@@ -540,6 +540,11 @@ def write_fixtures(root: Path) -> dict:
             if name == "compact_tiles":
                 with_escape(folder / "secret.bundle")
             manifest["fixtures"][name] = golden(folder)
+        older = root / "compact_tiles_format_3"  # the same coefficients as format 3 stored them: plain planes
+        older.mkdir()
+        shutil.copyfile(root / "compact_tiles" / "model.onnx", older / "model.onnx")
+        rewrite_bundle(root / "compact_tiles" / "secret.bundle", older / "secret.bundle", as_older_compact_format(3))
+        manifest["fixtures"]["compact_tiles_format_3"] = golden(older)
         from noisenerf.runtime.payload import Record
         from noisenerf.runtime.sealing import ScryptParams, new_seal
         from noisenerf.train.hide.payload import hide_payload
@@ -584,7 +589,7 @@ def write_fixtures(root: Path) -> dict:
             lambda meta: meta.update(model_fingerprint="0" * 64))),
         tamper(root, "ray", "tile_outside", edit_bundle=bundle_metadata_edit(
             lambda meta: meta["tiles"][0]["rect"].__setitem__(0, 3))),
-        tamper(root, "ray", "format_4", edit_bundle=bundle_metadata_edit(lambda meta: meta.update(format_version=4))),
+        tamper(root, "ray", "format_5", edit_bundle=bundle_metadata_edit(lambda meta: meta.update(format_version=5))),
         # quoted as repr() quotes it: a no-break space, a line separator and a zero-width space escaped
         tamper(root, "ray", "odd_tensor_name", edit_bundle=bundle_metadata_edit(
             lambda meta: meta["tiles"][0].update(tensor="n\u00a0o\u2028pe\u200b"))),

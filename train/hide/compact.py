@@ -31,10 +31,13 @@ from __future__ import annotations
 
 import dataclasses
 
+import numpy as np
 import torch
 
+from noisenerf.runtime import interlaced
 from noisenerf.train.hide.secret_view import BranchView, SecretView
-from noisenerf.train.hide.exact import ExactProblem, NoiseSpace, is_lifted, raw_floors, solve_exact
+from noisenerf.train.hide.exact import (ExactProblem, NoiseSpace, is_lifted, raw_floors, refine, round_to_lattice,
+                                        solve_exact)
 from noisenerf.train.hide.settings import CompactSettings, ExactSettings
 
 def in_basis(exact: ExactSettings, settings: CompactSettings) -> ExactSettings:
@@ -188,3 +191,36 @@ def solver_view(secret_view: SecretView, space: NoiseSpace) -> SecretView | Bran
     if space.basis is not None and secret_view.field.config.has_view_branch and not space.basis[:xyz_dims].any():
         return BranchView(secret_view, space.offset[:xyz_dims])
     return secret_view
+
+
+def predicted_choice(secret_view: SecretView, space: NoiseSpace, pixels: torch.Tensor, shape: tuple[int, int],
+                     params: torch.Tensor, free: torch.Tensor, settings: ExactSettings,
+                     generator: torch.Generator) -> torch.Tensor:
+    """A solved compact tile's params (n, k) moved, pass by interlaced pass (runtime/interlaced.py), to what the
+    bundle codes cheapest: each pixel of a pass after the roots is solved again from its prediction (the
+    coefficients its pass predicts from those chosen before it) with minimum-norm steps, and rounds to the
+    lattice point nearest that prediction among those that round right (round_to_lattice's anchor). A pixel
+    that does not round right from there keeps its own solution; a `free` pixel (n,) bool (an escape: its
+    coefficients are never expanded) takes its prediction. Roots keep their solutions. `settings`: the solve's
+    in the basis. -> params (n, k) on the lattice; every pixel not free still rounds right."""
+    height, width = shape
+    view = solver_view(secret_view, space)
+    solved = space.integers(params).long().reshape(height, width, -1).cpu().numpy()
+    chosen, is_free = solved.copy(), free.reshape(height, width).cpu().numpy()
+    for ys, xs, kind, d in interlaced.passes(height, width):
+        if kind == "root":
+            continue
+        anchor = interlaced.predictions(chosen, ys, xs, kind, d)
+        solving = ~is_free[ys, xs]
+        chosen[ys, xs] = anchor
+        if not solving.any():
+            continue
+        ys, xs, anchor = ys[solving], xs[solving], torch.from_numpy(anchor[solving]).to(params.device)
+        index = torch.from_numpy(ys * width + xs).to(params.device)
+        problem = ExactProblem(view, index, pixels[index], space, settings, generator)
+        converged, _ = refine(problem, space.params_of(anchor), storage_phase=False)
+        rounded = round_to_lattice(problem, converged, anchor)
+        right = problem.rounds_right(problem.outputs(torch.arange(len(index), device=params.device), rounded),
+                                     torch.arange(len(index), device=params.device)).cpu().numpy()
+        chosen[ys, xs] = np.where(right[:, None], space.integers(rounded).long().cpu().numpy(), solved[ys, xs])
+    return space.params_of(torch.from_numpy(chosen.reshape(height * width, -1)).to(params.device))

@@ -456,14 +456,16 @@ def chord_start(problem: ExactProblem, which: torch.Tensor, params: torch.Tensor
 
 
 LATTICE_VALUES = 1 << 24  # candidate coordinates (pixels × c × k) formed at once: ~64 MB a tensor
+OUTSIDE_RANK = 1e7  # ranked behind every candidate predicted inside its bin (their L1 from an anchor is far less)
 
 
-def round_to_lattice(problem: ExactProblem, params: torch.Tensor) -> torch.Tensor:
+def round_to_lattice(problem: ExactProblem, params: torch.Tensor, anchor: torch.Tensor | None = None) -> torch.Tensor:
     """Storable params for float params (m, k) of an integer lattice: the field's Jacobian at the float
     solution predicts each lattice_candidates point's colour (the net is piecewise linear, so within a
     ReLU region exactly); the settings.lattice_tries best points (ranked by predicted distance from the
-    8-bit value, those that keep the density lifted first) are rendered in turn and the first that
-    rounds right is kept, else the best predicted. Phase 2 of solve_exact polishes what is left.
+    8-bit value, those that keep the density lifted first; given integer anchors (m, k), those predicted
+    to round right nearest their anchor in L1 first) are rendered in turn and the first that rounds right
+    is kept, else the best ranked. Phase 2 of solve_exact polishes what is left.
     -> params (m, k) on the lattice."""
     space, settings = problem.space, problem.settings
     stored = space.store(params)
@@ -481,6 +483,9 @@ def round_to_lattice(problem: ExactProblem, params: torch.Tensor) -> torch.Tenso
         distance = colour_distance_bins(predicted.flatten(0, 1), problem.values[part].repeat_interleave(
             candidates.shape[1], 0)).reshape(candidates.shape[:2])
         distance = distance + 255.0 * (predicted[..., 3] < problem.lifted_floor)  # unlifted: last
+        if anchor is not None:  # cheapest to code first: the anchor is what the decoder predicts
+            nearness = (candidates - anchor[part, None, :].float()).abs().sum(-1)
+            distance = torch.where(distance <= 0.5 - settings.margin_bins, nearness, OUTSIDE_RANK + distance)
         ranked = space.params_of(candidates.gather(1, distance.argsort(1)[:, :settings.lattice_tries, None].expand(
             -1, -1, k)))
         chosen, left = ranked[:, 0].clone(), torch.arange(part.numel(), device=params.device)

@@ -10,7 +10,7 @@ from typing import TYPE_CHECKING, Callable
 import torch
 
 from noisenerf.runtime.layouts import LAYOUTS, CompactBasis, CompactNoise, TileNoise, VectorNoise
-from noisenerf.train.hide.compact import in_basis, solver_view, tile_space
+from noisenerf.train.hide.compact import in_basis, predicted_choice, solver_view, tile_space
 from noisenerf.train.hide.exact import (ExactProblem, NoiseSpace, SolveCounts, is_lifted, raw_floors, rescue,
                                         solve_exact)
 from noisenerf.train.hide.methods import METHODS
@@ -41,7 +41,7 @@ def stored_noise(space: NoiseSpace, params: torch.Tensor, escaped: torch.Tensor,
                          escape_noise=escape_noise[escapes].to(ESCAPE_DTYPE).cpu().numpy(),
                          branch_escapes=branch_escapes.to(torch.int32).cpu().numpy(),
                          branch_escape_noise=escape_noise[branch_escapes, position_dims:].to(ESCAPE_DTYPE).cpu().numpy())
-    coefficients = torch.where((escaped | branch_escaped)[:, None], 0, space.integers(params))
+    coefficients = space.integers(params)  # an escape's are never expanded: predicted_choice made them cheap
     return CompactNoise.of(coefficients.reshape(shape).cpu().numpy(), basis)
 
 
@@ -173,6 +173,10 @@ class ExactSolver(Solver):
                                        for name in ("escaped", "branch_escaped"))
             escape_noise = torch.cat([part["escape_noise"] for part in parts]).to(device)
         outside = escaped | branch_escaped
+        if space.basis is not None:
+            params = predicted_choice(secret_view, space, pixels, shape, params, outside,
+                                      in_basis(config.get(ExactSettings), config.get(CompactSettings)),
+                                      torch.Generator().manual_seed(config.seed))
         noise = torch.where(outside[:, None, None], escape_noise[:, None, :], space.expand(params))
         stored = stored_noise(space, params, escaped, branch_escaped, escape_noise,
                               LAYOUTS[config.layout].stored_shape(*shape, 1, -1), secret_view.field.config.position_dims)

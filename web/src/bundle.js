@@ -15,7 +15,9 @@ import { checkedPayload } from "./payload.js";
 export const NOISENERF_VERSION = "0.1.0"; // noisenerf.__version__ of the Python runtime this port mirrors
 export const METADATA_KEY = "noisenerf_bundle";
 // format -> the layouts it may hold (format 3: compact tiles add branch escapes, src/layouts.js)
-const READABLE_FORMATS = { 1: ["ray", "sample"], 2: ["ray", "sample", "compact"], 3: ["ray", "sample", "compact"] };
+const READABLE_FORMATS = {
+  1: ["ray", "sample"], 2: ["ray", "sample", "compact"], 3: ["ray", "sample", "compact"], 4: ["ray", "sample", "compact"],
+};
 const NEWEST_FORMAT = Math.max(...Object.keys(READABLE_FORMATS).map(Number));
 const SAFETENSORS_DTYPES = ["F16", "F32", "U8", "I32"];
 const NUMPY_NAMES = { F16: "float16", F32: "float32", U8: "uint8", I32: "int32" };
@@ -96,11 +98,11 @@ function validateNoiseHeader(name, dtype, dims, coefficients, layouts = Object.k
   }
 }
 
-function noiseHeader(noise, layouts) {
+function noiseHeader(noise, layouts, version) {
   const layout = layoutNamed(checkedText(noise.layout, "bundle: noise layout", { code: "bundle.noise_layout" }), layouts);
   const dims = checkedInt(noise.dims, "bundle: noise dims", 1, MAX_NOISE_DIMS, { code: "bundle.noise_dims" });
   const dtype = checkedText(noise.dtype, "bundle: noise dtype", { code: "bundle.noise_dtype" });
-  const coefficients = layout.readHeader(noise, dims);
+  const coefficients = layout.readHeader(noise, dims, version);
   validateNoiseHeader(layout.name, dtype, dims, coefficients, layouts);
   return { layout: layout.name, dims, dtype, coefficients };
 }
@@ -221,7 +223,7 @@ export async function loadBundle(data, source = "secret.bundle") {
     throw new UserError("bundle: metadata needs 'secret' and 'noise' objects", { code: "bundle.no_secret_or_noise" });
   }
   const [width, height] = checkedImageSize(secret.width ?? null, secret.height ?? null, "bundle: secret", { code: "bundle.secret_size" });
-  const header = { ...noiseHeader(noise, READABLE_FORMATS[version]), format: version };
+  const header = { ...noiseHeader(noise, READABLE_FORMATS[version], version), format: version };
   const tileData = checkedList(meta.tiles ?? null, "bundle: tiles", null, MAX_TILES, { code: "bundle.tiles" });
   const areas = tileData.map((tile, i) => checkedRect(i, tile)).reduce((n, r) => n + r[2] * r[3], 0);
   const layout = LAYOUTS[header.layout];

@@ -6,6 +6,7 @@
 
 import xz from "xz-decompress";
 import { UserError, cut, show } from "./errors.js";
+import { decodeInterlaced } from "./interlaced.js";
 import {
   MAX_COMPACT_COEFFICIENTS, MAX_RAY_LAYOUT_SAMPLES, MAX_SAMPLES_PER_RAY, checkedExpansion, checkedFloat, checkedInt,
 } from "./limits.js";
@@ -13,8 +14,11 @@ import {
 const { XzReadableStream } = xz;
 const f32 = Math.fround;
 const FLOAT32_TINY = 1.1754943508222875e-38, FLOAT32_MAX = 3.4028234663852886e38;
-const CODEC = "xz-byte-planes";
+const PLANES_CODEC = "xz-byte-planes", INTERLACED_CODEC = "xz-interlaced-residuals";
+const INTERLACED_FROM = 4; // the bundle format from which compact tiles store interlaced differences
 const BRANCH_ESCAPES_FROM = 3; // the bundle format from which compact tiles store branch escapes
+/** codec_of: the coefficient codec a compact tile of bundle format `version` states and is read with. */
+const codecOf = (version) => (version >= INTERLACED_FROM ? INTERLACED_CODEC : PLANES_CODEC);
 
 /** IEEE half -> float. */
 const HALF = new Float32Array(65536);
@@ -172,13 +176,13 @@ const VECTOR = {
 
 const COMPACT = {
   ...VECTOR,
-  readHeader(noise, dims) {
+  readHeader(noise, dims, version) {
     const k = checkedInt(noise.coefficients ?? null, "bundle: coefficients per pixel", 1, MAX_COMPACT_COEFFICIENTS,
       { code: "compact.coefficients" });
-    const codec = noise.codec;
-    if (codec !== CODEC) {
-      throw new UserError(`bundle: unknown coefficient codec ${show(codec ?? null, 40)} (expected ${show(CODEC)})`,
-        { code: "compact.codec", ...(typeof codec === "string" ? { codec: cut(codec) } : {}), expected: CODEC });
+    const codec = noise.codec, expected = codecOf(version);
+    if (codec !== expected) {
+      throw new UserError(`bundle: unknown coefficient codec ${show(codec ?? null, 40)} (expected ${show(expected)})`,
+        { code: "compact.codec", ...(typeof codec === "string" ? { codec: cut(codec) } : {}), expected });
     }
     const most = Math.min(dims, MAX_COMPACT_COEFFICIENTS);
     if (k > most) {
@@ -208,7 +212,8 @@ const COMPACT = {
     const scale = checkedFloat(data.scale ?? null, `${what} scale`, FLOAT32_TINY, FLOAT32_MAX, { code: "compact.scale", tile });
     const escapes = tensor(`${name}_escapes`), escapeNoise = tensor(`${name}_escape_noise`);
     const packed = tensor(name, "uint8", 1);
-    const coefficients = await unpackCoefficients(packed.values, shape, dtype, what, tile);
+    const planes = await unpackCoefficients(packed.values, shape, dtype, what, tile);
+    const coefficients = codecOf(version) === INTERLACED_CODEC ? decodeInterlaced(planes, ...shape) : planes;
     return { coefficients, shape, dtype, basis: { basis, offset, scale, escapes, escapeNoise, ...branch } };
   },
   /** The basis (dims, k), offset (dims,) float32, escape noise (e, dims) and branch escape noise (b, w), w ≤ dims,
