@@ -193,6 +193,11 @@ def solver_view(secret_view: SecretView, space: NoiseSpace) -> SecretView | Bran
     return secret_view
 
 
+# iterations (without restarts) a pixel gets from its prediction: most finish in a few, and one that does not keeps
+# its own solution, so longer tries would cost time for almost no bytes
+PREDICTED_ITERS = 8
+
+
 def predicted_choice(secret_view: SecretView, space: NoiseSpace, pixels: torch.Tensor, shape: tuple[int, int],
                      params: torch.Tensor, free: torch.Tensor, settings: ExactSettings,
                      generator: torch.Generator) -> torch.Tensor:
@@ -218,7 +223,9 @@ def predicted_choice(secret_view: SecretView, space: NoiseSpace, pixels: torch.T
         ys, xs, anchor = ys[solving], xs[solving], torch.from_numpy(anchor[solving]).to(params.device)
         index = torch.from_numpy(ys * width + xs).to(params.device)
         problem = ExactProblem(view, index, pixels[index], space, settings, generator)
-        converged, _ = refine(problem, space.params_of(anchor), storage_phase=False)
+        converged, _ = refine(dataclasses.replace(problem, settings=dataclasses.replace(
+            settings, max_iters=PREDICTED_ITERS, restart_after=PREDICTED_ITERS)), space.params_of(anchor),
+            storage_phase=False)
         rounded = round_to_lattice(problem, converged, anchor)
         right = problem.rounds_right(problem.outputs(torch.arange(len(index), device=params.device), rounded),
                                      torch.arange(len(index), device=params.device)).cpu().numpy()
