@@ -199,35 +199,35 @@ PREDICTED_ITERS = 8
 
 
 def predicted_choice(secret_view: SecretView, space: NoiseSpace, pixels: torch.Tensor, shape: tuple[int, int],
-                     params: torch.Tensor, free: torch.Tensor, settings: ExactSettings,
-                     generator: torch.Generator) -> torch.Tensor:
+                     params: torch.Tensor, free: torch.Tensor, settings: ExactSettings, generator: torch.Generator,
+                     batch: int) -> torch.Tensor:
     """A solved compact tile's params (n, k) moved, pass by interlaced pass (runtime/interlaced.py), to what the
     bundle codes cheapest: each pixel of a pass after the roots is solved again from its prediction (the
     coefficients its pass predicts from those chosen before it) with minimum-norm steps, and rounds to the
     lattice point nearest that prediction among those that round right (round_to_lattice's anchor). A pixel
     that does not round right from there keeps its own solution; a `free` pixel (n,) bool (an escape: its
     coefficients are never expanded) takes its prediction. Roots keep their solutions. `settings`: the solve's
-    in the basis. -> params (n, k) on the lattice; every pixel not free still rounds right."""
+    in the basis, at most PREDICTED_ITERS iterations without restarts; `batch`: pixels solved at once (a part's).
+    -> params (n, k) on the lattice; every pixel not free still rounds right."""
+    settings = dataclasses.replace(settings, max_iters=PREDICTED_ITERS, restart_after=PREDICTED_ITERS)
     height, width = shape
-    view = solver_view(secret_view, space)
     solved = space.integers(params).long().reshape(height, width, -1).cpu().numpy()
     chosen, is_free = solved.copy(), free.reshape(height, width).cpu().numpy()
     for ys, xs, kind, d in interlaced.passes(height, width):
         if kind == "root":
             continue
-        anchor = interlaced.predictions(chosen, ys, xs, kind, d)
-        solving = ~is_free[ys, xs]
-        chosen[ys, xs] = anchor
-        if not solving.any():
-            continue
-        ys, xs, anchor = ys[solving], xs[solving], torch.from_numpy(anchor[solving]).to(params.device)
-        index = torch.from_numpy(ys * width + xs).to(params.device)
-        problem = ExactProblem(view, index, pixels[index], space, settings, generator)
-        converged, _ = refine(dataclasses.replace(problem, settings=dataclasses.replace(
-            settings, max_iters=PREDICTED_ITERS, restart_after=PREDICTED_ITERS)), space.params_of(anchor),
-            storage_phase=False)
-        rounded = round_to_lattice(problem, converged, anchor)
-        right = problem.rounds_right(problem.outputs(torch.arange(len(index), device=params.device), rounded),
-                                     torch.arange(len(index), device=params.device)).cpu().numpy()
-        chosen[ys, xs] = np.where(right[:, None], space.integers(rounded).long().cpu().numpy(), solved[ys, xs])
+        chosen[ys, xs] = interlaced.predictions(chosen, ys, xs, kind, d)
+        ys, xs = ys[~is_free[ys, xs]], xs[~is_free[ys, xs]]
+        for at in range(0, len(ys), batch):  # a part's worth at a time: its rays' trunks, its Jacobians
+            rows, columns = ys[at:at + batch], xs[at:at + batch]
+            index = torch.from_numpy(rows * width + columns).to(params.device)
+            every = torch.arange(len(index), device=params.device)
+            problem = ExactProblem(solver_view(secret_view.subset(index), space), every, pixels[index], space,
+                                   settings, generator)
+            prediction = torch.from_numpy(chosen[rows, columns]).to(params.device)
+            converged, _ = refine(problem, space.params_of(prediction), storage_phase=False)
+            rounded = round_to_lattice(problem, converged, prediction)
+            right = problem.rounds_right(problem.outputs(every, rounded), every).cpu().numpy()
+            chosen[rows, columns] = np.where(right[:, None], space.integers(rounded).long().cpu().numpy(),
+                                             solved[rows, columns])
     return space.params_of(torch.from_numpy(chosen.reshape(height * width, -1)).to(params.device))

@@ -176,7 +176,7 @@ class ExactSolver(Solver):
         if space.basis is not None:
             params = predicted_choice(secret_view, space, pixels, shape, params, outside,
                                       in_basis(config.get(ExactSettings), config.get(CompactSettings)),
-                                      torch.Generator().manual_seed(config.seed))
+                                      torch.Generator().manual_seed(config.seed), config.part_pixels)
         noise = torch.where(outside[:, None, None], escape_noise[:, None, :], space.expand(params))
         stored = stored_noise(space, params, escaped, branch_escaped, escape_noise,
                               LAYOUTS[config.layout].stored_shape(*shape, 1, -1), secret_view.field.config.position_dims)
