@@ -10,6 +10,10 @@ and a vertical pass (rows y ≡ d mod s, columns x ≡ 0 mod d: the floored mean
 one above at the bottom edge). Every pixel of a pass is predicted from earlier passes only, so a pass decodes
 (and the hide solves it, train/hide/compact.predicted_choice) all at once.
 
+A tile is coded in bands of `band_rows` whole rows (the last band what is left), each on its own as if it were
+the whole image: a band is what one of the hide's parts solves, so each part chooses its coefficients
+against predictions from its own pixels, in parallel with the others.
+
 Differences wrap around the storage integer (int16 or int8), so every coefficient round-trips whatever its
 prediction, and are zigzag-mapped (0, −1, 1, −2, … → 0, 1, 2, 3, …) so small differences of either sign have zero
 high bytes. All integer arithmetic; web/src/interlaced.js computes the same numbers.
@@ -80,11 +84,8 @@ def unzigzag(codes: np.ndarray) -> np.ndarray:
     return (unsigned >> 1) ^ -(unsigned & 1)
 
 
-def encode(coefficients: np.ndarray) -> np.ndarray:
-    """Coefficients (h, w, k) int16/int8 -> the zigzag codes of their differences from the interlaced
-    predictions, same shape and dtype."""
-    dtype = coefficients.dtype
-    values = coefficients.astype(np.int64)
+def encode_band(values: np.ndarray) -> np.ndarray:
+    """One band's coefficients (h, w, k) int64 -> their differences from the interlaced predictions, int64."""
     difference = np.empty_like(values)
     for ys, xs, kind, d in passes(*values.shape[:2]):
         if kind == "root":
@@ -92,19 +93,33 @@ def encode(coefficients: np.ndarray) -> np.ndarray:
             difference[::ROOT_SPACING, ::ROOT_SPACING] = roots - root_predictions(roots)
         else:
             difference[ys, xs] = values[ys, xs] - predictions(values, ys, xs, kind, d)
-    return zigzag(wrapped(difference, dtype), dtype)
+    return difference
 
 
-def decode(codes: np.ndarray) -> np.ndarray:
-    """encode's inverse: zigzag codes (h, w, k) int16/int8 -> the coefficients, same shape and dtype."""
-    dtype = codes.dtype
-    difference = unzigzag(codes)
+def decode_band(difference: np.ndarray, dtype: np.dtype) -> np.ndarray:
+    """encode_band's inverse, wrapped to the storage dtype: differences (h, w, k) int64 -> coefficients, int64."""
     decoded = np.zeros_like(difference)
-    for ys, xs, kind, d in passes(*codes.shape[:2]):
+    for ys, xs, kind, d in passes(*difference.shape[:2]):
         if kind == "root":  # each root is the running sum along its row from the first, itself down the column
             roots = difference[::ROOT_SPACING, ::ROOT_SPACING].copy()
             roots[:, 0] = np.cumsum(roots[:, 0], axis=0)
             decoded[::ROOT_SPACING, ::ROOT_SPACING] = wrapped(np.cumsum(roots, axis=1), dtype)
         else:
             decoded[ys, xs] = wrapped(predictions(decoded, ys, xs, kind, d) + difference[ys, xs], dtype)
-    return decoded.astype(dtype)
+    return decoded
+
+
+def encode(coefficients: np.ndarray, band_rows: int) -> np.ndarray:
+    """Coefficients (h, w, k) int16/int8, in bands of band_rows rows -> the zigzag codes of their differences from
+    the interlaced predictions, same shape and dtype."""
+    values = coefficients.astype(np.int64)
+    difference = np.concatenate([encode_band(values[y:y + band_rows]) for y in range(0, len(values), band_rows)])
+    return zigzag(wrapped(difference, coefficients.dtype), coefficients.dtype)
+
+
+def decode(codes: np.ndarray, band_rows: int) -> np.ndarray:
+    """encode's inverse: zigzag codes (h, w, k) int16/int8 in bands of band_rows rows -> the coefficients, same
+    shape and dtype."""
+    difference = unzigzag(codes)
+    return np.concatenate([decode_band(difference[y:y + band_rows], codes.dtype)
+                           for y in range(0, len(codes), band_rows)]).astype(codes.dtype)

@@ -104,11 +104,12 @@ def unpack_coefficients(packed: np.ndarray, shape: tuple[int, int, int], dtype: 
     return planes.transpose(1, 2, 0).astype(DTYPES[dtype])
 
 
-def unpacked_stream(packed: np.ndarray, shape: tuple[int, int, int], dtype: str, codec: str, what: str,
-                    tile: int | None = None) -> np.ndarray:
-    """A compact tile's coefficients (h, w, k) from its stream, as `codec` stored them."""
+def unpacked_stream(packed: np.ndarray, shape: tuple[int, int, int], dtype: str, codec: str, band_rows: int | None,
+                    what: str, tile: int | None = None) -> np.ndarray:
+    """A compact tile's coefficients (h, w, k) from its stream, as `codec` stored them (interlaced: in bands of
+    band_rows rows)."""
     planes = unpack_coefficients(packed, shape, dtype, what, tile)
-    return interlaced.decode(planes) if codec == INTERLACED_CODEC else planes
+    return interlaced.decode(planes, band_rows) if codec == INTERLACED_CODEC else planes
 
 
 @dataclass(frozen=True)
@@ -167,16 +168,18 @@ class CompactNoise:
     basis: CompactBasis
     unpacked: np.ndarray | None = None  # the coefficients, where load_bundle kept them (KEPT_UNPACKED_BYTES)
     codec: str = INTERLACED_CODEC  # what the stream holds: interlaced differences, or (formats 2, 3) the planes
+    band_rows: int | None = None  # interlaced: rows per band, each coded on its own (runtime/interlaced.py)
 
     @staticmethod
-    def of(coefficients: np.ndarray, basis: CompactBasis) -> CompactNoise:
-        """Coefficients (h, w, k) int16 or int8, packed as the newest format stores them."""
-        return CompactNoise(pack_coefficients(interlaced.encode(coefficients)), coefficients.shape,
-                            coefficients.dtype, basis)
+    def of(coefficients: np.ndarray, basis: CompactBasis, band_rows: int) -> CompactNoise:
+        """Coefficients (h, w, k) int16 or int8, packed as the newest format stores them, in bands of band_rows."""
+        return CompactNoise(pack_coefficients(interlaced.encode(coefficients, band_rows)), coefficients.shape,
+                            coefficients.dtype, basis, band_rows=band_rows)
 
     def coefficients(self) -> np.ndarray:
         """The unpacked coefficients (h, w, k)."""
-        return unpacked_stream(self.packed, self.shape, self.dtype.name, self.codec, "bundle: compact tile")
+        return unpacked_stream(self.packed, self.shape, self.dtype.name, self.codec, self.band_rows,
+                               "bundle: compact tile")
 
     def loaded(self) -> CompactCoefficients:
         unpacked = self.coefficients() if self.unpacked is None else self.unpacked
@@ -298,7 +301,7 @@ class CompactLayout(NoiseLayout):
         return coefficients
 
     def tile_metadata(self, noise: TileNoise) -> dict:
-        return {"scale": noise.basis.scale}
+        return {"scale": noise.basis.scale, "band_rows": noise.band_rows}
 
     def check_streams(self, streams: list, secret_size: tuple[int, int], tile_pixels: int, coefficients: int | None,
                       dtype: str) -> None:
@@ -329,10 +332,12 @@ class CompactLayout(NoiseLayout):
                                                  high=float(np.finfo(np.float32).max), code="compact.scale",
                                                  tile=tile),
                              escapes=tensor(f"{name}_escapes"), escape_noise=tensor(f"{name}_escape_noise"), **branch)
+        band_rows = (checked_int(data.get("band_rows"), f"{what} band rows", 1, shape[0], code="compact.band_rows",
+                                 tile=tile) if codec_of(version) == INTERLACED_CODEC else None)
         packed = tensor(name, dtype=np.uint8, ndim=1)
-        unpacked = unpacked_stream(packed, shape, dtype, codec_of(version), what, tile)
+        unpacked = unpacked_stream(packed, shape, dtype, codec_of(version), band_rows, what, tile)
         return CompactNoise(packed, shape, np.dtype(DTYPES[dtype]), basis, unpacked if keep_unpacked else None,
-                            codec_of(version))
+                            codec_of(version), band_rows)
 
     def check_noise(self, tile: int, noise: TileNoise, pixels: int, dims: int, coefficients: int | None) -> None:
         """The basis (dims, k), offset (dims,) float32, escape noise (e, dims) and branch escape noise (b, w),

@@ -147,12 +147,13 @@ def test_interlaced_differences_round_trip_every_integer_and_shrink_smooth_plane
     for height, width in ((1, 1), (1, 9), (9, 1), (7, 13), (33, 70)):
         anything = rng.integers(-limit - 1, limit + 1, (height, width, 5)).astype(dtype)
         anything.flat[:4] = [-limit - 1, limit, -limit - 1, limit]
-        assert np.array_equal(interlaced.decode(interlaced.encode(anything)), anything)
+        for band_rows in (1, 3, 8, 40):
+            assert np.array_equal(interlaced.decode(interlaced.encode(anything, band_rows), band_rows), anything)
     smooth = np.cumsum(np.cumsum(rng.integers(-1, 2, (40, 40, 3)), 0), 1).astype(dtype)
-    codes = interlaced.encode(smooth)
-    assert np.array_equal(interlaced.decode(codes), smooth)
+    codes = interlaced.encode(smooth, 16)
+    assert np.array_equal(interlaced.decode(codes, 16), smooth)
     assert np.abs(interlaced.unzigzag(codes)).mean() < 0.5 * np.abs(smooth.astype(np.int64)).mean()
-    assert interlaced.unzigzag(interlaced.encode(np.array([[[-7, 5]]], dtype)))[0, 0].tolist() == [-7, 5]
+    assert interlaced.unzigzag(interlaced.encode(np.array([[[-7, 5]]], dtype), 1))[0, 0].tolist() == [-7, 5]
 
 
 def test_pixels_the_basis_misses_but_the_view_branch_reaches_are_stored_as_branch_escapes(demo_scene, demo_model,
@@ -230,6 +231,9 @@ HOSTILE = {
     "coefficients 2.5": (edit_noise_meta("coefficients", 2.5), "must be an integer"),
     "coefficients missing": (edit_noise_meta("coefficients", None), "must be an integer"),
     "unknown codec": (edit_noise_meta("codec", "zip"), "unknown coefficient codec"),
+    "band rows 0": (edit_tile_meta("band_rows", 0), "band rows must be between 1 and 24"),
+    "band rows past the tile": (edit_tile_meta("band_rows", 25), "band rows must be between 1 and 24"),
+    "band rows missing": (edit_tile_meta("band_rows", None), "band rows must be an integer"),
     "float dtype": (edit_noise_meta("dtype", "float16"), "unknown noise dtype"),
     "one coefficient fewer": (edit_noise_meta("coefficients", 4), "do not hold exactly"),
     "basis missing": (edit_tensor("tile_0000_basis", lambda t: None), "is missing"),

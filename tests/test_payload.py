@@ -216,7 +216,8 @@ def test_unsealed_payload_whose_pixels_changed_is_refused(demo, tmp_path):
     hide_payload(scene, Record("file", b"exactly these bytes"), tmp_path / "p.bundle", CONFIG, CPU)
     bundle = load_bundle(tmp_path / "p.bundle")
     tiles = tuple(dataclasses.replace(tile, noise=CompactNoise.of(np.zeros_like(tile.noise.coefficients()),
-                                                                  tile.noise.basis)) for tile in bundle.tiles)
+                                                                  tile.noise.basis, tile.noise.band_rows))
+                  for tile in bundle.tiles)
     dataclasses.replace(bundle, tiles=tiles).save(tmp_path / "z.bundle")
     assert_refused(run_reveal(model, tmp_path / "z.bundle", "-o", tmp_path / "out"), tmp_path / "out", INEXACT,
                    exact=True)

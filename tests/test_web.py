@@ -152,7 +152,7 @@ def with_escape(path: Path) -> None:
                                 branch_escapes=np.array([12, 14], np.int32),
                                 branch_escape_noise=noise[[12, 14], lead:].astype(np.float16))
     assert isinstance(basis, CompactBasis)
-    tiles = (dataclasses.replace(tile, noise=CompactNoise.of(coefficients, basis)),) + bundle.tiles[1:]
+    tiles = (dataclasses.replace(tile, noise=CompactNoise.of(coefficients, basis, tile.noise.band_rows)),) + bundle.tiles[1:]
     path.unlink()
     dataclasses.replace(bundle, tiles=tiles).save(path)
 
@@ -509,7 +509,7 @@ def write_fixtures(root: Path) -> dict:
                  for implementation in ("tcnn", "torch")}}
     paper = (PaperSettings(iters=4, record_at=(4,)),)
     cases = {  # name -> scene, secret, hide config
-        "compact_tiles": ("plain", secret, HideConfig(tile_size=16)),
+        "compact_tiles": ("plain", secret, HideConfig(tile_size=16, part_pixels=96)),  # bands of 6 rows
         "ray": ("plain", secret[:6, :8], HideConfig(layout="ray", tile_size=16, view=2, seed=5)),
         "ray_float32": ("plain", secret[:5, :7], HideConfig(layout="ray", dtype="float32", tile_size=16, view=1)),
         "sample": ("plain", secret[:6, :8], HideConfig(method="paper", tile_size=16, n_samples=8, settings=paper)),
@@ -616,6 +616,8 @@ def write_fixtures(root: Path) -> dict:
         # a sealed bundle stripped of its seal, revealed with the passphrase its recipient holds
         tamper(root, "payload_sealed", "sealed_stripped", passphrase=PASSPHRASE,
                edit_bundle=bundle_metadata_edit(lambda meta: meta.pop("payload"))),
+        tamper(root, "compact_tiles", "band_rows", edit_bundle=bundle_metadata_edit(
+            lambda meta: meta["tiles"][1].update(band_rows=0))),
         tamper(root, "compact_tiles", "codec", edit_bundle=bundle_metadata_edit(
             lambda meta: meta["noise"].update(codec="zstd"))),
         tamper(root, "fine_compact", "wrong_model", edit_model=lambda data: (root / "scenes" / "plain.onnx").read_bytes()),

@@ -199,16 +199,17 @@ PREDICTED_ITERS = 8
 
 
 def predicted_choice(secret_view: SecretView, space: NoiseSpace, pixels: torch.Tensor, shape: tuple[int, int],
-                     params: torch.Tensor, free: torch.Tensor, settings: ExactSettings, generator: torch.Generator,
-                     batch: int) -> torch.Tensor:
-    """A solved compact tile's params (n, k) moved, pass by interlaced pass (runtime/interlaced.py), to what the
-    bundle codes cheapest: each pixel of a pass after the roots is solved again from its prediction (the
-    coefficients its pass predicts from those chosen before it) with minimum-norm steps, and rounds to the
-    lattice point nearest that prediction among those that round right (round_to_lattice's anchor). A pixel
-    that does not round right from there keeps its own solution; a `free` pixel (n,) bool (an escape: its
-    coefficients are never expanded) takes its prediction. Roots keep their solutions. `settings`: the solve's
-    in the basis, at most PREDICTED_ITERS iterations without restarts; `batch`: pixels solved at once (a part's).
-    -> params (n, k) on the lattice; every pixel not free still rounds right."""
+                     params: torch.Tensor, free: torch.Tensor, settings: ExactSettings,
+                     generator: torch.Generator) -> torch.Tensor:
+    """A solved band of whole rows (a part; shape (h, w)) of a compact tile: its params (n, k) moved, pass by
+    interlaced pass (runtime/interlaced.py), to what the bundle codes cheapest. Each pixel of a pass after the
+    roots is solved again from its prediction (the coefficients its pass predicts from those chosen before
+    it) with minimum-norm steps, and rounds to the lattice point nearest that prediction among those that
+    round right (round_to_lattice's anchor); one that does not round right from there keeps its own solution,
+    a `free` pixel (n,) bool (an escape: its coefficients are never expanded) takes its prediction, and roots
+    keep theirs. secret_view: the band's rays, pixels (n, 3) theirs; settings: the solve's in the basis, run
+    for at most PREDICTED_ITERS iterations without restarts. -> params (n, k) on the lattice; every pixel not
+    free still rounds right."""
     settings = dataclasses.replace(settings, max_iters=PREDICTED_ITERS, restart_after=PREDICTED_ITERS)
     height, width = shape
     solved = space.integers(params).long().reshape(height, width, -1).cpu().numpy()
@@ -218,16 +219,15 @@ def predicted_choice(secret_view: SecretView, space: NoiseSpace, pixels: torch.T
             continue
         chosen[ys, xs] = interlaced.predictions(chosen, ys, xs, kind, d)
         ys, xs = ys[~is_free[ys, xs]], xs[~is_free[ys, xs]]
-        for at in range(0, len(ys), batch):  # a part's worth at a time: its rays' trunks, its Jacobians
-            rows, columns = ys[at:at + batch], xs[at:at + batch]
-            index = torch.from_numpy(rows * width + columns).to(params.device)
-            every = torch.arange(len(index), device=params.device)
-            problem = ExactProblem(solver_view(secret_view.subset(index), space), every, pixels[index], space,
-                                   settings, generator)
-            prediction = torch.from_numpy(chosen[rows, columns]).to(params.device)
-            converged, _ = refine(problem, space.params_of(prediction), storage_phase=False)
-            rounded = round_to_lattice(problem, converged, prediction)
-            right = problem.rounds_right(problem.outputs(every, rounded), every).cpu().numpy()
-            chosen[rows, columns] = np.where(right[:, None], space.integers(rounded).long().cpu().numpy(),
-                                             solved[rows, columns])
+        if not len(ys):
+            continue
+        index = torch.from_numpy(ys * width + xs).to(params.device)
+        every = torch.arange(len(index), device=params.device)
+        problem = ExactProblem(solver_view(secret_view.subset(index), space), every, pixels[index], space, settings,
+                               generator)
+        prediction = torch.from_numpy(chosen[ys, xs]).to(params.device)
+        converged, _ = refine(problem, space.params_of(prediction), storage_phase=False)
+        rounded = round_to_lattice(problem, converged, prediction)
+        right = problem.rounds_right(problem.outputs(every, rounded), every).cpu().numpy()
+        chosen[ys, xs] = np.where(right[:, None], space.integers(rounded).long().cpu().numpy(), solved[ys, xs])
     return space.params_of(torch.from_numpy(chosen.reshape(height * width, -1)).to(params.device))

@@ -17,6 +17,7 @@ from noisenerf.train.hide.methods import METHODS
 from noisenerf.train.hide.secret_view import BranchView, SecretView
 from noisenerf.train.hide.settings import CompactSettings, ExactSettings
 from noisenerf.train.hide.solver import Solver, TileSolution, part_seed, storage_dtype
+from noisenerf.train.hide.tiling import part_rows
 
 if TYPE_CHECKING:
     from noisenerf.train.hide.plan import HideConfig
@@ -27,12 +28,12 @@ COUNTS = ("iterations", "jacobians", "renders", "restarts")
 
 
 def stored_noise(space: NoiseSpace, params: torch.Tensor, escaped: torch.Tensor, branch_escaped: torch.Tensor,
-                 escape_noise: torch.Tensor, shape: tuple[int, ...], position_dims: int) -> TileNoise:
+                 escape_noise: torch.Tensor, shape: tuple[int, ...], position_dims: int, band_rows: int) -> TileNoise:
     """What a tile's bundle entry holds for solved params (n, P), of shape `shape` (its last entry −1 for P)
-    in the storage dtype: float noise, or for a compact space integer coefficients (0 where a pixel
-    escaped) and the basis, with the escaped pixels (n,) bool and their float16 noise, and the branch escapes
-    (n,) bool and the float16 values of their noise after its first position_dims (escape_noise (n, dims)
-    holds both kinds' noise)."""
+    in the storage dtype: float noise, or for a compact space integer coefficients (an escaped pixel's as its
+    part's predicted_choice left them) coded in bands of band_rows rows and the basis, with the escaped pixels
+    (n,) bool and their float16 noise, and the branch escapes (n,) bool and the float16 values of their noise
+    after its first position_dims (escape_noise (n, dims) holds both kinds' noise)."""
     if space.basis is None:
         return VectorNoise(params.reshape(shape).to(space.storage).cpu().numpy())
     escapes, branch_escapes = escaped.nonzero()[:, 0], branch_escaped.nonzero()[:, 0]
@@ -42,7 +43,7 @@ def stored_noise(space: NoiseSpace, params: torch.Tensor, escaped: torch.Tensor,
                          branch_escapes=branch_escapes.to(torch.int32).cpu().numpy(),
                          branch_escape_noise=escape_noise[branch_escapes, position_dims:].to(ESCAPE_DTYPE).cpu().numpy())
     coefficients = space.integers(params)  # an escape's are never expanded: predicted_choice made them cheap
-    return CompactNoise.of(coefficients.reshape(shape).cpu().numpy(), basis)
+    return CompactNoise.of(coefficients.reshape(shape).cpu().numpy(), basis, band_rows)
 
 
 def branch_space(space: NoiseSpace, position_dims: int) -> NoiseSpace:
@@ -55,13 +56,14 @@ def branch_space(space: NoiseSpace, position_dims: int) -> NoiseSpace:
 
 
 def solve_pixels(secret_view: SecretView, index: torch.Tensor, pixels: torch.Tensor, space: NoiseSpace,
-                config: HideConfig, seed: int) -> dict[str, torch.Tensor]:
+                config: HideConfig, seed: int, width: int) -> dict[str, torch.Tensor]:
     """One part's solve, as saved for resume: params (m, P), counts, and for a compact space the pixels it
     could not finish: those the view branch alone still brings to their colours, `branch_escaped` (m,) uint8,
     solved again in float16 direction noise, the others, `escaped` (m,) uint8, in full float16 noise, both
     kinds' noise in `escape_noise` (m, dims) (zero where neither). Compact solves run at most
     CompactSettings.max_iters per phase: the few pixels its basis cannot reach escape sooner, and their
-    float phase stops at CompactSettings.tolerance_bins."""
+    float phase stops at CompactSettings.tolerance_bins. The pixels (whole rows `width` wide) then take the
+    coefficients cheapest to code (compact.predicted_choice)."""
     generator, counts = torch.Generator().manual_seed(seed), SolveCounts()
     settings = config.get(ExactSettings)
     if space.basis is None:
@@ -95,6 +97,8 @@ def solve_pixels(secret_view: SecretView, index: torch.Tensor, pixels: torch.Ten
         full, _ = rescue(escapes, escape_noise, ~escaped)
         escape_noise[escaped] = full[escaped]
     escape_noise[done] = 0
+    params = predicted_choice(secret_view.subset(index), space, pixels[index], (len(index) // width, width), params,
+                              ~done, in_basis(settings, config.get(CompactSettings)), generator)
     return {"noise": params, "counts": torch.tensor(dataclasses.astuple(counts)), "escaped": escaped.to(torch.uint8),
             "branch_escaped": branch_escaped.to(torch.uint8), "escape_noise": escape_noise}
 
@@ -140,11 +144,11 @@ class ExactSolver(Solver):
         return config.part_pixels
 
     def solve_part(self, secret_view: SecretView, rows: range, pixels: torch.Tensor, config: HideConfig, tile_index: int,
-                   part: int, prepared: NoiseSpace | None) -> dict[str, torch.Tensor]:
+                   part: int, prepared: NoiseSpace | None, width: int) -> dict[str, torch.Tensor]:
         """Part `part`: solved in a view of its rays alone (ray i being ray rows[i] of the tile)."""
         index = torch.arange(rows.start, rows.stop, device=pixels.device)
         return solve_pixels(secret_view.subset(index), torch.arange(len(rows), device=pixels.device), pixels,
-                           part_space(config, prepared), config, part_seed(config, tile_index, part))
+                           part_space(config, prepared), config, part_seed(config, tile_index, part), width)
 
     def part_layout(self, config: HideConfig, rows: int, dims: int, prepared: NoiseSpace | None
                     ) -> tuple[dict, Callable]:
@@ -173,13 +177,10 @@ class ExactSolver(Solver):
                                        for name in ("escaped", "branch_escaped"))
             escape_noise = torch.cat([part["escape_noise"] for part in parts]).to(device)
         outside = escaped | branch_escaped
-        if space.basis is not None:
-            params = predicted_choice(secret_view, space, pixels, shape, params, outside,
-                                      in_basis(config.get(ExactSettings), config.get(CompactSettings)),
-                                      torch.Generator().manual_seed(config.seed), config.part_pixels)
         noise = torch.where(outside[:, None, None], escape_noise[:, None, :], space.expand(params))
         stored = stored_noise(space, params, escaped, branch_escaped, escape_noise,
-                              LAYOUTS[config.layout].stored_shape(*shape, 1, -1), secret_view.field.config.position_dims)
+                              LAYOUTS[config.layout].stored_shape(*shape, 1, -1), secret_view.field.config.position_dims,
+                              min(part_rows(shape[1], config.part_pixels), shape[0]))
         return TileSolution(noise, {**totals, "escaped": int(outside.sum()), "branch_escaped": int(branch_escaped.sum())},
                             stored)
 

@@ -88,7 +88,8 @@ class JobRunner:
             view, pixels = self.view(weights, job.tile, device), job.pixels.to(device)
             if job.part == PREPARE:
                 return solver.prepare(view, pixels, job.config, job.tile_index)
-            return solver.solve_part(view, job.rows, pixels, job.config, job.tile_index, job.part, prepared)
+            return solver.solve_part(view, job.rows, pixels, job.config, job.tile_index, job.part, prepared,
+                                     job.tile.rect[2])
 
 
 def kept(cache: OrderedDict, key, size: int, build):

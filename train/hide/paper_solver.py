@@ -33,7 +33,7 @@ class PaperSolver(Solver):
         return config.get(PaperSettings).block_pixels
 
     def solve_part(self, secret_view: SecretView, rows: range, pixels: torch.Tensor, config: HideConfig, tile_index: int,
-                   part: int, prepared: ViewSurvey) -> dict[str, torch.Tensor]:
+                   part: int, prepared: ViewSurvey, width: int) -> dict[str, torch.Tensor]:
         """Block `part`, its noise on the CPU in the storage dtype (so device memory holds one block), and
         its colours at each recorded iteration."""
         index = torch.arange(rows.start, rows.stop, device=pixels.device)

@@ -34,6 +34,7 @@ from noisenerf.train.hide.plan import HideConfig, plan, run_key
 from noisenerf.train.hide.progress import Progress
 from noisenerf.train.hide.settings import pass_samples_for
 from noisenerf.train.hide.solvers import SOLVERS
+from noisenerf.train.hide.tiling import part_rows
 from noisenerf.train.scene.scene import Scene
 
 
@@ -205,9 +206,9 @@ class Driver:
 
 
 def tile_work(index: int, tile: Tile, secret: np.ndarray, part_pixels: int) -> TileWork:
-    """Tile `index`'s pixels and its parts of `part_pixels` rays each."""
+    """Tile `index`'s pixels and its parts: bands of whole rows, at most `part_pixels` rays each where a row fits
+    (tiling.part_rows)."""
     x0, y0, w, h = tile.rect
-    n = w * h
+    rows = part_rows(w, part_pixels)
     return TileWork(index, tile, torch.tensor(secret[y0:y0 + h, x0:x0 + w].reshape(-1, 3)),
-                    [range(start, min(start + part_pixels, n)) for start in range(0, n, part_pixels)],
-                    time.perf_counter())
+                    [range(y * w, min(y + rows, h) * w) for y in range(0, h, rows)], time.perf_counter())

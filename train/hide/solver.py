@@ -69,9 +69,10 @@ class Solver:
         raise NotImplementedError
 
     def solve_part(self, secret_view: SecretView, rows: range, pixels: torch.Tensor, config: HideConfig, tile_index: int,
-                   part: int, prepared: object) -> dict[str, torch.Tensor]:
-        """Part `part` of tile `tile_index`, the tile's rays `rows` with their pixels (m, 3) uint8: its tensors as
-        saved for a resume. Pure, run as a job; `prepared` is the tile's shared result (None without one)."""
+                   part: int, prepared: object, width: int) -> dict[str, torch.Tensor]:
+        """Part `part` of tile `tile_index`, the tile's rays `rows` (whole rows of the tile, `width` rays each:
+        tiling.part_rows) with their pixels (m, 3) uint8: its tensors as saved for a resume. Pure, run as a job;
+        `prepared` is the tile's shared result (None without one)."""
         raise NotImplementedError
 
     def part_layout(self, config: HideConfig, rows: int, dims: int, prepared: object) -> tuple[dict, Callable]:

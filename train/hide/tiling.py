@@ -21,6 +21,12 @@ DEFAULT_TILE_SIZE = 512  # a secret larger than this is cut into tiles (hide --t
 YAW_STEP_DEGREES = 2.0
 
 
+def part_rows(width: int, part_pixels: int) -> int:
+    """Rows of a tile `width` wide in each of its parts: whole rows, as many as part_pixels holds, at least one.
+    A compact tile's coefficients are coded in bands of these rows (runtime/interlaced.py), each part its own."""
+    return max(1, part_pixels // width)
+
+
 def tile_rects(width: int, height: int, tile_size: int) -> list[tuple[int, int, int, int]]:
     """Row-major (x0, y0, w, h) rectangles covering width × height."""
     if tile_size < MIN_TILE_SIZE:

@@ -212,8 +212,11 @@ const COMPACT = {
     const scale = checkedFloat(data.scale ?? null, `${what} scale`, FLOAT32_TINY, FLOAT32_MAX, { code: "compact.scale", tile });
     const escapes = tensor(`${name}_escapes`), escapeNoise = tensor(`${name}_escape_noise`);
     const packed = tensor(name, "uint8", 1);
+    const interlaced = codecOf(version) === INTERLACED_CODEC;
+    const bandRows = interlaced
+      ? checkedInt(data.band_rows ?? null, `${what} band rows`, 1, shape[0], { code: "compact.band_rows", tile }) : null;
     const planes = await unpackCoefficients(packed.values, shape, dtype, what, tile);
-    const coefficients = codecOf(version) === INTERLACED_CODEC ? decodeInterlaced(planes, ...shape) : planes;
+    const coefficients = interlaced ? decodeInterlaced(planes, ...shape, bandRows) : planes;
     return { coefficients, shape, dtype, basis: { basis, offset, scale, escapes, escapeNoise, ...branch } };
   },
   /** The basis (dims, k), offset (dims,) float32, escape noise (e, dims) and branch escape noise (b, w), w ≤ dims,
