@@ -9,9 +9,10 @@ types (what a tile holds) live here too. runtime/bundle.py keeps the file format
              (coefficient-major, then byte, then row-major pixels, little-endian: planes of like bytes compress
              best; from format 4 the planes hold each coefficient's zigzag difference from its interlaced
              prediction, runtime/interlaced.py) with the basis (dims, k), offset (dims,) and scale: noise =
-             offset + (coefficients · scale) basisᵀ in float32; pixels the basis could not reach "escape": with their full float16 noise, or
-             (format 3) as "branch escapes" with float16 values for the noise's trailing w dims alone (the
-             direction segment the view branch takes), the leading ones being the offset's
+             offset + (coefficients · scale) basisᵀ in float32; pixels the basis could not reach "escape":
+             with their full float16 noise, or (format 3) as "branch escapes" with float16 values for the
+             noise's trailing w dims alone (the direction segment the view branch takes), the leading ones
+             being the offset's
 """
 
 from __future__ import annotations
@@ -36,12 +37,12 @@ INTERLACED_FROM = 4  # the bundle format from which compact tiles store interlac
 # (one xz decode for ordinary secrets); beyond, tiles are unpacked again one at a time, so memory stays bounded
 KEPT_UNPACKED_BYTES = 1 << 26
 BRANCH_ESCAPES_FROM = 3  # the bundle format from which compact tiles store branch escapes
+TensorGetter = Callable[..., np.ndarray]  # (name, dtype=None, ndim=None) -> a tile's tensor, or a UserError
 
 
 def codec_of(version: int) -> str:
     """The coefficient codec a compact tile of bundle format `version` states and is read with."""
     return INTERLACED_CODEC if version >= INTERLACED_FROM else PLANES_CODEC
-TensorGetter = Callable[..., np.ndarray]  # (name, dtype=None, ndim=None) -> a tile's tensor, or a UserError
 
 
 @dataclass(frozen=True)
