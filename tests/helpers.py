@@ -215,8 +215,9 @@ def as_older_compact_format(version: int):
         noise = meta["noise"]
         for tile in meta["tiles"]:
             name, (_, _, width, height) = tile["tensor"], tile["rect"]
+            dtype = DTYPES[noise["dtype"]]
             codes = unpack_coefficients(tensors[name], (height, width, noise["coefficients"]), noise["dtype"], "test")
-            tensors[name] = pack_coefficients(interlaced.decode(codes, tile.pop("band_rows")).astype(DTYPES[noise["dtype"]]))
+            tensors[name] = pack_coefficients(interlaced.decode(codes, tile.pop("band_rows")).astype(dtype))
             if version < 3:
                 del tensors[f"{name}_branch_escapes"], tensors[f"{name}_branch_escape_noise"]
         meta.update(format_version=version)

@@ -180,7 +180,7 @@ class ExactSolver(Solver):
         noise = torch.where(outside[:, None, None], escape_noise[:, None, :], space.expand(params))
         stored = stored_noise(space, params, escaped, branch_escaped, escape_noise,
                               LAYOUTS[config.layout].stored_shape(*shape, 1, -1), secret_view.field.config.position_dims,
-                              min(part_rows(shape[1], config.part_pixels), shape[0]))
+                              part_rows(shape[1], shape[0], config.part_pixels))
         return TileSolution(noise, {**totals, "escaped": int(outside.sum()), "branch_escaped": int(branch_escaped.sum())},
                             stored)
 

@@ -209,6 +209,6 @@ def tile_work(index: int, tile: Tile, secret: np.ndarray, part_pixels: int) -> T
     """Tile `index`'s pixels and its parts: bands of whole rows, at most `part_pixels` rays each where a row fits
     (tiling.part_rows)."""
     x0, y0, w, h = tile.rect
-    rows = part_rows(w, part_pixels)
+    rows = part_rows(w, h, part_pixels)
     return TileWork(index, tile, torch.tensor(secret[y0:y0 + h, x0:x0 + w].reshape(-1, 3)),
                     [range(y * w, min(y + rows, h) * w) for y in range(0, h, rows)], time.perf_counter())

@@ -21,10 +21,11 @@ DEFAULT_TILE_SIZE = 512  # a secret larger than this is cut into tiles (hide --t
 YAW_STEP_DEGREES = 2.0
 
 
-def part_rows(width: int, part_pixels: int) -> int:
-    """Rows of a tile `width` wide in each of its parts: whole rows, as many as part_pixels holds, at least one.
-    A compact tile's coefficients are coded in bands of these rows (runtime/interlaced.py), each part its own."""
-    return max(1, part_pixels // width)
+def part_rows(width: int, height: int, part_pixels: int) -> int:
+    """Rows of a (height, width) tile in each of its parts (the last what is left): whole rows, as many as
+    part_pixels holds, at least one, at most the tile's. A compact tile's coefficients are coded in bands of these
+    rows (runtime/interlaced.py), each part its own."""
+    return min(height, max(1, part_pixels // width))
 
 
 def tile_rects(width: int, height: int, tile_size: int) -> list[tuple[int, int, int, int]]:
