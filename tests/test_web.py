@@ -684,11 +684,53 @@ def fixtures(tmp_path_factory) -> Path:
     return root
 
 
-def test_the_javascript_reveal_matches_the_python_runtime(fixtures):
-    result = subprocess.run(["node", "--test", "--test-reporter=spec", "test/"], cwd=WEB, capture_output=True,
+def expected_javascript_cases(manifest: dict) -> dict[str, set[str]]:
+    """Every top-level test web/test/ must run on these fixtures, by file: the names its loops make of the
+    manifest (a loop over a key the manifest lacks would run no test and still exit 0)."""
+    fixtures, payloads, tampered = manifest["fixtures"], manifest["payloads"], manifest["tampered"]
+    graphs = [f"field graph {i}: {'refused (' + g['code'] + ')' if 'code' in g else 'derived'} as Python does: "
+              f"{g['architecture'][:100]}" for i, g in enumerate(manifest["graphs"])]
+    pruned = [f"{g['model']} pruned to {', '.join(g['outputs'])}" for g in manifest["pruned"]]
+    return {
+        "fields.test.js": {*graphs, "grid level scales are Python's to the bit for Instant-NGP's per-level scales"},
+        "pool.test.js": {*(f"{name}: two workers reveal Python's pixels byte for byte" for name in fixtures),
+                         "tiles cut into many small chunks, out of order in two workers, render the same colours as whole",
+                         "a worker that dies is left out: the others render on and release does not wait for it",
+                         "a worker's refusal is the caller's UserError, and the pool renders on after it"},
+        "pruning.test.js": {*(f"{label}: {what}" for label in pruned for what in (
+                                "Python's bytes, the fetched outputs alone, fewer nodes",
+                                "onnxruntime-web computes the whole graph's values")),
+                            "a renderer's sessions are each of the graph pruned to one network's outputs",
+                            "a reveal opens sessions for the networks its tiles name only, and reveals Python's pixels",
+                            "a pool's workers are sent each network's pruned model alone, and reveal Python's pixels"},
+        "reveal.test.js": {*(f"{name}: {what}" for name in fixtures for what in (
+                               "rays, noise and colours against Python",
+                               "the revealed 8-bit pixels are Python's byte for byte")),
+                           *(f"{name}: the payload's bytes are noisenerf-reveal's" for name in payloads),
+                           *(f"refused as noisenerf-reveal refuses it: {t['case']} ({t['code']})" for t in tampered),
+                           "summary of the measured differences"},
+    }
+
+
+def test_the_javascript_reveal_matches_the_python_runtime(fixtures, tmp_path):
+    """`node --test` exits 0 and ran exactly the cases the manifest makes, every one passed and none skipped."""
+    events = tmp_path / "events.jsonl"
+    result = subprocess.run(["node", "--test", "--test-reporter=spec", "--test-reporter-destination=stdout",
+                             f"--test-reporter={REPO / 'tests' / 'node' / 'events_reporter.mjs'}",
+                             f"--test-reporter-destination={events}", "test/"], cwd=WEB, capture_output=True,
                             text=True, env={**os.environ, "NOISENERF_WEB_FIXTURES": str(fixtures)}, timeout=900)
     print(result.stdout[-20000:])
     assert result.returncode == 0, result.stdout[-6000:] + result.stderr[-3000:]
+    ran: dict[str, set[str]] = {}
+    for line in events.read_text().splitlines():
+        case = json.loads(line)
+        if case["nesting"] == 0:
+            assert case["passed"] and case["skip"] is False and case["todo"] is False, case
+            ran.setdefault(Path(case["file"]).name, set()).add(case["name"])
+    expected = expected_javascript_cases(json.loads((fixtures / "manifest.json").read_text()))
+    assert ran == expected
+    # the manifest's own loops are not empty: every layout's fixture, tampered copies, graphs, payloads
+    assert min(len(names) for names in expected.values()) >= 4 and len(expected["reveal.test.js"]) > 60
 
 
 if __name__ == "__main__":

@@ -2,9 +2,10 @@
 random-weight scene: noise up to ±1e4, densities near float32 overflow, near/far at 1e-4 and 1e4, grazing
 and axis-aligned rays, denormal noise, float16 bundles, and 1-pixel to many-tile secrets.
 
-Each check is a plain function of the stressed scene and one case that raises AssertionError where a bound
-is missed. `noisenerf bench --stress` runs every case (`run_stress`); tests/test_stress.py runs the same
-checks as tests, the fast subset of their cases unless NOISENERF_STRESS=full.
+Each check is a plain function of the stressed scene and one case that raises StressFailure where a bound is
+missed (an error, not an `assert`, which `python -O` would drop). `noisenerf bench --stress` runs every case
+(`run_stress`); tests/test_stress.py runs the same checks as tests, the fast subset of their cases unless
+NOISENERF_STRESS=full.
 """
 
 from __future__ import annotations
@@ -45,6 +46,25 @@ CPU = torch.device("cpu")
 GRAZING = [[1, 0, 0], [0, 1, 0], [0, 0, -1], [-1, 0, 0], [1, 1e-7, 0], [1, 0, 1e-30], [1, 1, 1], [3e-8, 1, 0]]
 
 
+class StressFailure(Exception):
+    """A stress case that missed its bound."""
+
+
+def require(holds, what: str) -> None:
+    """Raise StressFailure(what) unless `holds`."""
+    if not holds:
+        raise StressFailure(what)
+
+
+def all_finite(*arrays) -> None:
+    for i, array in enumerate(arrays):
+        require(np.isfinite(array).all(), f"output {i} holds NaN or Inf")
+
+
+def at_most(value: float, bound: float, what: str) -> None:
+    require(value <= bound, f"{what} {value:.3g} > {bound:.3g}")
+
+
 @dataclass(frozen=True)
 class Stressed:
     """The scene under stress, its render field in float64 (the reference), and its onnxruntime model."""
@@ -78,8 +98,9 @@ def noisy_field_is_finite_and_onnxruntime_is_as_exact_as_torch(stressed: Stresse
     exact = numpy_field(stressed.reference)(points, viewdirs, noise)
     ours, theirs = numpy_field(scene.render_field)(points, viewdirs, noise), model.field(points, viewdirs, noise)
     for exact_part, torch_part, onnx_part in zip(exact, ours, theirs):
-        assert np.isfinite(torch_part).all() and np.isfinite(onnx_part).all()
-        assert scaled_error(exact_part, onnx_part) <= PROBE_TOLERANCE + FLOAT32_SLACK * scaled_error(exact_part, torch_part)
+        all_finite(torch_part, onnx_part)
+        at_most(scaled_error(exact_part, onnx_part), PROBE_TOLERANCE + FLOAT32_SLACK * scaled_error(exact_part, torch_part),
+                "onnxruntime's scaled error")
 
 
 def compositing_near_float32_overflow_is_finite_in_both_backends(stressed: Stressed, sigma: float) -> None:
@@ -91,9 +112,9 @@ def compositing_near_float32_overflow_is_finite_in_both_backends(stressed: Stres
     expected = compositing.composite(compositing.render_weights(sigmas, deltas), rgbs, background)
     weights = rendering.render_weights(torch.from_numpy(sigmas), torch.from_numpy(deltas))
     got = rendering.composite(weights, torch.from_numpy(rgbs), torch.from_numpy(background)).numpy()
-    assert np.isfinite(expected).all() and np.isfinite(got).all()
-    assert float(weights.sum(1).max()) <= 1.0 + 1e-6
-    assert np.abs(expected - got).max() <= 1e-6
+    all_finite(expected, got)
+    at_most(float(weights.sum(1).max()), 1.0 + 1e-6, "a ray's weight sum")
+    at_most(float(np.abs(expected - got).max()), 1e-6, "numpy against torch")
 
 
 def rays_through_box(directions: np.ndarray, origin_distance: float) -> RayBatch:
@@ -108,17 +129,17 @@ def extreme_near_far_grazing_and_axis_aligned_rays_render_alike(stressed: Stress
     rays = rays_through_box(GRAZING, origin_distance=3.0)
     ours, _ = render_rays(config, rays, plain(numpy_field(scene.render_field)), scene.grid)
     theirs, _ = render_rays(config, rays, plain(model.field), model.grid)
-    assert np.isfinite(ours).all() and np.isfinite(theirs).all()
-    assert np.abs(ours - theirs).max() <= 1e-5
+    all_finite(ours, theirs)
+    at_most(float(np.abs(ours - theirs).max()), 1e-5, "torch against onnxruntime")
 
 
 def zero_length_direction_is_refused_clearly(stressed: Stressed) -> None:
     try:
         normalize_directions(np.array([[0.0, 0.0, 1.0], [0.0, 0.0, 0.0]], dtype=np.float32))
     except UserError as error:
-        assert "zero-length direction" in str(error), error
+        require("zero-length direction" in str(error), f"refused otherwise: {error}")
         return
-    raise AssertionError("a zero-length direction was not refused")
+    raise StressFailure("a zero-length direction was not refused")
 
 
 def denormal_noise_renders_like_no_noise(stressed: Stressed, tiny: float) -> None:
@@ -128,8 +149,8 @@ def denormal_noise_renders_like_no_noise(stressed: Stressed, tiny: float) -> Non
     for field_fn in (numpy_field(scene.render_field), model.field):
         clean, noisy = field_fn(points, viewdirs, None), field_fn(points, viewdirs, noise)
         for a, b in zip(clean, noisy):
-            assert np.isfinite(b).all()
-            assert np.abs(a - b).max() <= 1e-6
+            all_finite(b)
+            at_most(float(np.abs(a - b).max()), 1e-6, "denormal noise against none")
 
 
 def tiny_and_many_tile_secrets_hide_and_reveal_exactly(stressed: Stressed, height: int, width: int, tile: int,
@@ -139,12 +160,11 @@ def tiny_and_many_tile_secrets_hide_and_reveal_exactly(stressed: Stressed, heigh
     with tempfile.TemporaryDirectory(dir=stressed.folder) as tmp:
         path = Path(tmp) / "s.bundle"
         report = hide(scene, secret, path, HideConfig(tile_size=tile, layout=layout, dtype=dtype), CPU)
-        assert report["exact"]
+        require(report["exact"], "the hide is not exact")
         bundle = load_bundle(path)
-        assert all(np.isfinite(t.noise.loaded().rows(0, t.rect[2] * t.rect[3])).all() for t in bundle.tiles)
+        all_finite(*(t.noise.loaded().rows(0, t.rect[2] * t.rect[3]) for t in bundle.tiles))
         revealed = reveal(bundle, model.render_config, model.fields())
-        assert revealed.exact
-        np.testing.assert_array_equal(revealed.pixels, secret)
+        require(revealed.exact and np.array_equal(revealed.pixels, secret), "the reveal is not the secret")
 
 
 def same_seed_same_bundle_bytes(stressed: Stressed, method: str, layout: str) -> None:
@@ -154,7 +174,8 @@ def same_seed_same_bundle_bytes(stressed: Stressed, method: str, layout: str) ->
     with tempfile.TemporaryDirectory(dir=stressed.folder) as tmp:
         for name in ("a", "b"):
             hide(stressed.scene, secret, Path(tmp) / f"{name}.bundle", config, CPU)
-        assert (Path(tmp) / "a.bundle").read_bytes() == (Path(tmp) / "b.bundle").read_bytes()
+        require((Path(tmp) / "a.bundle").read_bytes() == (Path(tmp) / "b.bundle").read_bytes(),
+                "the same seed wrote different bundles")
 
 
 @dataclass(frozen=True)
