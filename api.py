@@ -14,6 +14,7 @@ stays the recipient's.
 
 from __future__ import annotations
 
+import dataclasses
 import os
 import re
 from pathlib import Path
@@ -21,6 +22,8 @@ from typing import Callable
 
 import numpy as np
 
+from noisenerf.runtime.arguments import (checked_callback, checked_flag, checked_int, checked_number, checked_path,
+                                         checked_source, checked_text, optional, wrong)
 from noisenerf.runtime.errors import UserError
 from noisenerf.runtime.progress import ProgressFn
 
@@ -49,7 +52,13 @@ def fit(data: PathLike, output: PathLike, *, field: str | None = None, preset: s
     folder `output`, for exactly one of `minutes` or `iters`; run again to resume from its checkpoint. field:
     the kind (`mlp`, `hashgrid`), fitted with its default preset unless `preset` names another of its kind;
     neither: the `hashgrid` preset (fit.DEFAULT_FIELD). -> fit's report (test PSNR under test.psnr)."""
-    import dataclasses
+    data, output, progress = checked_path(data, "data"), checked_path(output, "output"), \
+        optional(checked_callback, progress, "progress")
+    field, preset, device = optional(checked_text, field, "field"), optional(checked_text, preset, "preset"), \
+        checked_text(device, "device")
+    resolution, iters, seed = (optional(checked_int, value, name) for value, name in
+                               ((resolution, "resolution"), (iters, "iters"), (seed, "seed")))
+    minutes, skip = optional(checked_number, minutes, "minutes"), checked_flag(skip, "skip")
 
     from noisenerf.runtime.files import check_output_directory
     from noisenerf.train.scene.datasets import load_dataset
@@ -100,6 +109,27 @@ def hide(scene, secret: PathLike | np.ndarray | None = None, output: PathLike | 
 
     if output is None:
         raise UserError("hide needs an output bundle (-o)")
+    output = checked_path(output, "output")
+    if not isinstance(scene, (str, os.PathLike, Scene)):
+        raise wrong("scene", "a scene folder (str or os.PathLike) or a Scene", scene)
+    if secret is not None and not isinstance(secret, (str, os.PathLike, np.ndarray)):
+        raise wrong("secret", "a path (str or os.PathLike) or an (h, w, 3) uint8 array", secret)
+    file = optional(checked_source, file, "file")
+    file_name, method, executor, device = (checked_text(value, name) for value, name in (
+        (file_name, "file_name"), (method, "method"), (executor, "executor"), (device, "device")))
+    layout, dtype, ray_address = (optional(checked_text, value, name) for value, name in (
+        (layout, "layout"), (dtype, "dtype"), (ray_address, "ray_address")))
+    samples, tile_size, workers = (optional(checked_int, value, name) for value, name in (
+        (samples, "samples"), (tile_size, "tile_size"), (workers, "workers")))
+    view, seed = checked_int(view, "view"), checked_int(seed, "seed")
+    force, allow_inexact, verbose = (checked_flag(value, name) for value, name in (
+        (force, "force"), (allow_inexact, "allow_inexact"), (verbose, "verbose")))
+    progress, announce, warn = (optional(checked_callback, value, name) for value, name in (
+        (progress, "progress"), (announce, "announce"), (warn, "warn")))
+    if not isinstance(settings, (tuple, list)) or not all(dataclasses.is_dataclass(s) for s in settings):
+        raise wrong("settings", "a tuple of settings dataclasses", settings)
+    if passphrase is not None and not isinstance(passphrase, (str, bytes)):
+        raise wrong("passphrase", "a str or bytes", passphrase)
     if (secret is None) == (file is None):
         raise UserError("give exactly one of SECRET_IMAGE or --file PAYLOAD")
     if workers is not None and workers < 1:
@@ -157,20 +187,25 @@ def checked_pixels(secret) -> np.ndarray:
     return np.ascontiguousarray(pixels)
 
 
-def import_nerfstudio(run: PathLike, output: PathLike, *, data: PathLike | None = None) -> dict:
+def import_nerfstudio(run: PathLike, output: PathLike, *, data: PathLike | None = None, force: bool = False) -> dict:
     """Import a nerfstudio nerfacto run directory (config.yml, dataparser_transforms.json,
     nerfstudio_models/) as the scene folder `output`; `data`: the dataset holding transforms.json (default:
-    the path the run recorded). -> what `noisenerf import-nerfstudio --json` prints."""
+    the path the run recorded); force: replace an earlier scene in `output` (a folder holding anything else is
+    refused). -> what `noisenerf import-nerfstudio --json` prints."""
     from noisenerf.train.scene.import_nerfstudio import import_nerfstudio as import_run
 
-    scene = import_run(Path(run), Path(output), data=Path(data) if data is not None else None)
+    run, output, data = checked_path(run, "run"), checked_path(output, "output"), optional(checked_path, data, "data")
+    force = checked_flag(force, "force")
+    scene = import_run(Path(run), Path(output), data=Path(data) if data is not None else None, force=force)
     return {"scene": str(output), "fingerprint": scene.fingerprint(), "implementation": scene.config.coarse.implementation,
             "cameras": len(scene.config.cameras)}
 
 
-def export_model(scene: PathLike, output: PathLike, *, force: bool = True) -> dict:
+def export_model(scene: PathLike, output: PathLike, *, force: bool = False) -> dict:
     """Export a scene folder's frozen fields to one ONNX file with a `noise` input port; written only once
-    onnx.checker, the torch-against-onnxruntime probe and the fingerprint check pass. -> export's report."""
+    onnx.checker, the torch-against-onnxruntime probe and the fingerprint check pass; an existing `output` is
+    replaced only with force. -> export's report."""
     from noisenerf.export.onnx_export import export_scene
 
+    scene, output, force = checked_path(scene, "scene"), checked_path(output, "output"), checked_flag(force, "force")
     return export_scene(Path(scene), Path(output), force=force)

@@ -108,8 +108,10 @@ def read_passphrase(path: str | None, confirm: bool = False) -> bytes | None:
         if not file.is_file() or file.stat().st_size > MAX_PASSPHRASE_BYTES:
             raise UserError(f"--passphrase-file must be a file of at most {MAX_PASSPHRASE_BYTES} bytes: {path}")
         passphrase = file.read_bytes().removesuffix(b"\n").removesuffix(b"\r")
-    elif PASSPHRASE_ENV in os.environ:
+    elif PASSPHRASE_ENV in os.environ:  # the flag's default: capped as the flag's file is
         passphrase = os.environb[PASSPHRASE_ENV.encode()]
+        if len(passphrase) > MAX_PASSPHRASE_BYTES:
+            raise UserError(f"{PASSPHRASE_ENV} must hold at most {MAX_PASSPHRASE_BYTES} bytes, not {len(passphrase)}")
     elif sys.stdin.isatty():
         passphrase = getpass.getpass("passphrase: ").encode()
         if confirm and getpass.getpass("passphrase (again): ").encode() != passphrase:

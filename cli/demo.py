@@ -1,7 +1,7 @@
 """`noisenerf demo`: the whole product on the embedded default, in well under two minutes on 2 cores.
 
 The shipped demo scene (train/assets/demo_scene, fitted by `noisenerf fit` on the procedural dataset,
-see README) hides a generated secret; the scene is exported to ONNX; onnxruntime reveals the secret
+see docs/usage.md) hides a generated secret; the scene is exported to ONNX; onnxruntime reveals the secret
 with the runtime alone. Writes the scene's ordinary render, the secret, the revealed image and a
 side-by-side picture of the three; and a short text file hidden as a payload sealed under the passphrase
 DEMO_PASSPHRASE (note.txt -> note.bundle), for `noisenerf-reveal` to open.
@@ -16,7 +16,7 @@ import numpy as np
 import torch
 
 from noisenerf.runtime.bundle import load_bundle
-from noisenerf.runtime.files import check_output_directory, write_bytes
+from noisenerf.runtime.files import atomic_folder, write_bytes
 from noisenerf.runtime.images import to_uint8, write_image
 from noisenerf.runtime.metrics import exact_fraction, psnr, ssim
 from noisenerf.runtime.model import load_model
@@ -50,9 +50,24 @@ def side_by_side(images: list[np.ndarray], gap: int = 4) -> np.ndarray:
 
 
 def run_demo(out_dir: Path, device: torch.device, progress: ProgressFn | None = None) -> dict:
+    """The demo's files written into the folder `out_dir` as a whole: a new or empty folder, or an earlier demo's,
+    which they replace (any other folder is refused). -> the demo's report."""
+    with atomic_folder(out_dir, replace=True, marker="note.bundle", what="demo") as folder:
+        report = demo_files(folder, device, progress)
+    report["output"] = str(out_dir)
+    report["summary"] += [
+        f"files in {out_dir}: model.onnx (share with anyone), secret.bundle ({report['bundle_bytes']} bytes, the key), "
+        "secret.png, revealed.png, ordinary.png, side_by_side.png, note.txt, note.bundle",
+        f"open the sealed note: NOISENERF_PASSPHRASE='{DEMO_PASSPHRASE}' noisenerf-reveal {out_dir / 'model.onnx'} "
+        f"{out_dir / 'note.bundle'} -o note.txt",
+    ]
+    return report
+
+
+def demo_files(out_dir: Path, device: torch.device, progress: ProgressFn | None) -> dict:
+    """The demo's files written into `out_dir` (a new folder), and its report."""
     from noisenerf.export.onnx_export import export_scene
 
-    check_output_directory(out_dir).mkdir(exist_ok=True)
     timings = {}
     started = time.perf_counter()
     scene = load_scene(DEMO_SCENE)
@@ -88,16 +103,12 @@ def run_demo(out_dir: Path, device: torch.device, progress: ProgressFn | None = 
                "ssim": ssim(revealed.pixels / 255.0, secret / 255.0),
                "exact_fraction": exact_fraction(revealed.pixels, secret)}
     report = {"exact": revealed.exact, **quality, "bundle_bytes": hidden["bundle_bytes"],
-              "seconds": {k: round(v, 2) for k, v in timings.items()}, "output": str(out_dir)}
+              "seconds": {k: round(v, 2) for k, v in timings.items()}}
     psnr_text = "inf" if quality["psnr"] == float("inf") else f"{quality['psnr']:.2f}"
     report["summary"] = [
         f"exact: {str(revealed.exact).lower()}",
         f"PSNR {psnr_text} dB, SSIM {quality['ssim']:.4f}, exact 8-bit values {quality['exact_fraction']:.4%}",
         f"hide {timings['hide']:.1f} s, sealed note {timings['seal']:.1f} s, export {timings['export']:.1f} s, "
         f"reveal (onnxruntime) {timings['reveal']:.1f} s",
-        f"files in {out_dir}: model.onnx (share with anyone), secret.bundle ({hidden['bundle_bytes']} bytes, the key), "
-        "secret.png, revealed.png, ordinary.png, side_by_side.png, note.txt, note.bundle",
-        f"open the sealed note: NOISENERF_PASSPHRASE='{DEMO_PASSPHRASE}' noisenerf-reveal {out_dir / 'model.onnx'} "
-        f"{out_dir / 'note.bundle'} -o note.txt",
     ]
     return report

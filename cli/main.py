@@ -56,7 +56,7 @@ def cmd_import(args) -> None:
     from noisenerf.train.scene.import_nerf_pytorch import import_nerf_pytorch
 
     scene = import_nerf_pytorch(Path(args.checkpoint), Path(args.config), Path(args.output),
-                                data_dir=Path(args.data_dir) if args.data_dir else None)
+                                data_dir=Path(args.data_dir) if args.data_dir else None, force=args.force)
     emit({"scene": args.output, "fingerprint": scene.fingerprint()}, args.json,
          [f"scene: {args.output}", f"fingerprint: {scene.fingerprint()}"])
 
@@ -64,7 +64,7 @@ def cmd_import(args) -> None:
 def cmd_import_nerfstudio(args) -> None:
     from noisenerf import api
 
-    report = api.import_nerfstudio(args.run_dir, args.output, data=args.data)
+    report = api.import_nerfstudio(args.run_dir, args.output, data=args.data, force=args.force)
     emit(report, args.json, [f"scene: {args.output} (nerfacto, {report['implementation']} implementation, "
                              f"{report['cameras']} cameras in nerfstudio's frame order)",
                              f"fingerprint: {report['fingerprint']}"])
@@ -122,7 +122,7 @@ def announce_capacity(tile_size: int):
 def cmd_export(args) -> None:
     from noisenerf import api
 
-    report = api.export_model(args.scene_dir, args.output)
+    report = api.export_model(args.scene_dir, args.output, force=args.force)
     emit(report, args.json, [f"model: {args.output}", *(f"{k}: {v}" for k, v in report.items())])
 
 
@@ -190,6 +190,7 @@ def import_nerf_pytorch_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--config", required=True, help="the nerf-pytorch config .txt the checkpoint was trained with")
     p.add_argument("--data-dir", help="dataset folder (default: the config's datadir)")
     p.add_argument("-o", "--output", required=True)
+    p.add_argument("--force", action="store_true", help="replace an earlier scene in the output folder")
 
 
 def import_nerfstudio_arguments(p: argparse.ArgumentParser) -> None:
@@ -197,6 +198,7 @@ def import_nerfstudio_arguments(p: argparse.ArgumentParser) -> None:
                                    "nerfstudio_models/")
     p.add_argument("--data", help="the dataset folder holding transforms.json (default: the run's recorded path)")
     p.add_argument("-o", "--output", required=True)
+    p.add_argument("--force", action="store_true", help="replace an earlier scene in the output folder")
 
 
 def hide_arguments(p: argparse.ArgumentParser) -> None:
@@ -242,6 +244,7 @@ def hide_arguments(p: argparse.ArgumentParser) -> None:
 def export_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("scene_dir")
     p.add_argument("-o", "--output", required=True)
+    p.add_argument("--force", action="store_true", help="overwrite an existing model file")
 
 
 def demo_arguments(p: argparse.ArgumentParser) -> None:

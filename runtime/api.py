@@ -21,6 +21,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from noisenerf.runtime.bundle import Bundle, bundle_bytes, parse_bundle_bytes, secret_digest
+from noisenerf.runtime.arguments import (checked_callback, checked_int, checked_path, checked_source, checked_text,
+                                         optional, wrong)
 from noisenerf.runtime.errors import UserError
 from noisenerf.runtime.files import check_output_path, refuse_lossy, write_bytes
 from noisenerf.runtime.images import to_uint8, write_image, written_format
@@ -53,7 +55,7 @@ def read_bundle(bundle: Source | ReadBundle) -> ReadBundle:
     """A bundle (a path, or its bytes) read once and checked (runtime.bundle.load_bundle)."""
     if isinstance(bundle, ReadBundle):
         return bundle
-    data, name = bundle_bytes(bundle)
+    data, name = bundle_bytes(checked_source(bundle, "bundle"))
     return ReadBundle(parse_bundle_bytes(data, name), data)
 
 
@@ -90,6 +92,7 @@ class RevealResult:
         PATH's extension says (.png 8-bit, .tif 16-bit, .exr float, the 8-bit values scaled exactly so that
         `exact` describes the file; lossy formats refused). Atomic; an existing file only with force.
         -> how the file holds the values ({"written": ...} for an image, else {})."""
+        path = checked_path(path, "path")
         if self.kind == "file":
             write_bytes(path, self.bytes, replace=force)
             return {}
@@ -118,7 +121,7 @@ class RenderResult:
 
     def save(self, path: str | os.PathLike, force: bool = False) -> None:
         """Write the render by PATH's extension (.png, .jpg, .tif, .exr), atomically."""
-        output = check_output_path(path, force=force)
+        output = check_output_path(checked_path(path, "path"), force=force)
         write_image(output, self.image, replace=force)
 
 
@@ -137,7 +140,7 @@ def passphrase_bytes(passphrase: str | bytes | None) -> bytes | None:
         return passphrase
     if isinstance(passphrase, str):
         return passphrase.encode()
-    raise TypeError("passphrase must be a str or bytes")
+    raise wrong("passphrase", "a str or bytes", passphrase)
 
 
 def unseal(read: ReadBundle, passphrase: bytes | None) -> Keys | None:
@@ -154,7 +157,10 @@ def unseal(read: ReadBundle, passphrase: bytes | None) -> Keys | None:
 
 
 def open_model(model: Source | Model, device: str, threads: int | None) -> Model:
-    return model if isinstance(model, Model) else load_model(model, device=device, threads=threads)
+    if isinstance(model, Model):
+        return model
+    return load_model(checked_source(model, "model"), device=checked_text(device, "device"),
+                      threads=optional(checked_int, threads, "threads"))
 
 
 def reveal(model: Source | Model, bundle: Source | ReadBundle, passphrase: str | bytes | None = None, *, device: str = "cpu",
@@ -165,6 +171,7 @@ def reveal(model: Source | Model, bundle: Source | ReadBundle, passphrase: str |
     from noisenerf.runtime.reveal import reveal as reveal_tiles
 
     start = time.perf_counter()
+    progress = optional(checked_callback, progress, "progress")
     read = read_bundle(bundle)
     secret = read.bundle
     keys = unseal(read, passphrase_bytes(passphrase))
@@ -199,6 +206,7 @@ def render(model: Source | Model, view: int, *, skip: bool = True, device: str =
     from noisenerf.runtime.render import render_view
 
     start = time.perf_counter()
+    view, progress = checked_int(view, "view"), optional(checked_callback, progress, "progress")
     model = open_model(model, device, threads)
     camera = model.camera(view)
     loaded = time.perf_counter()

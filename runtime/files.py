@@ -16,6 +16,7 @@ import errno
 import json
 import math
 import os
+import shutil
 import stat
 import tempfile
 from pathlib import Path
@@ -99,11 +100,75 @@ def check_output_directory(path: str | os.PathLike) -> Path:
     return path
 
 
+def check_output_folder(path: str | os.PathLike, *, replace: bool, marker: str, what: str) -> Path:
+    """A folder an output is published as, whole: refused where its parent is missing or unwritable, where it
+    exists as anything but a folder, where it holds files (without --force), or where with --force those files
+    are not an earlier output of the same kind (no `marker` file in it): --force replaces a `what`, never a
+    folder of other files."""
+    path = check_output_directory(path)
+    try:
+        occupied = existing_kind(path) == "a directory" and any(path.iterdir())
+    except OSError as error:
+        raise os_failure("inspect", path, error, "file.inspect_failed") from None
+    if occupied and not replace:
+        raise UserError(f"output folder is not empty (pass --force to replace the {what} in it): {path}",
+                        code="file.folder_not_empty")
+    if occupied and not (path / marker).is_file():
+        raise UserError(f"output folder holds files but no {marker}: --force replaces an earlier {what}, not other "
+                        f"files: {path}", code="file.folder_not_replaceable", marker=marker)
+    probe_writable(path.parent)
+    return path
+
+
+@contextlib.contextmanager
+def atomic_folder(path: str | os.PathLike, *, replace: bool, marker: str, what: str):
+    """Yield a temporary folder beside `path`; publish it as `path` only if the block succeeds, so a reader never
+    sees half an output, nor an old one's files beside a new one's. Onto nothing or an empty folder it is one
+    rename; over an earlier output (`replace`, checked again by check_output_folder) the old folder is moved aside,
+    the new one renamed in, then the old one removed."""
+    path = check_output_folder(path, replace=replace, marker=marker, what=what)
+    try:
+        tmp = Path(tempfile.mkdtemp(prefix=".noisenerf-", dir=path.parent))
+    except OSError as error:
+        raise write_failure(path, error) from None
+    try:
+        yield tmp
+        os.chmod(tmp, 0o777 & ~current_umask())  # mkdtemp's 0700 would make the folder owner-only
+        fsync_path(tmp)
+        publish_folder(tmp, path, replace=replace, marker=marker, what=what)
+        fsync_path(path.parent)
+    except OSError as error:
+        raise write_failure(path, error) from None
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+
+
+def publish_folder(tmp: Path, path: Path, *, replace: bool, marker: str, what: str) -> None:
+    try:
+        os.rename(tmp, path)  # replaces nothing, or an empty folder, atomically
+        return
+    except OSError as error:
+        if error.errno not in (errno.ENOTEMPTY, errno.EEXIST):
+            raise
+    check_output_folder(path, replace=replace, marker=marker, what=what)  # filled while this one was written
+    old = Path(tempfile.mkdtemp(prefix=".noisenerf-old-", dir=path.parent))
+    os.rename(path, old)
+    os.rename(tmp, path)
+    shutil.rmtree(old, ignore_errors=True)
+
+
 def refuse_lossy(path: Path) -> None:
     """A reveal is checked on its 8-bit pixels, so it is only written where those pixels survive."""
     if path.suffix.lower() in LOSSY_SUFFIXES:
         raise UserError(f"{path.suffix} is a lossy format: the revealed pixels would not be the secret's; "
                         f"write .png, .tif or .exr", code="file.lossy_format", suffix=path.suffix.lower()[:60])
+
+
+def current_umask() -> int:
+    """The process's umask (reading it means setting it: set it back at once)."""
+    umask = os.umask(0)
+    os.umask(umask)
+    return umask
 
 
 def fsync_path(path: str | os.PathLike) -> None:
@@ -130,11 +195,9 @@ def atomic_output(path: str | os.PathLike, *, replace: bool):
         os.close(fd)
     except OSError as error:
         raise write_failure(path, error) from None
-    umask = os.umask(0)
-    os.umask(umask)
     try:
         yield Path(tmp)
-        os.chmod(tmp, 0o666 & ~umask)  # mkstemp's 0600 would make every output owner-only
+        os.chmod(tmp, 0o666 & ~current_umask())  # mkstemp's 0600 would make every output owner-only
         fsync_path(tmp)
         publish(Path(tmp), path, replace)
         fsync_path(path.parent)

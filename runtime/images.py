@@ -29,6 +29,11 @@ WRITE_FORMATS = {
 JPEG_QUALITY = 95
 SECRET_CHANNELS = {1: "grey", 2: "grey+alpha", 3: "RGB", 4: "RGBA"}
 MAX_CHANNELS = 16  # channels decoded from any image (RGBA needs 4; more are refused before decoding)
+# Formats whose alpha is straight by their own specification but whose OpenImageIO reader hands the stored values
+# over without saying so (no oiio:UnassociatedAlpha): taken as stored. Others that say nothing (OpenEXR, Maya
+# IFF, RLA, Softimage PIC, an associated TIFF) store associated alpha, which is made straight.
+STRAIGHT_ALPHA_FORMATS = {"bmp", "ico", "sgi", "dpx", "gif", "webp", "jpegxl", "jpeg2000", "psd", "fits", "pnm",
+                          "png", "targa"}
 
 
 @contextlib.contextmanager
@@ -48,6 +53,11 @@ def c_stderr_silenced():
         os.close(devnull)
 
 
+def one_line(message: str) -> str:
+    """A library's error text as part of one line: OpenImageIO's may span several."""
+    return " ".join(message.split())
+
+
 def _open(path: str | os.PathLike) -> oiio.ImageInput:
     """An open ImageInput that leaves straight alpha straight, or one UserError naming the file."""
     path = Path(path)
@@ -59,7 +69,8 @@ def _open(path: str | os.PathLike) -> oiio.ImageInput:
     config.attribute("oiio:UnassociatedAlpha", 1)
     image = oiio.ImageInput.open(str(path), config)
     if image is None:
-        raise UserError(f"cannot read image {path}: {oiio.geterror() or 'unknown format'}", code="image.unreadable")
+        raise UserError(f"cannot read image {path}: {one_line(oiio.geterror()) or 'unknown format'}",
+                        code="image.unreadable")
     return image
 
 
@@ -74,13 +85,18 @@ def image_shape(path: str | os.PathLike) -> tuple[int, int, int]:
     return spec.height, spec.width, spec.nchannels
 
 
-@c_stderr_silenced()
 def read_native(path: str | os.PathLike) -> np.ndarray:
-    """Pixels as stored, (H, W, C): integers in their stored type, floats as float32; alpha straight.
+    """Pixels as stored, (H, W, C): integers in their stored type, floats as float32; alpha straight and last.
 
-    Associated alpha (EXR, associated TIFF) is converted to straight, which needs floats: such files come
-    back as float32 in [0, 1] for integer storage.
+    Associated alpha (EXR, an associated TIFF, IFF, RLA: see STRAIGHT_ALPHA_FORMATS) is converted to straight,
+    which needs floats: such files come back as float32 in [0, 1] for integer storage.
     """
+    return read_stored(path)[0]
+
+
+@c_stderr_silenced()
+def read_stored(path: str | os.PathLike) -> tuple[np.ndarray, np.dtype]:
+    """read_native's pixels and the type the file stores them in (uint8, uint16, float16, float32, …)."""
     image = _open(path)
     spec = image.spec()
     try:
@@ -93,15 +109,28 @@ def read_native(path: str | os.PathLike) -> np.ndarray:
         image.close()
         raise
     pixels = image.read_image(oiio.UNKNOWN)
-    error = image.geterror()
+    error, format_name = image.geterror(), image.format_name()
     image.close()
     if pixels is None or pixels.size == 0:
-        raise UserError(f"cannot read image {path}: {error or 'no pixels'}", code="image.unreadable")
-    pixels = pixels.reshape(spec.height, spec.width, spec.nchannels)
+        raise UserError(f"cannot read image {path}: {one_line(error) or 'no pixels'}", code="image.unreadable")
+    pixels, stored = pixels.reshape(spec.height, spec.width, spec.nchannels), pixels.dtype
     if pixels.dtype.kind == "f":
         pixels = pixels.astype(np.float32)
-    straight = spec.alpha_channel < 0 or spec.get_int_attribute("oiio:UnassociatedAlpha", 0) == 1
-    return pixels if straight else unpremultiply(normalized(pixels), spec.alpha_channel)
+    alpha = alpha_channel(spec)
+    if alpha is not None and alpha != spec.nchannels - 1:  # colour first, alpha last, as every reader here expects
+        pixels = pixels[..., [*(c for c in range(spec.nchannels) if c != alpha), alpha]]
+    straight = (alpha is None or spec.get_int_attribute("oiio:UnassociatedAlpha", 0) == 1
+                or format_name in STRAIGHT_ALPHA_FORMATS)
+    return (pixels if straight else unpremultiply(normalized(pixels), spec.nchannels - 1)), stored
+
+
+def alpha_channel(spec: oiio.ImageSpec) -> int | None:
+    """The index of an image's alpha channel, or None. OpenImageIO's `alpha_channel` where it names a channel of
+    the image; its GIF reader states one past the last (4 of RGBA), so a channel named A or Alpha otherwise."""
+    if 0 <= spec.alpha_channel < spec.nchannels:
+        return spec.alpha_channel
+    names = [name.lower() for name in spec.channelnames]
+    return next((c for c, name in enumerate(names) if name in ("a", "alpha")), None)
 
 
 def normalized(pixels: np.ndarray) -> np.ndarray:
@@ -155,7 +184,7 @@ def load_secret(path: str | os.PathLike) -> Secret:
     - float values outside [0, 1] are clipped, with a warning; NaN is refused.
     - a missing, empty or unreadable file, or a channel count other than 1–4, is a UserError naming the file.
     """
-    pixels = read_native(path)
+    pixels, stored = read_stored(path)
     channels = pixels.shape[-1]
     if channels not in SECRET_CHANNELS:
         raise UserError(f"secret image {path} has {channels} channels; expected {', '.join(SECRET_CHANNELS.values())}",
@@ -165,8 +194,8 @@ def load_secret(path: str | os.PathLike) -> Secret:
     values = normalized(pixels)
     if np.isnan(values).any():
         raise UserError(f"secret image {path} contains NaN values", code="image.nan")
-    bits = 8 * pixels.dtype.itemsize
-    kind = "float" if pixels.dtype.kind == "f" else f"{bits}-bit"
+    bits = 8 * stored.itemsize
+    kind = "float" if stored.kind == "f" else f"{bits}-bit"
     warnings = [] if bits == 8 else [f"{path} has {kind} channels; it is hidden as 8 bits per channel (the "
                                      f"finer values are not kept, and `exact` is about the 8-bit values)"]
     outside = np.count_nonzero((values < 0) | (values > 1))
@@ -247,7 +276,7 @@ def written_failure(path: Path, error: str) -> Exception:
     folder has no room left, since the libraries' own messages do not say so; else their message."""
     if os.statvfs(path.parent).f_bavail == 0:
         return OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), str(path))
-    return UserError(f"cannot write image {path}: {error}", code="image.write_failed")
+    return UserError(f"cannot write image {path}: {one_line(error)}", code="image.write_failed")
 
 
 def check_written(tmp: Path, path: Path, pixels: np.ndarray, lossless: bool) -> None:

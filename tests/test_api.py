@@ -157,6 +157,47 @@ def test_the_sender_refuses_with_the_cli_line(reveal_inputs, tmp_path, call, mes
     assert not (tmp_path / "out").exists()
 
 
+WRONG_TYPES = [  # (call on (scene, model, bundle, out), argument, expected, got)
+    (lambda s, m, b, o: noisenerf.reveal(np.zeros(3), b), "model", "a path (str or os.PathLike) or bytes", "ndarray"),
+    (lambda s, m, b, o: noisenerf.reveal(m, 7), "bundle", "a path (str or os.PathLike) or bytes", "int"),
+    (lambda s, m, b, o: noisenerf.reveal(m, b, 5), "passphrase", "a str or bytes", "int"),
+    (lambda s, m, b, o: noisenerf.reveal(m, b, threads="2"), "threads", "an integer", "str"),
+    (lambda s, m, b, o: noisenerf.reveal(m, b, progress=3), "progress", "a function", "int"),
+    (lambda s, m, b, o: noisenerf.render(m, "3"), "view", "an integer", "str"),
+    (lambda s, m, b, o: noisenerf.render(m, 1.0), "view", "an integer", "float"),
+    (lambda s, m, b, o: noisenerf.render(m, True), "view", "an integer", "bool"),
+    (lambda s, m, b, o: noisenerf.hide(s, np.zeros((4, 4, 3), np.uint8), o, view=1.5), "view", "an integer", "float"),
+    (lambda s, m, b, o: noisenerf.hide(s, 3, o), "secret",
+     "a path (str or os.PathLike) or an (h, w, 3) uint8 array", "int"),
+    (lambda s, m, b, o: noisenerf.hide(s, output=o, file=np.zeros(3)), "file", "a path (str or os.PathLike) or bytes",
+     "ndarray"),
+    (lambda s, m, b, o: noisenerf.hide(s, np.zeros((4, 4, 3), np.uint8), np.zeros(2)), "output",
+     "a path (str or os.PathLike)", "ndarray"),
+    (lambda s, m, b, o: noisenerf.hide(12, np.zeros((4, 4, 3), np.uint8), o), "scene",
+     "a scene folder (str or os.PathLike) or a Scene", "int"),
+    (lambda s, m, b, o: noisenerf.fit(s, o, iters="5"), "iters", "an integer", "str"),
+    (lambda s, m, b, o: noisenerf.export_model(s, o, force=1), "force", "True or False", "int"),
+    (lambda s, m, b, o: noisenerf.import_nerfstudio(None, o), "run", "a path (str or os.PathLike)", "NoneType"),
+]
+
+
+@pytest.mark.parametrize("call, argument, expected, got", WRONG_TYPES)
+def test_an_argument_of_the_wrong_kind_is_a_user_error_naming_it(reveal_inputs, tmp_path, call, argument, expected,
+                                                                 got):
+    folder, model, bundle = reveal_inputs
+    with pytest.raises(noisenerf.UserError) as refused:
+        call(folder / "scene", model, bundle, tmp_path / "out")
+    assert str(refused.value) == f"{argument} must be {expected}, not {got}"
+    assert (refused.value.code, refused.value.params) == (
+        "api.argument", {"argument": argument, "expected": expected, "got": got})
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_numpy_integers_are_integers(reveal_inputs):
+    _, model, _ = reveal_inputs
+    assert noisenerf.render(model, np.int64(1)).view == 1
+
+
 def test_fit_reports_its_steps_and_writes_a_scene(tmp_path):
     from noisenerf.train.scene.procedural import write_procedural_dataset
 

@@ -2,13 +2,16 @@
 
 from __future__ import annotations
 
+import itertools
 import types
 
 import numpy as np
 import OpenImageIO as oiio
 import pytest
 
-from helpers import read_raw, write_raw
+from helpers import assert_refused, read_raw, run_main, run_reveal, write_raw
+from noisenerf.cli.bench.reliability import indexed_png
+from noisenerf.cli.main import main as noisenerf_main
 from noisenerf.runtime import images
 from noisenerf.runtime.errors import UserError
 from noisenerf.runtime.images import image_shape, load_secret, read_image, resize_image, write_image
@@ -211,3 +214,103 @@ def test_reports_are_strict_json_with_null_for_non_finite_values():
 
     text = json_text({"psnr": float("inf"), "tiles": [{"ssim": float("nan"), "max_error": 0}], "exact": True})
     assert text == '{"psnr": null, "tiles": [{"ssim": null, "max_error": 0}], "exact": true}'
+
+
+# ---- every format OpenImageIO writes -------------------------------------------------------------
+
+def writable_formats() -> list[tuple[str, str]]:
+    """(OpenImageIO format name, extension) for every format this OpenImageIO build knows, but its terminal and
+    null outputs."""
+    listed = oiio.get_string_attribute("extension_list").split(";")
+    return [(name, extensions.split(",")[0]) for name, extensions in (item.split(":") for item in listed)
+            if name not in ("term", "null")]
+
+
+def composited(pixels: np.ndarray, associated: bool) -> np.ndarray:
+    """What a secret of these 8-bit stored pixels should hide as (the test's own arithmetic): grey repeated,
+    alpha composited over white, straight or associated. (H, W, C) uint8 -> (H, W, 3) uint8."""
+    values = pixels.astype(np.float64) / 255.0
+    if values.shape[-1] in (2, 4):
+        colour, alpha = values[..., :-1], values[..., -1:]
+        values = (colour if associated else colour * alpha) + (1.0 - alpha)
+    return images.to_uint8(np.broadcast_to(values, values.shape[:2] + (3,)).astype(np.float32))
+
+
+@pytest.mark.parametrize("format_name, extension", writable_formats())
+def test_every_format_openimageio_writes_hides_as_its_pixels_or_is_refused(tmp_path, format_name, extension):
+    """An image of each pixel type and channel count OpenImageIO writes in this format: load_secret returns the
+    (h, w, 3) 8-bit secret, or refuses with one coded line; never another exception. Where the file holds the
+    8-bit values written, they are the secret: passed through, or composited over white as its alpha says."""
+    written = 0
+    for pixel_type, channels in itertools.product(("uint8", "uint16", "float"), (1, 2, 3, 4)):
+        pixels = np.random.default_rng(channels).integers(0, 256, (6, 9, channels), dtype=np.uint8)
+        pixels[0, :4, -1] = (0, 1, 128, 255)  # alpha's extremes, where it has one
+        path = tmp_path / f"{pixel_type}_{channels}.{extension}"
+        output = oiio.ImageOutput.create(str(path))
+        spec = oiio.ImageSpec(9, 6, channels, pixel_type)
+        associated_format = format_name in ("openexr", "iff", "rla", "softimage")  # by their specifications
+        spec.attribute("oiio:UnassociatedAlpha", 0 if associated_format else 1)
+        stored = {"uint8": pixels, "uint16": pixels.astype(np.uint16) * 257, "float": pixels.astype(np.float32) / 255}
+        if output is None or not output.open(str(path), spec) or not output.write_image(stored[pixel_type]):
+            oiio.geterror()
+            continue
+        output.close()
+        written += 1
+        try:
+            secret = load_secret(path)
+        except UserError as error:
+            assert error.code is not None and "\n" not in str(error), (pixel_type, channels, str(error))
+            continue
+        assert secret.pixels.dtype == np.uint8 and secret.pixels.shape == (6, 9, 3)
+        reader = oiio.ImageInput.open(str(path))
+        kept, has_alpha = reader.read_image("uint8").reshape(6, 9, -1), reader.spec().alpha_channel >= 0
+        reader.close()
+        if kept.shape[-1] == channels and np.array_equal(kept, pixels):  # the file holds the values written
+            np.testing.assert_array_equal(secret.pixels, composited(pixels, associated_format and has_alpha),
+                                          err_msg=str(path.name))
+    if not written:
+        pytest.skip(f"OpenImageIO reads {format_name} but writes none")
+
+
+def test_an_indexed_png_with_transparency_is_its_palette_over_white(tmp_path):
+    rng = np.random.default_rng(3)
+    palette, indices = rng.integers(0, 256, (16, 3)), rng.integers(0, 16, (6, 7))
+    alpha = np.array([0, 128] + [255] * 14)
+    secret = load_secret(indexed_png(tmp_path / "p.png", indices, palette, alpha))
+    rgba = np.concatenate([palette, alpha[:, None]], 1)[indices].astype(np.uint8)
+    np.testing.assert_array_equal(secret.pixels, composited(rgba, associated=False))
+    assert (secret.bits, secret.warnings) == (8, [])
+    opaque = load_secret(indexed_png(tmp_path / "o.png", indices, palette))
+    np.testing.assert_array_equal(opaque.pixels, palette[indices])
+
+
+@pytest.mark.parametrize("name", ["transparent.gif", "indexed.png"])
+def test_a_gif_or_indexed_png_secret_hides_and_reveals_exactly_through_the_commands(reveal_inputs, tmp_path, capfd,
+                                                                                     name):
+    """The family that crashed the hide (OpenImageIO states a GIF's alpha as channel 4 of 4) end to end."""
+    folder, model, _ = reveal_inputs
+    rng = np.random.default_rng(5)
+    if name.endswith(".gif"):
+        pixels = rng.integers(0, 256, (6, 9, 4), dtype=np.uint8)
+        pixels[..., 3] = np.where(pixels[..., 3] > 100, 255, 0)
+        write_raw(tmp_path / name, pixels, unassociated=True)
+    else:
+        indexed_png(tmp_path / name, rng.integers(0, 16, (6, 9)), rng.integers(0, 256, (16, 3)),
+                    np.array([0, 64] + [255] * 14))
+    expected = load_secret(tmp_path / name).pixels
+    result = run_main(noisenerf_main, ["hide", folder / "scene", tmp_path / name, "-o", tmp_path / "s.bundle",
+                                       "--quiet"], capfd)
+    assert result.code in (0, None) and result.err == "", result.err
+    revealed = run_reveal(model, tmp_path / "s.bundle", "-o", tmp_path / "out.png")
+    assert revealed.returncode == 0, revealed.stderr
+    np.testing.assert_array_equal(images.read_native(tmp_path / "out.png"), expected)
+
+
+def test_a_truncated_png_is_refused_in_one_line_with_libpngs_own_words_kept_off_stderr(reveal_inputs, tmp_path,
+                                                                                        capfd):
+    folder, _, _ = reveal_inputs
+    write_image(tmp_path / "whole.png", np.random.default_rng(0).integers(0, 256, (8, 8, 3), dtype=np.uint8))
+    (tmp_path / "cut.png").write_bytes((tmp_path / "whole.png").read_bytes()[:60])
+    result = run_main(noisenerf_main, ["hide", folder / "scene", tmp_path / "cut.png", "-o", tmp_path / "s.bundle",
+                                       "--quiet"], capfd)
+    assert_refused(result, tmp_path / "s.bundle", f"cannot read image {tmp_path / 'cut.png'}: ")

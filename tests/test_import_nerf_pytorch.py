@@ -554,7 +554,10 @@ def broken_checkpoints(folder: Path) -> dict[str, tuple[Path, str]]:
                                                   "pts_linears.5.weight": torch.zeros(32, 32)}}
     extra = {**state, "network_fn_state_dict": {**state["network_fn_state_dict"], "extra.weight": torch.zeros(1)}}
     no_fine = {k: v for k, v in state.items() if k != "network_fine_state_dict"}
-    cases = {"missing": (missing, "lacks parameter 'pts_linears.3.bias'"),
+    nan = {**state, "network_fine_state_dict": {**state["network_fine_state_dict"],
+                                                "rgb_linear.bias": torch.tensor([0.0, float("nan"), 0.0])}}
+    cases = {"nan": (nan, r"network_fine_state_dict\['rgb_linear.bias'\] holds NaN or infinite values"),
+             "missing": (missing, "lacks parameter 'pts_linears.3.bias'"),
              "shape": (wrong, r"network_fine_state_dict\['pts_linears.5.weight'\] has shape \(32, 32\)"),
              "extra": (extra, "has parameter 'extra.weight'"),
              "no_fine": (no_fine, "needs a fine network"),

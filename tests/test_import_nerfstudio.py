@@ -256,6 +256,10 @@ def test_a_config_that_would_run_code_runs_nothing(tmp_path, capfd):
     ("oldest keys", "a nerfstudio 0.1–0.2 checkpoint"),
     ("distortion", "lens distortion is not reproduced"),
     ("linear proposals", "a proposal network with a linear head is not reproduced"),
+    ("nan weight", "holds 1 NaN or infinite values; a scene with it cannot render"),
+    ("inf weight", "NaN or infinite values; a scene with it cannot render"),
+    ("huge scale", "with scale 1e+06, camera"),
+    ("far scale", "beyond the far plane (1000): its renders would be empty"),
 ])
 def test_hostile_and_unsupported_runs_are_refused_in_one_line(tmp_path, capfd, case, message):
     implementation = "torch" if case == "shape" else "tcnn"
@@ -283,6 +287,15 @@ def test_hostile_and_unsupported_runs_are_refused_in_one_line(tmp_path, capfd, c
     if case == "linear proposals":
         config = run / "config.yml"
         config.write_text(config.read_text().replace("use_linear: false", "use_linear: true", 1))
+    if case in ("nan weight", "inf weight"):
+        state = torch.load(checkpoint, weights_only=False)
+        name = "_model.field.mlp_head.tcnn_encoding.params" if case == "nan weight" else "_model.field.mlp_base.model.params"
+        state["pipeline"][name][0] = torch.nan if case == "nan weight" else torch.inf
+        torch.save(state, checkpoint)
+    if case in ("huge scale", "far scale"):  # cameras 3.2 from the centre before the scale (0.3 as written): 1265 at 400
+        transforms = run / "dataparser_transforms.json"
+        transforms.write_text(transforms.read_text().replace('"scale": 0.3', '"scale": 1e6' if case == "huge scale"
+                                                             else '"scale": 400.0'))
     refused_import(tmp_path, capfd, run, data, message)
 
 

@@ -199,6 +199,16 @@ def test_wrong_or_missing_passphrase_is_refused(demo, sealed, tmp_path):
     assert result.returncode == 0 and (tmp_path / "out").read_bytes() == b"the eagle lands at noon\n"
 
 
+def test_a_passphrase_from_the_environment_is_capped_as_the_file_is(demo, sealed, tmp_path):
+    _, model = demo
+    (tmp_path / "long").write_bytes(b"p" * 4097)
+    assert_refused(run_reveal(model, sealed, "-o", tmp_path / "out", "--passphrase-file", tmp_path / "long"),
+                   tmp_path / "out", f"--passphrase-file must be a file of at most 4096 bytes: {tmp_path / 'long'}",
+                   exact=True)
+    assert_refused(run_reveal(model, sealed, "-o", tmp_path / "out", passphrase=b"p" * 4097), tmp_path / "out",
+                   "NOISENERF_PASSPHRASE must hold at most 4096 bytes, not 4097", exact=True)
+
+
 def test_a_changed_model_weight_is_refused(demo, sealed, tmp_path):
     _, model = demo
     proto = onnx.load(str(model))

@@ -75,7 +75,8 @@ def test_a_hide_and_an_export_into_a_full_disk_leave_everything_as_it_was(reveal
     hidden = run_main(noisenerf_main, ["hide", folder / "scene", secret, "-o", full_disk / "old.png", "--force",
                                        "--quiet"], capfd)
     assert_refused(hidden, None, NO_SPACE)
-    exported = run_main(noisenerf_main, ["export", folder / "scene", "-o", full_disk / "old.png"], capfd)
+    exported = run_main(noisenerf_main, ["export", folder / "scene", "-o", full_disk / "old.png",
+                                         "--force"], capfd)
     assert_refused(exported, None, f"{NO_SPACE} {full_disk} while writing old.png")
     shutil.rmtree(full_disk / "old.png.partial", ignore_errors=True)  # the resume folder a hide may keep
     assert listing(full_disk) == before
@@ -192,13 +193,26 @@ def test_a_record_the_writer_could_not_have_written_is_refused(data, message):
 
 # ---- Ray -------------------------------------------------------------------------------------------
 
-def test_an_unreachable_ray_address_is_one_line_within_seconds(reveal_inputs, tmp_path, capfd):
+@pytest.mark.parametrize("address, where", [
+    ("127.0.0.1:9", "the flag"), ("127.0.0.1:9", "RAY_ADDRESS"), ("no-port", "the flag"), ("no-port", "RAY_ADDRESS")])
+def test_an_unreachable_ray_address_is_one_line_within_seconds(reveal_inputs, tmp_path, capfd, monkeypatch, address,
+                                                               where):
+    """The flag's address and the default the help names (RAY_ADDRESS) are checked alike."""
     pytest.importorskip("ray")
     folder, _, _ = reveal_inputs
     secret = tmp_path / "s.png"
     write_image(secret, np.zeros((8, 8, 3), np.uint8))
+    monkeypatch.delenv("RAY_ADDRESS", raising=False)
+    if where == "RAY_ADDRESS":
+        monkeypatch.setenv("RAY_ADDRESS", address)
+    flags = ["--ray-address", address] if where == "the flag" else []
     started = time.monotonic()
     result = run_main(noisenerf_main, ["hide", folder / "scene", secret, "-o", tmp_path / "s.bundle", "--executor",
-                                       "ray", "--ray-address", "127.0.0.1:9", "--quiet"], capfd)
-    assert_refused(result, tmp_path / "s.bundle", "cannot reach the Ray cluster at 127.0.0.1:9: Connection refused")
+                                       "ray", *flags, "--quiet"], capfd)
+    message = {("127.0.0.1:9", "the flag"): "cannot reach the Ray cluster at 127.0.0.1:9: Connection refused",
+               ("127.0.0.1:9", "RAY_ADDRESS"): "cannot reach the Ray cluster at 127.0.0.1:9 (from RAY_ADDRESS): "
+                                               "Connection refused",
+               ("no-port", "the flag"): "--ray-address must be HOST:PORT or ray://HOST:PORT, got 'no-port'",
+               ("no-port", "RAY_ADDRESS"): "RAY_ADDRESS must be HOST:PORT or ray://HOST:PORT, got 'no-port'"}
+    assert_refused(result, tmp_path / "s.bundle", message[address, where], exact=True)
     assert time.monotonic() - started < 20

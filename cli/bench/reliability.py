@@ -1,9 +1,13 @@
-"""Hostile and failing conditions, each run as a user would meet it (`noisenerf-reveal` in a process of its own),
-counted by verdict: refused cleanly (exit 2, one line, no output left, earlier output intact), or not.
+"""Hostile, careless and failing conditions, each met as a user meets it, counted by verdict: refused cleanly or
+accepted with the right result, or not.
 
-The cases are the classes of tests/test_reliability.py and tests/test_hostile.py on the bench's own scene and
-secret: compressed bombs, a stripped seal, two reveals racing to one output, and a full file system (a 64 KiB
-tmpfs; root only, else the case is counted as skipped).
+Where: `cli` runs a command in a process of its own (refused cleanly: exit 2, one stderr line, no traceback,
+the output as it was, a folder file for file); `api` calls the library in this process (a UserError with a
+code and a one-line message, the output as it was). Classes: compressed bombs, a stripped seal, two reveals
+racing to one output and a full file system (a 64 KiB tmpfs; root only, else skipped); the sender's outputs
+(nothing replaced without --force, a scene folder replaced whole); image formats (every one hides as its pixels
+or is refused); defaults from the environment (checked as their flags); the API's argument kinds; imports of
+weights or scales that cannot render (these need the bench's nerfstudio run, else skipped).
 """
 
 from __future__ import annotations
@@ -12,10 +16,14 @@ import contextlib
 import json
 import lzma
 import os
+import shutil
+import struct
 import subprocess
 import sys
 import time
+import zlib
 from pathlib import Path
+from typing import Callable
 
 import numpy as np
 from safetensors.numpy import load_file, save_file
@@ -69,21 +77,73 @@ def streamed(n_bytes: int):
 
 
 def reveal_process(*args, env: dict | None = None) -> subprocess.Popen:
-    return subprocess.Popen([sys.executable, "-m", "noisenerf.cli.reveal", *map(str, args)], stdout=subprocess.PIPE,
+    return command_process("noisenerf.cli.reveal", *args, env=env)
+
+
+def command_process(module: str, *args, env: dict | None = None) -> subprocess.Popen:
+    """`python -m MODULE ARGS` (noisenerf-reveal, or noisenerf's own commands), stdin closed."""
+    return subprocess.Popen([sys.executable, "-m", module, *map(str, args)], stdout=subprocess.PIPE,
                             stderr=subprocess.PIPE, text=True, env={**os.environ, **(env or {})},
                             stdin=subprocess.DEVNULL)
 
 
-def verdict(process: subprocess.Popen, output: Path, before: bytes | None) -> tuple[str, float]:
-    """'refused' (exit 2, one stderr line, no traceback, the output as it was) or what went wrong; seconds."""
+def noisenerf_process(*args, env: dict | None = None) -> subprocess.Popen:
+    return command_process("noisenerf.cli.main", *args, env=env)
+
+
+def snapshot(path: Path):
+    """What is at `path`, to compare before and after: a file's bytes, a folder's files (name -> bytes), or None."""
+    if path.is_dir():
+        return {str(item.relative_to(path)): item.read_bytes() for item in sorted(path.rglob("*")) if item.is_file()}
+    return path.read_bytes() if path.exists() else None
+
+
+def verdict(process: subprocess.Popen, output: Path, before=None) -> tuple[str, float]:
+    """'refused' (exit 2, one stderr line, no traceback, the output as it was: `before` is its snapshot) or what
+    went wrong; seconds."""
     started = time.monotonic()
     _, stderr = process.communicate(timeout=600)
     seconds = time.monotonic() - started
-    kept = (output.read_bytes() if output.exists() else None) == before
+    kept = snapshot(output) == before
     lines = stderr.splitlines()
     if process.returncode == 2 and len(lines) == 1 and "Traceback" not in stderr and kept:
         return "refused", seconds
     return f"exit {process.returncode}, {len(lines)} stderr lines, output {'kept' if kept else 'changed'}", seconds
+
+
+def api_verdict(call: Callable[[], object], output: Path | None = None) -> tuple[str, float]:
+    """'refused' (a UserError with a code and a one-line message, `output` as it was) or what happened; seconds."""
+    from noisenerf.runtime.errors import UserError
+
+    before = None if output is None else snapshot(output)
+    started = time.monotonic()
+    try:
+        call()
+        result = "accepted"
+    except UserError as error:
+        one_line = "\n" not in str(error) and error.code is not None
+        result = "refused" if one_line else f"refused without a code or in {len(str(error).splitlines())} lines"
+    except Exception as error:  # what the class is about: anything else is the finding
+        result = f"{type(error).__name__}: {str(error)[:80]}"
+    seconds = time.monotonic() - started
+    if output is not None and snapshot(output) != before:
+        result += ", output changed"
+    return result, seconds
+
+
+def indexed_png(path: Path, indices: np.ndarray, palette: np.ndarray, alpha: np.ndarray | None = None) -> Path:
+    """An indexed (colour type 3) PNG with an optional tRNS chunk, written byte by byte: OpenImageIO writes none.
+    indices: (h, w) palette entries; palette: (n, 3) uint8; alpha: (n,) uint8 per entry."""
+    def chunk(kind: bytes, data: bytes) -> bytes:
+        return struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib.crc32(kind + data))
+    height, width = indices.shape
+    rows = b"".join(b"\0" + bytes(row.astype(np.uint8)) for row in indices)
+    data = b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", struct.pack(">IIBBBBB", width, height, 8, 3, 0, 0, 0))
+    data += chunk(b"PLTE", bytes(palette.astype(np.uint8).ravel()))
+    if alpha is not None:
+        data += chunk(b"tRNS", bytes(alpha.astype(np.uint8)))
+    path.write_bytes(data + chunk(b"IDAT", zlib.compress(rows)) + chunk(b"IEND", b""))
+    return path
 
 
 @contextlib.contextmanager
@@ -104,23 +164,45 @@ def full_file_system(folder: Path):
         subprocess.run(["umount", "-l", str(mount)], check=False)
 
 
+class Cases:
+    """The rows a reliability run counts: class, case, where (cli, api, page), verdict, seconds."""
+
+    def __init__(self):
+        self.rows: list[dict] = []
+
+    def add(self, group: str, name: str, where: str, result: str, seconds: float | None = None) -> None:
+        self.rows.append({"class": group, "case": name, "where": where, "verdict": result,
+                          "seconds": None if seconds is None else round(seconds, 2)})
+
+    def cli(self, group: str, name: str, process: subprocess.Popen, output: Path, before=None) -> None:
+        self.add(group, name, "cli", *verdict(process, output, before))
+
+    def api(self, group: str, name: str, call: Callable[[], object], output: Path | None = None) -> None:
+        self.add(group, name, "api", *api_verdict(call, output))
+
+
 def measure_reliability(context: BenchContext) -> Measured:
-    work, model = context.work / "reliability", context.model_path
+    work = context.work / "reliability"
     work.mkdir(exist_ok=True)
-    secret = context.secret[:64, :64]
-    context.hide(secret, "reliability/compact", HideConfig(view=context.config.view))
-    compact = work / "compact.bundle"
-    rows = []
+    context.hide(context.secret[:64, :64], "reliability/compact", HideConfig(view=context.config.view))
+    cases = Cases()
+    sealed = reveal_cases(cases, context, work, work / "compact.bundle")
+    output_cases(cases, context, work / "outputs")
+    image_cases(cases, context, work / "images")
+    environment_cases(cases, context, work, sealed)
+    argument_cases(cases, context, work / "arguments", work / "compact.bundle")
+    import_cases(cases, context, work / "imports")
+    return Measured(cases.rows)
 
-    def case(group: str, name: str, process: subprocess.Popen, output: Path, before: bytes | None = None):
-        result, seconds = verdict(process, output, before)
-        rows.append({"class": group, "case": name, "verdict": result, "seconds": round(seconds, 2)})
 
-    out = work / "out.png"
+def reveal_cases(cases: Cases, context: BenchContext, work: Path, compact: Path) -> Path:
+    """Bombs, a stripped seal, racing reveals, a full disk. -> the sealed bundle it hid (PASSPHRASE)."""
+    model, out = context.model_path, work / "out.png"
     for name, edit in (("stated 8192x8192", stated(8192, 8192)), ("stated 4096x4096", stated(4096, 4096)),
                        ("stream of 256 MiB of zeros", streamed(256 << 20)), ("stream of 4 MiB of zeros", streamed(4 << 20)),
                        ("2048x2048 of zeros as stated", zeros_as_stated(2048, 2048))):
-        case("decompression bomb", name, reveal_process(model, rewritten(compact, work / "bomb.bundle", edit), "-o", out), out)
+        cases.cli("decompression bomb", name, reveal_process(model, rewritten(compact, work / "bomb.bundle", edit), "-o",
+                                                             out), out)
     payload = work / "note.txt"
     payload.write_bytes(b"a sealed note")
     sealed = work / "sealed.bundle"
@@ -128,33 +210,188 @@ def measure_reliability(context: BenchContext) -> Measured:
                     "-o", sealed, "--seal", "--quiet", "--force"], check=True, capture_output=True,
                    env={**os.environ, "NOISENERF_PASSPHRASE": PASSPHRASE})
     stripped = rewritten(sealed, work / "stripped.bundle", lambda meta, tensors: meta.pop("payload"))
-    case("downgrade", "seal stripped, passphrase given",
-         reveal_process(model, stripped, "-o", out, env={"NOISENERF_PASSPHRASE": PASSPHRASE}), out)
+    cases.cli("downgrade", "seal stripped, passphrase given",
+              reveal_process(model, stripped, "-o", out, env={"NOISENERF_PASSPHRASE": PASSPHRASE}), out)
     raced = work / "raced.png"
     raced.unlink(missing_ok=True)
     racers = [reveal_process(model, compact, "-o", raced) for _ in range(2)]
     codes = sorted(racer.wait(600) for racer in racers)
-    rows.append({"class": "race", "case": "two reveals to one output",
-                 "verdict": "refused" if codes == [0, 2] else f"exit codes {codes}", "seconds": None})
+    cases.add("race", "two reveals to one output", "cli", "refused" if codes == [0, 2] else f"exit codes {codes}")
     with full_file_system(work) as full:
         for name, force in (("new output", False), ("over an earlier output, --force", True)):
             if full is None:
-                rows.append({"class": "full disk", "case": name, "verdict": "skipped (needs root)", "seconds": None})
+                cases.add("full disk", name, "cli", "skipped (needs root)")
                 continue
             target = full / ("old.png" if force else "new.png")
-            before = target.read_bytes() if target.exists() else None
-            case("full disk", name, reveal_process(model, compact, "-o", target, *(["--force"] if force else [])),
-                 target, before)
-    return Measured(rows)
+            cases.cli("full disk", name, reveal_process(model, compact, "-o", target, *(["--force"] if force else [])),
+                      target, snapshot(target))
+    return sealed
+
+
+def output_cases(cases: Cases, context: BenchContext, work: Path) -> None:
+    """The sender's outputs: nothing replaced without --force, and a scene folder replaced only whole."""
+    from noisenerf.api import export_model
+
+    work.mkdir()
+    scene, group = context.config.scene, "sender's outputs"
+    model = work / "model.onnx"
+    model.write_bytes(b"an earlier model")
+    cases.cli(group, "export onto an earlier model", noisenerf_process("export", scene, "-o", model), model,
+              snapshot(model))
+    cases.api(group, "export_model onto an earlier model", lambda: export_model(scene, model), model)
+    theirs = work / "photos"
+    theirs.mkdir()
+    (theirs / "holiday.jpg").write_bytes(b"not ours")
+    cases.cli(group, "demo into a folder of other files", noisenerf_process("demo", "-o", theirs, "--quiet"), theirs,
+              snapshot(theirs))
+    run, data = context.config.nerfstudio_run, context.config.nerfstudio_data
+    named = ("import onto an earlier scene", "import --force onto a folder of other files",
+             "import --force onto an earlier scene")
+    if run is None:
+        for name in named:
+            cases.add(group, name, "cli", "skipped (needs --nerfstudio-run)")
+        return
+
+    def imported(folder: Path, *flags) -> subprocess.Popen:
+        return noisenerf_process("import-nerfstudio", run, "--data", data, "-o", folder, *flags)
+    earlier = work / "scene"
+    if imported(earlier).wait(600) != 0:
+        raise RuntimeError(f"the bench's nerfstudio run did not import: {run}")
+    (earlier / "checkpoint.safetensors").write_bytes(b"an earlier fit's checkpoint")
+    cases.cli(group, named[0], imported(earlier), earlier, snapshot(earlier))
+    cases.cli(group, named[1], imported(theirs, "--force"), theirs, snapshot(theirs))
+    started = time.monotonic()
+    code = imported(earlier, "--force").wait(600)
+    seconds = time.monotonic() - started
+    fresh = work / "fresh"
+    imported(fresh).wait(600)
+    whole = code == 0 and snapshot(earlier) == snapshot(fresh)
+    cases.add(group, named[2], "cli", "accepted, replaced whole" if whole else f"exit {code}, not the new scene alone",
+              seconds)
+
+
+def image_cases(cases: Cases, context: BenchContext, work: Path) -> None:
+    """Secrets in formats OpenImageIO reads: each hides as its pixels (the reveal equals what load_secret read)
+    or is refused in one line."""
+    import OpenImageIO as oiio
+
+    from noisenerf.runtime.api import reveal
+    from noisenerf.runtime.images import load_secret, write_image
+
+    work.mkdir()
+    rng = np.random.default_rng(11)
+    pixels = rng.integers(0, 256, (8, 8, 4), dtype=np.uint8)
+
+    def written(name: str, values: np.ndarray, pixel_type: str = "uint8") -> Path:
+        output = oiio.ImageOutput.create(str(work / name))
+        spec = oiio.ImageSpec(values.shape[1], values.shape[0], values.shape[2], pixel_type)
+        spec.attribute("oiio:UnassociatedAlpha", 1)
+        output.open(str(work / name), spec)
+        output.write_image(values)
+        output.close()
+        return work / name
+    accepted = {
+        "GIF with transparency (alpha stated as channel 4 of 4)": written("a.gif", pixels),
+        "indexed PNG with transparency": indexed_png(work / "indexed.png", rng.integers(0, 16, (8, 8)),
+                                                     rng.integers(0, 256, (16, 3)), np.array([0, 64] + [255] * 14)),
+        "grey+alpha TIFF": written("ga.tif", pixels[..., :2]),
+        "RGBA BMP (straight alpha, stated by no flag)": written("a.bmp", pixels),
+        "RGBA OpenEXR (associated alpha)": written("a.exr", pixels.astype(np.float32) / 255, "float"),
+        "16-bit PNG": written("deep.png", pixels[..., :3].astype(np.uint16) * 257, "uint16"),
+    }
+    for name, path in accepted.items():
+        bundle = work / "secret.bundle"
+        process = noisenerf_process("hide", context.config.scene, path, "-o", bundle, "--force", "--quiet",
+                                    "--view", context.config.view)
+        started = time.monotonic()
+        _, stderr = process.communicate(timeout=600)
+        seconds = time.monotonic() - started
+        if process.returncode != 0:
+            cases.add("image formats", name, "cli", f"exit {process.returncode}: {stderr.strip()[-80:]}", seconds)
+            continue
+        same = np.array_equal(reveal(context.model_path, bundle).pixels, load_secret(path).pixels)
+        cases.add("image formats", name, "cli", "accepted, exact" if same else "accepted, other pixels", seconds)
+    write_image(work / "whole.png", pixels[..., :3])
+    (work / "truncated.png").write_bytes((work / "whole.png").read_bytes()[:60])
+    refused = {"JPEG 2000 that OpenImageIO writes but cannot read": written("broken.jp2", pixels[..., :3]),
+               "truncated PNG": work / "truncated.png"}
+    for name, path in refused.items():
+        cases.cli("image formats", name, noisenerf_process("hide", context.config.scene, path, "-o",
+                                                           work / "refused.bundle", "--quiet"), work / "refused.bundle")
+
+
+def environment_cases(cases: Cases, context: BenchContext, work: Path, sealed: Path) -> None:
+    """Defaults taken from the environment, checked as their flags are."""
+    import importlib.util
+
+    group, out = "defaults from the environment", work / "env.out"
+    for name, address in (("RAY_ADDRESS where nothing listens", "127.0.0.1:9"),
+                          ("RAY_ADDRESS that is no address", "not-an-address")):
+        if importlib.util.find_spec("ray") is None:
+            cases.add(group, name, "cli", "skipped (needs the cluster extra)")
+            continue
+        cases.cli(group, name, noisenerf_process("hide", context.config.scene, context.config.secret, "-o", out,
+                                                 "--executor", "ray", "--quiet", env={"RAY_ADDRESS": address}), out)
+    cases.cli(group, "NOISENERF_PASSPHRASE of 5000 bytes", reveal_process(
+        context.model_path, sealed, "-o", out, env={"NOISENERF_PASSPHRASE": "p" * 5000}), out)
+
+
+def argument_cases(cases: Cases, context: BenchContext, work: Path, bundle: Path) -> None:
+    """The library's public functions given arguments of the wrong kind."""
+    from noisenerf.api import export_model, hide
+    from noisenerf.runtime.api import reveal, render
+
+    work.mkdir()
+    model, scene, out, group = context.model_path, context.config.scene, work / "out", "API argument kinds"
+    secret = context.secret[:8, :8]
+    for name, call in (("reveal: an array for the model", lambda: reveal(np.zeros(3), bundle)),
+                       ("reveal: a number for the passphrase", lambda: reveal(model, bundle, 5)),
+                       ("reveal: a str for threads", lambda: reveal(model, bundle, threads="2")),
+                       ("render: a float view", lambda: render(model, 1.5)),
+                       ("render: a bool view", lambda: render(model, True)),
+                       ("hide: a str view", lambda: hide(scene, secret, out, view="2")),
+                       ("hide: an array for the output", lambda: hide(scene, secret, np.zeros(2))),
+                       ("hide: a number for the file", lambda: hide(scene, output=out, file=7)),
+                       ("export_model: a number for force", lambda: export_model(scene, out, force=1))):
+        cases.api(group, name, call, out)
+
+
+def import_cases(cases: Cases, context: BenchContext, work: Path) -> None:
+    """A nerfstudio run whose weights or scale cannot render, imported: refused, nothing written."""
+    import torch
+
+    group = "imports that cannot render"
+    named = ("a NaN weight", "an infinite weight", "a dataparser scale of 1e6")
+    run, data = context.config.nerfstudio_run, context.config.nerfstudio_data
+    if run is None:
+        for name in named:
+            cases.add(group, name, "cli", "skipped (needs --nerfstudio-run)")
+        return
+    for k, name in enumerate(named):
+        copy = shutil.copytree(run, work / f"run{k}")
+        if k < 2:
+            checkpoint = max((copy / "nerfstudio_models").glob("step-*.ckpt"))
+            state = torch.load(checkpoint, map_location="cpu", weights_only=False)  # our own copy of the bench's run
+            tensor = next(value for key, value in state["pipeline"].items()  # the colour head, either layout
+                          if ".field.mlp_head." in key and value.is_floating_point() and value.numel())
+            tensor.view(-1)[0] = float("nan") if k == 0 else float("inf")
+            torch.save(state, checkpoint)
+        else:
+            transforms = copy / "dataparser_transforms.json"
+            transforms.write_text(json.dumps({**json.loads(transforms.read_text()), "scale": 1e6}))
+        out = work / f"scene{k}"
+        cases.cli(group, name, noisenerf_process("import-nerfstudio", copy, "--data", data, "-o", out), out)
 
 
 def describe_reliability(context: BenchContext, measured: Measured) -> list[str]:
     rows = measured.rows
     refused = sum(row["verdict"] == "refused" for row in rows)
+    accepted = sum(row["verdict"] in ("accepted, exact", "accepted, replaced whole") for row in rows)
     skipped = sum(row["verdict"].startswith("skipped") for row in rows)
     lines = [f"{len(rows)} cases: {refused} refused cleanly (exit 2, one line, nothing written, earlier output "
-             f"intact), {skipped} skipped, {len(rows) - refused - skipped} otherwise.", "",
-             "| class | case | verdict | seconds |", "|---|---|---|---|"]
-    lines += [f"| {row['class']} | {row['case']} | {row['verdict']} | {row['seconds'] if row['seconds'] is not None else ''} |"
-              for row in rows]
+             f"intact; in the library a coded UserError), {accepted} accepted with the right result, {skipped} "
+             f"skipped, {len(rows) - refused - accepted - skipped} otherwise.", "",
+             "| class | case | where | verdict | seconds |", "|---|---|---|---|---|"]
+    lines += [f"| {row['class']} | {row['case']} | {row['where']} | {row['verdict']} | "
+              f"{row['seconds'] if row['seconds'] is not None else ''} |" for row in rows]
     return lines

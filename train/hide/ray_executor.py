@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import functools
 import logging
+import os
 import socket
 from typing import Iterator
 
@@ -22,6 +23,7 @@ from noisenerf.train.hide.jobs import PREPARE, FieldWeights, Job, JobRunner
 CONNECT_SECONDS = 5.0  # how long an address may take to accept a connection before the hide gives up
 MAX_RETRIES = 3  # a task's reruns after its worker dies (a node lost, a process killed); not for errors
 INSTALL = "--executor ray needs Ray: pip install 'noisenerf[cluster]'"
+ADDRESS_FLAG, RAY_ADDRESS_ENV = "--ray-address", "RAY_ADDRESS"  # where a cluster's address comes from
 
 
 def import_ray():
@@ -45,12 +47,13 @@ class RayExecutor(Executor):
         self.ray = import_ray()
         self.started = not self.ray.is_initialized()
         if self.started:
-            check_reachable(address)
+            address, source = cluster_address(address)
+            check_reachable(address, source)
             try:
                 self.ray.init(address=address, include_dashboard=False, log_to_driver=verbose,
                               logging_level=logging.INFO if verbose else logging.ERROR)
             except ConnectionError as error:
-                raise UserError(f"cannot connect to the Ray cluster at {address or 'RAY_ADDRESS'}: {error}") from None
+                raise UserError(f"cannot connect to the Ray cluster at {address or source}: {error}") from None
         resources = {"num_gpus": 1} if device.type == "cuda" else {"num_cpus": 1}
         self.slots = max(1, int(self.ray.cluster_resources().get("GPU" if device.type == "cuda" else "CPU", 1)))
         self.task = self.ray.remote(run_job).options(max_retries=MAX_RETRIES, **resources)
@@ -97,18 +100,28 @@ def worker_runner() -> JobRunner:
     return JobRunner()
 
 
-def check_reachable(address: str | None, timeout: float = CONNECT_SECONDS) -> None:
+def cluster_address(flag: str | None) -> tuple[str | None, str]:
+    """The address a hide connects to and where it came from: --ray-address, else RAY_ADDRESS (the default the
+    help names, checked as the flag is), else None (a local cluster)."""
+    if flag is not None:
+        return flag, ADDRESS_FLAG
+    return os.environ.get(RAY_ADDRESS_ENV) or None, RAY_ADDRESS_ENV
+
+
+def check_reachable(address: str | None, source: str = ADDRESS_FLAG, timeout: float = CONNECT_SECONDS) -> None:
     """Refuse at once a cluster address nothing answers at (HOST:PORT or ray://HOST:PORT): ray.init would
-    retry for minutes, logging as it goes. None, "auto" and "local" are Ray's to resolve."""
+    retry for minutes, logging as it goes. None, "auto" and "local" are Ray's to resolve. source: the flag or
+    variable the address came from, for the message."""
     if address is None or address in ("auto", "local"):
         return
     host, _, port = address.removeprefix("ray://").rpartition(":")
     if not host or not port.isdigit():
-        raise UserError(f"--ray-address must be HOST:PORT or ray://HOST:PORT, got {address!r:.80}")
+        raise UserError(f"{source} must be HOST:PORT or ray://HOST:PORT, got {address!r:.80}")
+    where = address if source == ADDRESS_FLAG else f"{address} (from {source})"
     try:
         socket.create_connection((host.strip("[]"), int(port)), timeout=timeout).close()
     except OSError as error:
-        raise UserError(f"cannot reach the Ray cluster at {address}: {error.strerror or error}") from None
+        raise UserError(f"cannot reach the Ray cluster at {where}: {error.strerror or error}") from None
 
 
 def describe(job: Job) -> str:

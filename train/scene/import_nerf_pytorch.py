@@ -32,13 +32,12 @@ import torch
 
 from noisenerf.runtime.camera import Camera, NDCSpace, pixel_rays
 from noisenerf.runtime.errors import UserError
-from noisenerf.runtime.files import check_output_directory
 from noisenerf.runtime.render import RenderConfig
 from noisenerf.runtime.sampling import SamplingConfig
 from noisenerf.train.scene.datasets import LLFF_BD_FACTOR, load_dataset, read_poses_bounds
 from noisenerf.train.scene.field import FieldConfig, NeRFField
 from noisenerf.train.scene.occupancy import build_occupancy_grid
-from noisenerf.train.scene.scene import Scene, SceneConfig, render_field
+from noisenerf.train.scene.scene import Scene, SceneConfig, check_scene_output, render_field
 
 # nerf-pytorch's run_nerf.config_parser: every option it knows, with its type and default (bool: a flag).
 OPTIONS: dict[str, tuple[type, object]] = {
@@ -347,14 +346,15 @@ def scene_geometry(config: NerfPytorchConfig, data_dir: Path
 
 
 def import_nerf_pytorch(checkpoint: Path, config: Path, out_dir: Path, data_dir: Path | None = None,
-                        grid_resolution: int = 64) -> Scene:
+                        grid_resolution: int = 64, force: bool = False) -> Scene:
     """Convert a nerf-pytorch checkpoint (with the config it was trained with) into a scene directory.
 
     data_dir overrides the config's datadir. Everything is checked before out_dir is created, so a
-    refused import leaves nothing behind.
+    refused import leaves nothing behind; an out_dir holding files is refused unless force and they are an
+    earlier scene, which the new one then replaces whole (Scene.publish).
     """
     checkpoint, config_path, out_dir = Path(checkpoint), Path(config), Path(out_dir)
-    check_output_directory(out_dir)
+    check_scene_output(out_dir, force)
     settings = read_config(config_path)
     coarse, fine = load_fields(read_checkpoint(checkpoint), settings, checkpoint)
     data_dir = Path(data_dir) if data_dir is not None else resolve_data_dir(settings.datadir, config_path)
@@ -369,5 +369,5 @@ def import_nerf_pytorch(checkpoint: Path, config: Path, out_dir: Path, data_dir:
     )
     grid = build_occupancy_grid(render_field(coarse, fine), aabb, grid_resolution, step_size=(far - near) / n_render)
     scene = Scene(scene_config, coarse, fine, grid)
-    scene.save(out_dir)
+    scene.publish(out_dir, source=checkpoint, force=force)
     return scene

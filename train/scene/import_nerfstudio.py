@@ -41,12 +41,12 @@ import yaml
 from noisenerf.runtime.camera import Camera
 from noisenerf.runtime.errors import UserError
 from noisenerf.runtime.fields.nerfacto import grid_layout
-from noisenerf.runtime.files import check_output_directory, parse_json
+from noisenerf.runtime.files import parse_json
 from noisenerf.runtime.occupancy import OccupancyGrid
 from noisenerf.runtime.render import RenderConfig
 from noisenerf.runtime.sampling import SamplingConfig
 from noisenerf.train.scene.nerfacto import NerfactoConfig, NerfactoField, ProposalConfig, SamplerConfig
-from noisenerf.train.scene.scene import Scene, SceneConfig
+from noisenerf.train.scene.scene import Scene, SceneConfig, check_scene_output
 
 MAX_CONFIG_BYTES = 1 << 20
 MAX_TRANSFORMS_BYTES = 64 << 20
@@ -466,6 +466,16 @@ def dataset_cameras(data_dir: Path, transform: np.ndarray, scale: float, downsca
     return tuple(cameras)
 
 
+def check_within_reach(cameras: tuple[Camera, ...], far: float, source: Path, scale: float) -> None:
+    """Refuse cameras farther from the scene's centre than the sampler's far plane: no ray of theirs reaches the
+    centre, so every render is empty (a dataparser scale far too large, or poses in other units)."""
+    distances = [float(np.linalg.norm(np.asarray(camera.c2w, np.float64)[:3, 3])) for camera in cameras]
+    worst = int(np.argmax(distances))
+    if not distances[worst] < far:
+        raise UserError(f"{source}: with scale {scale:.6g}, camera {worst} lies {distances[worst]:.3g} from the "
+                        f"scene's centre, beyond the far plane ({far:g}): its renders would be empty")
+
+
 def auto_downscale(data_dir: Path, frame: dict, width: int, height: int) -> int:
     """nerfstudio's automatic downscale: halve while the larger side exceeds 1600 px and images_<2^k> exist."""
     name, factor = Path(str(frame.get("file_path", ""))).name, 1
@@ -474,11 +484,12 @@ def auto_downscale(data_dir: Path, frame: dict, width: int, height: int) -> int:
     return factor
 
 
-def import_nerfstudio(run_dir: Path, out_dir: Path, data: Path | None = None) -> Scene:
+def import_nerfstudio(run_dir: Path, out_dir: Path, data: Path | None = None, force: bool = False) -> Scene:
     """Convert a nerfstudio nerfacto run directory into a scene directory (module docstring). Everything is
-    checked before out_dir is created, so a refused import leaves nothing behind."""
+    checked before out_dir is created, so a refused import leaves nothing behind; an out_dir holding files is
+    refused unless force and they are an earlier scene, which the new one then replaces whole."""
     run_dir, out_dir = Path(run_dir), Path(out_dir)
-    check_output_directory(out_dir)
+    check_scene_output(out_dir, force)
     if not run_dir.is_dir():
         raise UserError(f"not a nerfstudio run directory: {run_dir}")
     config = read_config_yml(run_dir / "config.yml")
@@ -496,10 +507,11 @@ def import_nerfstudio(run_dir: Path, out_dir: Path, data: Path | None = None) ->
     downscale = dataparser.get("downscale_factor") if isinstance(dataparser, dict) else None
     cameras = dataset_cameras(data_directory(config, run_dir, data), transform, scale,
                               int(downscale) if downscale else None, str(run_dir))
+    check_within_reach(cameras, field_settings.sampler.far, run_dir / "dataparser_transforms.json", scale)
     box = (-GRID_BOX,) * 3 + (GRID_BOX,) * 3
     render = RenderConfig(SamplingConfig(SECRET_NEAR, SECRET_FAR, 128), background=(1.0, 1.0, 1.0), pixel_center=0.5)
     scene_config = SceneConfig(coarse=field_settings, fine=None, n_coarse=0, n_importance=0, render=render, aabb=box,
                                grid_resolution=1, cameras=cameras, source="nerfstudio")
     scene = Scene(scene_config, field, None, OccupancyGrid(box, np.ones((1, 1, 1), bool)))
-    scene.save(out_dir)
+    scene.publish(out_dir, source=checkpoint, force=force)
     return scene

@@ -20,7 +20,8 @@ from safetensors.numpy import load_file, save
 
 from noisenerf.runtime.camera import Camera
 from noisenerf.runtime.errors import UserError
-from noisenerf.runtime.files import check_output_directory, read_json, write_bytes, write_json
+from noisenerf.runtime.files import (atomic_folder, check_output_directory, check_output_folder, read_json, write_bytes,
+                                     write_json)
 from noisenerf.runtime.fingerprint import weights_fingerprint
 from noisenerf.runtime.networks import render_network
 from noisenerf.runtime.occupancy import OccupancyGrid
@@ -29,6 +30,12 @@ from noisenerf.runtime.render import RenderConfig
 from noisenerf.train.scene.field_kinds import Field, FieldConfigs, build_field, config_from_dict
 
 SCENE_FORMAT_VERSION = 1
+SCENE_FOLDER = {"marker": "scene.json", "what": "scene"}  # how an import's output folder is checked and replaced
+
+
+def check_scene_output(directory: str | Path, force: bool) -> Path:
+    """An import's output folder, checked before any work (Scene.publish checks it again when it writes)."""
+    return check_output_folder(directory, replace=force, **SCENE_FOLDER)
 
 
 @dataclass(frozen=True)
@@ -124,6 +131,18 @@ class Scene:
                     replace=True)
         write_json(directory / "scene.json", {**self.config.to_dict(), "fingerprint": self.fingerprint()})
         return directory
+
+    def publish(self, directory: str | Path, *, source: str | Path, force: bool = False) -> Path:
+        """Write an imported scene as the folder `directory`, whole (runtime.files.atomic_folder): refused where
+        that folder holds files, unless force and they are an earlier scene, which is then replaced; and refused
+        where a weight read from `source` is NaN or infinite (such a scene renders nothing but NaN)."""
+        for name, array in self.weight_arrays().items():
+            if not np.isfinite(array).all():
+                raise UserError(f"{source}: weight {name} holds {np.count_nonzero(~np.isfinite(array))} NaN or "
+                                f"infinite values; a scene with it cannot render")
+        with atomic_folder(directory, replace=force, **SCENE_FOLDER) as tmp:
+            self.save(tmp)
+        return Path(directory)
 
 
 def build_fields(config: SceneConfig) -> tuple[Field, Field | None]:
