@@ -1,7 +1,7 @@
 """The hashgrid preset's variants fitted on lego at 200 px on the CPU, 2 cores each, 8 at once (a 16-core machine).
 
 Not run by CI. Usage: OUT=results/ python tools/hashgrid_preset_sweep.py MINUTES DATA_DIR, DATA_DIR holding lego
-(NeRF-Synthetic format). Each variant writes NAME.json (steps, test PSNR, SSIM) into OUT. README, Field kinds, has the
+(NeRF-Synthetic format). Each variant writes NAME.json (steps, test PSNR, SSIM) into OUT. docs/field-kinds.md has the
 figures this measured.
 """
 import dataclasses
@@ -11,7 +11,7 @@ import sys
 from pathlib import Path
 import multiprocessing as mp
 
-VARIANTS = {  # changes to the hashgrid preset (its lr_final was 3e-4 when README's figures were measured)
+VARIANTS = {  # changes to the hashgrid preset (its lr_final was 3e-4 when docs/field-kinds.md's figures were measured)
     "preset": {},
     "final3e-4": {"lr_final": 3e-4},
     "table19": {"field": {"log2_table": 19}},

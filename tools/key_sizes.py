@@ -2,7 +2,7 @@
 resized to WIDTH, hidden in SCENE at each of VIEWS with the defaults and revealed with onnxruntime; per hide
 the bundle's bytes per pixel and ÷ the photo's PNG (the project's writer), escapes, hide and reveal seconds,
 exactness; JSON lines on stdout, the summary last. It uses only what noisenerf has had since its Python API,
-so it runs from a checkout of each version compared (the README's "Formats" table; the bench's `keys`
+so it runs from a checkout of each version compared (CHANGELOG.md's key formats; the bench's `keys`
 experiment adds lossless WebP):
 
     python tools/key_sizes.py SCENE 15,40 128 PHOTO... > sizes.jsonl

@@ -23,8 +23,8 @@ full 90 values (184 bytes), so every pixel is still exact (train/hide/exact_solv
 Why k = 5: every coefficient costs bytes at every pixel and each escape tens to hundreds, so k trades bytes
 per pixel against escapes: k = 4 lets so many pixels escape that the worst keys grow and hides slow down,
 k = 6 costs a coefficient's bytes at every pixel to save escapes that branch escapes made cheap.
-int8 coefficients leave most pixels unreachable on their lattice. The measurements are in the README
-("Formats") and the bench's `keys` experiment.
+int8 coefficients leave most pixels unreachable on their lattice. The measurements are in docs/formats.md
+("Key sizes") and the bench's `keys` experiment.
 """
 
 from __future__ import annotations

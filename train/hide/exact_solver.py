@@ -119,7 +119,7 @@ class ExactSolver(Solver):
     def threads(self, device: torch.device):
         """One torch thread on a CPU. The Levenberg–Marquardt loop is thousands of small ops; with torch's
         OpenMP pool of one thread per core, every op is a parallel region whose idle threads spin, and on
-        a machine whose cores are shared that spinning took the solver's own CPU (README, "Predictable
+        a machine whose cores are shared that spinning took the solver's own CPU (docs/methods.md, "Predictable
         speed", has the figures). One thread costs little on a quiet machine, much less than a pool on a busy
         one, and makes the bundle's bytes independent of the machine's core count."""
         if device.type != "cpu":

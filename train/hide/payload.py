@@ -25,7 +25,7 @@ from noisenerf.train.scene.scene import Scene
 from noisenerf.train.hide.tiling import tile_rects
 
 # The exact hide's rate for payload pixels on 2 CPU cores, the basis of the time a hide announces (measured
-# on a random 1 MiB file: README, "Hide a file").
+# on a random 1 MiB file: docs/usage.md, "Hide a file").
 PAYLOAD_PIXELS_PER_SECOND = 18_000
 
 

@@ -8,8 +8,8 @@ Presets (`--field` picks a kind's default preset; without either, `hashgrid`: DE
 - `hashgrid` (the `hashgrid` kind's): Instant-NGP's field (16 levels × 2 features, 2^17 rows a level,
   resolutions 16 to 1024, SH degree 4, 64-wide MLPs) spanning the dataset's box, with the same sampler,
   occupancy grid and early termination as `small`; Instant-NGP's Adam (β₂ 0.99, ε 1e-15, weight decay on
-  the MLPs only) at its learning rate 1e-2, decaying to 1e-3 (the best of the variants measured: README,
-  Field kinds). Its scene renders with 256 samples per ray through a 128³ grid built at the end: the
+  the MLPs only) at its learning rate 1e-2, decaying to 1e-3 (the best of the variants measured:
+  docs/field-kinds.md). Its scene renders with 256 samples per ray through a 128³ grid built at the end: the
   fitted field is sharper than 128 jittered samples and a 64³ grid of 4 points per cell resolve.
 
 The learning rate decays exponentially from `lr` to `lr_final` over the run (by steps with --iters,
@@ -105,7 +105,7 @@ PRESETS = {
 }
 DEFAULT_PRESETS = {"mlp": "small", "hashgrid": "hashgrid"}  # the preset `--field KIND` fits with
 # the kind new fits take without --field or --preset: in the same minutes it fits better than the small
-# preset, its keys are no larger and every camera takes every hard secret (README "Field kinds" has the
+# preset, its keys are no larger and every camera takes every hard secret (docs/field-kinds.md has the
 # figures); the MLP stays the choice for a smaller model file and faster reveals
 DEFAULT_FIELD = "hashgrid"
 

@@ -40,7 +40,7 @@ FORMATS = ("blender", "capture")
 CAPTURE_RADIUS = 1.8  # closer than the NeRF-Synthetic views, as a phone walks round an object
 CAPTURE_FOCAL = 0.55  # fl_x / width: a phone's wide angle (about 85° across), where the distortion moves pixels
 CAPTURE_LENS = {"k1": -0.05, "k2": 0.01, "p1": 0.002, "p2": -0.001}  # OpenCV's model: mild barrel, a tilted lens
-# the shipped demo scene, fitted on this dataset (README, "The demo scene"); package data of noisenerf.train
+# the shipped demo scene, fitted on this dataset (docs/usage.md, "The demo scene"); package data of noisenerf.train
 DEMO_SCENE = Path(__file__).resolve().parents[1] / "assets" / "demo_scene"
 
 
