@@ -726,7 +726,8 @@ def test_the_javascript_reveal_matches_the_python_runtime(fixtures, tmp_path):
         case = json.loads(line)
         if case["nesting"] == 0:
             assert case["passed"] and case["skip"] is False and case["todo"] is False, case
-            ran.setdefault(Path(case["file"]).name, set()).add(case["name"])
+            if case["name"] != case["file"]:  # a file is its own case only when it holds none (refusals.js)
+                ran.setdefault(Path(case["file"]).name, set()).add(case["name"])
     expected = expected_javascript_cases(json.loads((fixtures / "manifest.json").read_text()))
     assert ran == expected
     # the manifest's own loops are not empty: every layout's fixture, tampered copies, graphs, payloads
