@@ -15,20 +15,11 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from noisenerf.runtime.bundle import load_bundle
 from noisenerf.runtime.files import atomic_folder, write_bytes
-from noisenerf.runtime.images import to_uint8, write_image
+from noisenerf.runtime.images import write_image
 from noisenerf.runtime.metrics import exact_fraction, psnr, ssim
-from noisenerf.runtime.model import load_model
-from noisenerf.runtime.payload import read_payload_file
 from noisenerf.runtime.progress import ProgressFn
-from noisenerf.runtime.render import render_view
-from noisenerf.runtime.reveal import reveal
-from noisenerf.train.hide.plan import HideConfig
-from noisenerf.train.hide.run import hide
-from noisenerf.train.hide.payload import hide_payload
 from noisenerf.train.scene.procedural import DEMO_SCENE, procedural_secret
-from noisenerf.train.scene.scene import load_scene
 
 DEMO_VIEW = 2
 SECRET_SIZE = (96, 72)  # width, height: two tiles of 64 px wide, so stitching is shown too
@@ -65,38 +56,35 @@ def run_demo(out_dir: Path, device: torch.device, progress: ProgressFn | None = 
 
 
 def demo_files(out_dir: Path, device: torch.device, progress: ProgressFn | None) -> dict:
-    """The demo's files written into `out_dir` (a new folder), and its report."""
-    from noisenerf.export.onnx_export import export_scene
+    """The demo's files written into `out_dir` (a new folder) through the public library, as a user's script
+    would write them, and its report."""
+    from noisenerf import api
+    from noisenerf.runtime.api import render, reveal
 
     timings = {}
     started = time.perf_counter()
-    scene = load_scene(DEMO_SCENE)
     secret = procedural_secret(*SECRET_SIZE)
     write_image(out_dir / "secret.png", secret)
-    hidden = hide(scene, secret, out_dir / "secret.bundle", HideConfig(tile_size=TILE_SIZE, view=DEMO_VIEW),
-                  device, force=True, progress=progress)
+    where = {"tile_size": TILE_SIZE, "view": DEMO_VIEW, "device": str(device), "progress": progress}
+    hidden = api.hide(DEMO_SCENE, out_dir / "secret.png", out_dir / "secret.bundle", **where)
     timings["hide"] = time.perf_counter() - started
 
     started = time.perf_counter()
-    write_bytes(out_dir / "note.txt", NOTE.encode(), replace=True)
-    hide_payload(scene, read_payload_file(out_dir / "note.txt"), out_dir / "note.bundle",
-                 HideConfig(tile_size=TILE_SIZE, view=DEMO_VIEW), device, passphrase=DEMO_PASSPHRASE.encode(),
-                 force=True, progress=progress)
+    write_bytes(out_dir / "note.txt", NOTE.encode(), replace=False)
+    api.hide(DEMO_SCENE, output=out_dir / "note.bundle", file=out_dir / "note.txt", passphrase=DEMO_PASSPHRASE,
+             **where)
     timings["seal"] = time.perf_counter() - started
 
     started = time.perf_counter()
-    export_scene(DEMO_SCENE, out_dir / "model.onnx")
+    api.export_model(DEMO_SCENE, out_dir / "model.onnx")
     timings["export"] = time.perf_counter() - started
 
     started = time.perf_counter()
-    model = load_model(out_dir / "model.onnx")
-    revealed = reveal(load_bundle(out_dir / "secret.bundle"), model.render_config, model.fields())
-    write_image(out_dir / "revealed.png", revealed.pixels)
+    revealed = reveal(out_dir / "model.onnx", out_dir / "secret.bundle")
+    revealed.save(out_dir / "revealed.png")
     timings["reveal"] = time.perf_counter() - started
 
-    ordinary, _ = render_view(model.cameras[DEMO_VIEW], model.render_config, model.field, model.grid,
-                              coarse=model.coarse)
-    ordinary = to_uint8(ordinary)
+    ordinary = render(out_dir / "model.onnx", DEMO_VIEW).pixels
     write_image(out_dir / "ordinary.png", ordinary)
     write_image(out_dir / "side_by_side.png", side_by_side([ordinary, secret, revealed.pixels]))
     quality = {"psnr": psnr(revealed.pixels / 255.0, secret / 255.0),
