@@ -21,12 +21,41 @@ store them as they are ("xz-byte-planes"). A format this version does not know (
 writer's) is refused in one line naming it.
 
 The bundle holds noise and metadata only: without the model's exact weights it renders nothing.
+
+Checks, in this order (web/src/bundle.js keeps the same, so both refuse any input with the same code and params):
+
+  1. the file: a path that is no regular file (bundle.not_found), one that cannot be read (bundle.read_failed);
+  2. framing, from the first 8 bytes and the size alone (checked_framing): the header length they state is
+     0 < n <= min(MAX_HEADER_BYTES, size - 8) (bundle.not_safetensors). A file of zeros or random bytes is refused
+     here whatever its size, and a path's file before the rest of it is read (bundle_bytes);
+  3. the header (runtime/sealing.split_safetensors): UTF-8 JSON as parse_json reads it, an object, its
+     "__metadata__" (where present) an object (bundle.not_safetensors);
+  4. "__metadata__"["noisenerf_bundle"] a string (bundle.not_noisenerf);
+  5. that string parsed as JSON (json.invalid, json.too_deep);
+  6. every tensor's dtype, in the header's order, one of SAFETENSORS_DTYPES (bundle.tensor_dtype);
+  7. the safetensors structure, as the safetensors library checks it (bundle.not_safetensors): JSON it reads (no
+     NaN, Infinity or out-of-range numbers, no lone surrogates, no byte order mark), "__metadata__"'s values
+     strings, each tensor's shape and data_offsets whole numbers, the offsets tiling the data exactly, each the size
+     its shape states;
+  8. the metadata (parse_bundle): an object, format_version, the secret and noise objects, the secret's size, the
+     noise header (layout, dims, dtype as text, the layout's own: compact's coefficients and codec, then the dtype
+     one of the layout's), tiles a list, every tile's rect,
+     the layout's streams against what they state (compact: the areas, then the expansion ratio),
+     model_fingerprint, the digest; then tile by tile: rect, tensor name, the layout's tensors (compact:
+     [branch escapes, branch escape noise,] basis, offset, scale, escapes, escape noise, band rows, the stream
+     tensor, its decoding: corrupt (compact.xz_corrupt), or not exactly one xz stream holding the stated bytes with
+     nothing after it (compact.xz_size)), camera, sampling, view, network; then the payload;
+  9. the whole (validate): empty, tile by tile (network, inside the secret, camera, samples, noise shape and
+     dtype, the layout's noise checks), the areas, overlaps.
+
+A sealed bundle's tag is checked after these (runtime/api.py), before the model is read.
 """
 
 from __future__ import annotations
 
 import hashlib
 import json
+import os
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -39,8 +68,8 @@ from noisenerf.runtime.camera import Camera
 from noisenerf.runtime.errors import UserError
 from noisenerf.runtime.files import os_failure, parse_json, write_bytes
 from noisenerf.runtime.layouts import DTYPES, LAYOUTS, TileNoise, layout_named
-from noisenerf.runtime.limits import (MAX_CAMERAS, MAX_IMAGE_SIDE, MAX_NOISE_DIMS, MAX_TILES, checked_image_size,
-                                      checked_int, checked_list, is_finite)
+from noisenerf.runtime.limits import (MAX_CAMERAS, MAX_HEADER_BYTES, MAX_IMAGE_SIDE, MAX_NOISE_DIMS, MAX_TILES,
+                                      checked_image_size, checked_int, checked_list, is_finite)
 from noisenerf.runtime.networks import NETWORKS
 from noisenerf.runtime.payload import checked_payload
 from noisenerf.runtime.sealing import split_safetensors
@@ -310,15 +339,34 @@ def checked_rect(i: int, data) -> tuple[int, int, int, int]:
     return (x0, y0, *checked_image_size(rect[2], rect[3], f"bundle: tile {i} rect", code="bundle.tile_rect", tile=i))
 
 
+def checked_framing(data: bytes, size: int, name: str) -> int:
+    """Check 2 (the module docstring) from a bundle's first 8 bytes and its size alone: the header length they state
+    is positive, at most MAX_HEADER_BYTES and inside the file. A file of zeros or random bytes is refused here,
+    whatever its size, before the rest of it is read. Where `data` holds the header too, it must be UTF-8 (check 3:
+    json would read UTF-16 and UTF-32 too, safetensors and the browser read UTF-8 alone). -> the header length."""
+    length = int.from_bytes(data[:8], "little") if len(data) >= 8 and size >= 8 else 0
+    if not 0 < length <= min(size - 8, MAX_HEADER_BYTES) or (
+            len(data) >= 8 + length and json.detect_encoding(data[8:8 + length]) not in ("utf-8", "utf-8-sig")):
+        raise UserError(f"not a readable safetensors bundle: {name}", code="bundle.not_safetensors")
+    return length
+
+
 def bundle_bytes(source: str | Path | bytes) -> tuple[bytes, str]:
-    """A bundle's bytes and the name its refusals give it: a path's contents, or the bytes themselves."""
+    """A bundle's bytes and the name its refusals give it: a path's contents, or the bytes themselves. A path's
+    file is read in steps, its framing and header checked (checks 2 and 3) before its tensor data is read."""
     if isinstance(source, (bytes, bytearray, memoryview)):
         return bytes(source), "the bundle"
     path = Path(source)
     if not path.is_file():
         raise UserError(f"bundle not found: {path}", code="bundle.not_found")
     try:
-        return path.read_bytes(), str(path)
+        with path.open("rb") as file:
+            size = os.fstat(file.fileno()).st_size
+            prefix = file.read(8)
+            prefix += file.read(checked_framing(prefix, size, str(path)))
+            checked_framing(prefix, size, str(path))
+            split_safetensors(prefix, str(path))
+            return prefix + file.read(), str(path)
     except OSError as error:
         raise os_failure("read bundle", path, error, "bundle.read_failed") from None
 
@@ -329,7 +377,9 @@ def load_bundle(source: str | Path | bytes) -> Bundle:
 
 
 def parse_bundle_bytes(data: bytes, name: str) -> Bundle:
-    """A bundle from its bytes, validated; refusals name it `name` (its path)."""
+    """A bundle from its bytes, validated in the module docstring's order of checks; refusals name it `name`
+    (its path)."""
+    checked_framing(data, len(data), name)
     header, _ = split_safetensors(data, name)
     raw = header.get("__metadata__", {}).get(METADATA_KEY)
     if not isinstance(raw, str):

@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import dataclasses
 import lzma
+import zlib
 from dataclasses import dataclass
 from typing import Callable
 
@@ -83,6 +84,19 @@ def pack_coefficients(coefficients: np.ndarray) -> np.ndarray:
     return np.frombuffer(lzma.compress(np.ascontiguousarray(split).tobytes(), preset=XZ_PRESET), dtype=np.uint8)
 
 
+XZ_MAGIC = b"\xfd7zXZ\x00"
+XZ_CHECKS = (None, lzma.CHECK_NONE, lzma.CHECK_CRC32, lzma.CHECK_CRC64)  # what the browser's decoder (xz-embedded) checks
+
+
+def stream_check(header: bytes) -> int | None:
+    """The integrity check an xz stream's header states, None if these 12 bytes are no whole, intact stream header
+    (the decoder refuses or waits for those itself). Streams stating a check the browser's decoder cannot verify
+    (SHA-256, the reserved ones) are refused as corrupt, as it refuses them: noisenerf writes CRC64."""
+    if len(header) < 12 or header[:6] != XZ_MAGIC or zlib.crc32(header[6:8]) != int.from_bytes(header[8:12], "little"):
+        return None
+    return header[7] if header[6] == 0 and header[7] < 16 else None
+
+
 def unpack_coefficients(packed: np.ndarray, shape: tuple[int, int, int], dtype: str, what: str,
                         tile: int | None = None) -> np.ndarray:
     """pack_coefficients undone, refusing a stream that is corrupt or does not hold exactly shape's bytes
@@ -90,6 +104,10 @@ def unpack_coefficients(packed: np.ndarray, shape: tuple[int, int, int], dtype: 
     -> (h, w, k) of dtype."""
     kind = np.dtype(DTYPES[dtype]).newbyteorder("<")
     expected = int(np.prod(shape)) * kind.itemsize
+    check = stream_check(packed[:12].tobytes())
+    if check not in XZ_CHECKS:
+        raise UserError(f"{what}: compressed coefficients are corrupt (integrity check {check} unsupported)",
+                        code="compact.xz_corrupt", tile=tile)
     decompressor = lzma.LZMADecompressor(format=lzma.FORMAT_XZ, memlimit=MAX_XZ_MEMORY)
     try:
         data = decompressor.decompress(packed.tobytes(), max_length=expected + 1)

@@ -21,7 +21,7 @@ MAX_COMPACT_COEFFICIENTS = 8  # compact layout: coefficients per pixel (int16: 1
 MAX_XZ_MEMORY = 80 << 20  # bytes an xz decoder may use: a preset-9 stream's 64 MiB dictionary, not the next size a
 #   stream can state (96 MiB), which the browser's decoder (64 MiB at most) refuses too
 MAX_XZ_RATIO = 64  # bytes an xz coefficient stream may state per byte it is: solved noise coefficients are nearly
-#   random and compress a few times at most, a crafted stream of zeros thousands of times (README: the measured ratios)
+#   random and compress a few times at most, a crafted stream of zeros thousands of times (docs/usage.md: the measured ratios)
 FREE_XZ_BYTES = 1 << 20  # bytes any bundle may decompress, whatever its streams' size
 MAX_TILES = MAX_IMAGE_PIXELS // 16 ** 2  # tiles in one bundle: the largest secret in the smallest (16 px) tiles
 MAX_NOISE_DIMS = 4096  # width of the noise input (positional encodings use 90)
@@ -37,6 +37,8 @@ MAX_HASH_RESOLUTION = 1 << 20  # vertices per side of a hash grid's finest level
 MAX_GRID_RESOLUTION = 512  # cells per side of a model's occupancy grid (128 Mi cells)
 MAX_CAMERAS = 100_000  # dataset cameras listed in a model or scene
 MAX_JSON_DEPTH = 32  # nesting of any JSON metadata (ours is at most 5 deep)
+MAX_HEADER_BYTES = 100_000_000  # a bundle's safetensors header (the safetensors library's own cap; ours are KBs)
+MAX_MODEL_FIELDS = 1 << 18  # protobuf fields a model's parse walks in all (a nerfacto model has about 1300)
 
 
 def is_finite(number) -> bool:

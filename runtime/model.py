@@ -45,6 +45,7 @@ from noisenerf.runtime.limits import (
     MAX_CAMERAS, MAX_GRID_RESOLUTION, MAX_NOISE_DIMS, checked_float, checked_int, checked_list,
 )
 from noisenerf.runtime.occupancy import OccupancyGrid
+from noisenerf.runtime.onnx_file import check_model_file
 from noisenerf.runtime.pdf import Hierarchy
 from noisenerf.runtime.proposal import ProposalNetworks, ProposalSampling
 from noisenerf.runtime.render import CoarseNetwork, RenderConfig
@@ -215,7 +216,10 @@ def check_weights(weights: dict[str, np.ndarray], metadata: ModelMetadata, sourc
 
 def load_model(path: str | os.PathLike, device: str = "cpu", threads: int | None = None) -> Model:
     """Load a model file for rendering; refuses non-ONNX, truncated, external-data, foreign or modified
-    files (external data and weights are checked before onnxruntime sees the bytes)."""
+    files (external data and weights are checked before onnxruntime sees the bytes). A path's file has its framing
+    checked before it is read whole (runtime.onnx_file: a file of junk is refused whatever its size)."""
+    if not isinstance(path, (bytes, bytearray, memoryview)):
+        check_model_file(path)
     file = read_model_file(path)
     metadata = ModelMetadata.from_metadata_props(file.metadata_props, file.source)
     check_weights(check_graph(file, expected_graph(metadata, file.source), file.source), metadata, file.source)

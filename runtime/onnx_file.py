@@ -22,18 +22,35 @@ other field of a graph or node is recorded as unexpected, which that comparison 
 A noisenerf model never has subgraphs, functions, training graphs or sparse tensors, so a model with
 any is refused rather than searched: every tensor onnxruntime could load then lies where this module
 looks. Everything here is bounded by the file's own size.
+
+The cost of refusing a file is bounded by a constant, not by its size. The checks, in this order (and in
+web/src/onnx.js's parseModel):
+
+  1. framing: the model's top-level fields walked by their keys and lengths alone, every payload skipped
+     unread: a field number 0, a wire type protobuf does not have, a varint past 10 bytes or the end, a length
+     or fixed width past the end, or more than MAX_MODEL_FIELDS fields, is onnx.malformed. Zeros (field 0)
+     and random bytes are refused within a few bytes, a well-formed initializer of any size in one step; a
+     path's file is checked so before it is read whole (check_model_file), so a junk file is never held;
+  2. the walk: the top-level fields in file order (training graphs, functions: onnx.unsupported), the graph's
+     fields in file order (sparse initializers, subgraphs and sparse tensors in a node's attributes:
+     onnx.unsupported; anything not well formed, and more than MAX_MODEL_FIELDS fields walked in all:
+     onnx.malformed);
+  3. external data, once everything is read: onnx.external_data.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import os
 from dataclasses import dataclass
-from typing import Iterator
+from pathlib import Path
+from typing import Callable, Iterator
 
 import numpy as np
 
 from noisenerf.runtime.errors import UserError
 from noisenerf.runtime.graph import FLOAT, Node, Port
+from noisenerf.runtime.limits import MAX_MODEL_FIELDS
 
 EXTERNAL = 1  # TensorProto.DataLocation.EXTERNAL
 VARINT, FIXED64, LENGTH, FIXED32 = 0, 1, 2, 5
@@ -46,6 +63,19 @@ UNSUPPORTED = {  # (message, field number) -> what it is
 
 class WireError(ValueError):
     """The bytes are not a well-formed protobuf message."""
+
+
+class FieldBudget:
+    """How many more fields one parse may walk (MAX_MODEL_FIELDS in all): a file of many tiny fields is refused
+    after a bounded walk rather than walked to its end."""
+
+    def __init__(self, most: int = MAX_MODEL_FIELDS):
+        self.most, self.left = most, most
+
+    def spend(self) -> None:
+        self.left -= 1
+        if self.left < 0:
+            raise WireError(f"more than {self.most} protobuf fields")
 
 
 def read_varint(data: memoryview, position: int) -> tuple[int, int]:
@@ -62,12 +92,17 @@ def read_varint(data: memoryview, position: int) -> tuple[int, int]:
     raise WireError("varint longer than 10 bytes")
 
 
-def fields(data: memoryview) -> Iterator[tuple[int, int, int | memoryview]]:
-    """The fields of one message: (field number, wire type, integer or bytes), in file order."""
+def fields(data: memoryview, budget: FieldBudget | None = None) -> Iterator[tuple[int, int, int | memoryview]]:
+    """The fields of one message: (field number, wire type, integer or bytes), in file order. budget: the parse's
+    (each field spends one)."""
     position, size = 0, len(data)
     while position < size:
+        if budget is not None:
+            budget.spend()
         key, position = read_varint(data, position)
         number, wire = key >> 3, key & 7
+        if number == 0:
+            raise WireError("field number 0")
         if wire == VARINT:
             value, position = read_varint(data, position)
         elif wire in (FIXED64, FIXED32):
@@ -83,6 +118,60 @@ def fields(data: memoryview) -> Iterator[tuple[int, int, int | memoryview]]:
         else:
             raise WireError(f"unsupported wire type {wire}")
         yield number, wire, value
+
+
+def framing(read: Callable[[int, int], bytes], size: int, source: str) -> None:
+    """Check 1 (the module docstring): a model's top-level fields by their keys and lengths alone, as `fields`
+    walks them but with every payload skipped unread. read(position, count): up to count of the model's bytes
+    from position; size: how many there are. Refuses with onnx.malformed."""
+    budget, position = FieldBudget(), 0
+    try:
+        while position < size:
+            budget.spend()
+            head = memoryview(read(position, min(20, size - position)))  # a key and a varint: 10 bytes each at most
+            key, at = read_varint(head, 0)
+            number, wire = key >> 3, key & 7
+            if number == 0:
+                raise WireError("field number 0")
+            if wire == VARINT:
+                _, at = read_varint(head, at)
+            elif wire in (FIXED64, FIXED32):
+                at += 8 if wire == FIXED64 else 4
+                if position + at > size:
+                    raise WireError("truncated fixed-width field")
+            elif wire == LENGTH:
+                length, at = read_varint(head, at)
+                if position + at + length > size:
+                    raise WireError("length-delimited field runs past the end")
+                at += length
+            else:
+                raise WireError(f"unsupported wire type {wire}")
+            position += at
+    except WireError as error:
+        raise not_onnx(source, error) from None
+
+
+def not_onnx(source: str, error: ValueError) -> UserError:
+    """The refusal of bytes that are not a well-formed model (check 1 or 2), saying why."""
+    return UserError(f"{source} is not a loadable ONNX model (not ONNX, or truncated): {error}", code="onnx.malformed")
+
+
+def check_model_file(path: str | os.PathLike) -> None:
+    """A model file's framing (check 1) from its keys and lengths, before it is read whole: a file of junk is
+    refused having read a few bytes of it, whatever its size. A path that is not a regular file, or cannot be
+    read, is left to the read that follows (model.not_found, and the rest as they were)."""
+    path = Path(path)
+    if not path.is_file():
+        return
+    try:
+        with path.open("rb") as file:
+            def read(position: int, count: int) -> bytes:
+                file.seek(position)
+                return file.read(count)
+
+            framing(read, os.fstat(file.fileno()).st_size, str(path))
+    except OSError:
+        return
 
 
 def field_spans(data: memoryview) -> Iterator[tuple[int, memoryview, int | memoryview]]:
@@ -189,10 +278,10 @@ class TensorRecord:
         return values.reshape(self.dims)
 
 
-def read_tensor(data: memoryview) -> TensorRecord:
+def read_tensor(data: memoryview, budget: FieldBudget | None = None) -> TensorRecord:
     """One TensorProto's fields; values are not decoded until TensorRecord.array."""
     name, data_type, dims, raw, floats, integers, external = "", 0, [], None, [], [], False
-    for number, wire, value in fields(data):
+    for number, wire, value in fields(data, budget):
         if number == 1:
             dims.extend(packed_varints(value) if wire == LENGTH else [value])
         elif number == 2:
@@ -239,25 +328,25 @@ def refuse_unsupported(message: str, number: int, source: str) -> None:
                         code="onnx.unsupported", holds=UNSUPPORTED[message, number])
 
 
-def node_tensors(node: memoryview, source: str) -> Iterator[TensorRecord]:
+def node_tensors(node: memoryview, source: str, budget: FieldBudget | None = None) -> Iterator[TensorRecord]:
     """The tensors in a NodeProto's attributes (a Constant's value, ...), refusing subgraphs."""
-    for number, _, attribute in fields(node):
+    for number, _, attribute in fields(node, budget):
         if number != 5:
             continue
-        for inner, _, value in fields(blob(attribute)):
+        for inner, _, value in fields(blob(attribute), budget):
             refuse_unsupported("attribute", inner, source)
             if inner in (5, 10):
-                yield read_tensor(blob(value))
+                yield read_tensor(blob(value), budget)
 
 
 def text(value: int | memoryview) -> str:
     return bytes(blob(value)).decode("utf-8")
 
 
-def read_attribute(data: memoryview) -> tuple[str, int | str]:
+def read_attribute(data: memoryview, budget: FieldBudget | None = None) -> tuple[str, int | str]:
     """(name, value) of an integer attribute; any other kind reads as (name, "not an integer")."""
     name, value, kinds = "", "not an integer", set()
-    for number, wire, item in fields(data):
+    for number, wire, item in fields(data, budget):
         if number == 1:
             name = text(item)
         elif number == 3 and wire == VARINT:
@@ -267,11 +356,11 @@ def read_attribute(data: memoryview) -> tuple[str, int | str]:
     return name, value if not kinds else "not an integer"
 
 
-def read_node(data: memoryview) -> Node:
+def read_node(data: memoryview, budget: FieldBudget | None = None) -> Node:
     """A NodeProto as runtime.graph.Node; a field that computes nothing is skipped, an unknown one kept
     as an attribute that no expected node has."""
     inputs, outputs, op, domain, attributes = [], [], "", "", []
-    for number, _, value in fields(data):
+    for number, _, value in fields(data, budget):
         if number == 1:
             inputs.append(text(value))
         elif number == 2:
@@ -281,7 +370,7 @@ def read_node(data: memoryview) -> Node:
         elif number == 7:
             domain = text(value)
         elif number == 5:
-            attributes.append(read_attribute(blob(value)))
+            attributes.append(read_attribute(blob(value), budget))
         elif number not in (3, 6):  # name, doc_string
             attributes.append((f"field {number}", "unexpected"))
     if domain not in ("", "ai.onnx"):
@@ -289,25 +378,25 @@ def read_node(data: memoryview) -> Node:
     return Node(op, tuple(inputs), tuple(outputs), tuple(sorted(attributes, key=str)))
 
 
-def read_port(data: memoryview) -> Port | None:
+def read_port(data: memoryview, budget: FieldBudget | None = None) -> Port | None:
     """A ValueInfoProto as runtime.graph.Port (symbolic dims by their names), None if it is not a tensor
     whose every dim is a value or a name."""
     name, elem_type, shape, tensor = "", 0, None, False
-    for number, _, value in fields(data):
+    for number, _, value in fields(data, budget):
         if number == 1:
             name = text(value)
         elif number == 2:
-            for kind, _, tensor_type in fields(blob(value)):
+            for kind, _, tensor_type in fields(blob(value), budget):
                 if kind != 1:
                     return None
                 tensor = True
-                for part, _, item in fields(blob(tensor_type)):
+                for part, _, item in fields(blob(tensor_type), budget):
                     if part == 1:
                         elem_type = item
                     elif part == 2:
                         shape = []
-                        for _, _, dim in fields(blob(item)):
-                            sizes = {k: v for k, _, v in fields(blob(dim)) if k in (1, 2)}
+                        for _, _, dim in fields(blob(item), budget):
+                            sizes = {k: v for k, _, v in fields(blob(dim), budget) if k in (1, 2)}
                             if len(sizes) != 1:
                                 return None
                             shape.append(sizes[1] if 1 in sizes else text(sizes[2]))
@@ -315,36 +404,39 @@ def read_port(data: memoryview) -> Port | None:
 
 
 def parse_model(data: bytes, source: str) -> ModelFile:
-    """Read a model's metadata, tensors and graph; refuses malformed bytes, unsupported structures and,
-    before anything could load them, tensors whose data lives outside the file."""
+    """Read a model's metadata, tensors and graph, in the module docstring's order of checks: its framing, then
+    the walk, refusing malformed bytes and unsupported structures, then, before anything could load them,
+    tensors whose data lives outside the file."""
+    view = memoryview(data)
+    framing(lambda position, count: view[position:position + count], len(view), source)
+    budget = FieldBudget()
     try:
         props, initializers, attributes, nodes, ports, opsets = {}, [], [], [], {11: [], 12: []}, []
         ir_version, unexpected = 0, []
-        for number, _, value in fields(memoryview(data)):
+        for number, _, value in fields(view, budget):
             refuse_unsupported("model", number, source)
             if number == 14:
-                entry = {k: text(v) for k, _, v in fields(blob(value)) if k in (1, 2)}
+                entry = {k: text(v) for k, _, v in fields(blob(value), budget) if k in (1, 2)}
                 props[entry.get(1, "")] = entry.get(2, "")
             elif number == 1:
                 ir_version = value
             elif number == 8:
-                entry = {k: v for k, _, v in fields(blob(value)) if k in (1, 2)}
+                entry = {k: v for k, _, v in fields(blob(value), budget) if k in (1, 2)}
                 opsets.append((text(entry.get(1, memoryview(b""))), entry.get(2, 0)))
             elif number == 7:
-                for inner, _, item in fields(blob(value)):
+                for inner, _, item in fields(blob(value), budget):
                     refuse_unsupported("graph", inner, source)
                     if inner == 5:
-                        initializers.append(read_tensor(blob(item)))
+                        initializers.append(read_tensor(blob(item), budget))
                     elif inner == 1:
-                        attributes.extend(node_tensors(blob(item), source))
-                        nodes.append(read_node(blob(item)))
+                        attributes.extend(node_tensors(blob(item), source, budget))
+                        nodes.append(read_node(blob(item), budget))
                     elif inner in ports:
-                        ports[inner].append(read_port(blob(item)))
+                        ports[inner].append(read_port(blob(item), budget))
                     elif inner not in (2, 10):  # name, doc_string
                         unexpected.append(f"graph field {inner}")
     except ValueError as error:  # WireError, UnicodeDecodeError, float_data of a length not divisible by 4
-        raise UserError(f"{source} is not a loadable ONNX model (not ONNX, or truncated): {error}",
-                        code="onnx.malformed") from None
+        raise not_onnx(source, error) from None
     external = [t.name or "(unnamed)" for t in initializers + attributes if t.external]
     if external:
         raise UserError(f"{source} keeps tensor {external[0]!r} in external data; a noisenerf model must be "

@@ -346,6 +346,127 @@ def test_broken_model_file_is_refused(world, tmp_path, capfd, case):
     assert_refused(run_main(reveal_main, [tmp_path / "bad.onnx", world.bundle, "-o", out], capfd), out, message)
 
 
+# ---- junk files: refused for their first bytes, whatever their size -------------------------------
+
+JUNK_BYTES = 64 << 20
+READ_AT_MOST = 64 << 10  # bytes of a junk file a refusal may read
+JUNK = {  # (role, content): (the refusal's code, the message's words)
+    ("model", "zeros"): ("onnx.malformed", "not a loadable ONNX model"),
+    ("model", "random"): ("onnx.malformed", "not a loadable ONNX model"),
+    ("bundle", "zeros"): ("bundle.not_safetensors", "not a readable safetensors bundle"),
+    ("bundle", "random"): ("bundle.not_safetensors", "not a readable safetensors bundle"),
+}
+
+
+@pytest.fixture(scope="module")
+def junk_files(tmp_path_factory) -> dict[str, Path]:
+    """64 MiB of zeros (a sparse file) and 64 MiB of random bytes."""
+    folder = tmp_path_factory.mktemp("junk")
+    files = {"zeros": folder / "zeros.bin", "random": folder / "random.bin"}
+    with files["zeros"].open("wb") as out:
+        out.truncate(JUNK_BYTES)
+    files["random"].write_bytes(np.random.default_rng(11).bytes(JUNK_BYTES))
+    return files
+
+
+def count_reads(monkeypatch, watched: Path) -> list[int]:
+    """Count the bytes read from `watched` through Path.open and Path.read_bytes (how runtime/ reads files) into the
+    returned one-item list; a read past READ_AT_MOST fails at once (it would have read the junk file's body)."""
+    counted, real_open, real_read_bytes = [0], Path.open, Path.read_bytes
+
+    def spend(count: int) -> None:
+        counted[0] += count
+        assert counted[0] <= READ_AT_MOST, f"read {counted[0]} bytes of {watched.name} before refusing it"
+
+    class Counting:
+        def __init__(self, file):
+            self.file = file
+
+        def read(self, *args):
+            data = self.file.read(*args)
+            spend(len(data))
+            return data
+
+        def __getattr__(self, name):
+            return getattr(self.file, name)
+
+        def __enter__(self):
+            return self
+
+        def __exit__(self, *exc):
+            self.file.close()
+
+    def open_(self, *args, **kwargs):
+        file = real_open(self, *args, **kwargs)
+        return Counting(file) if Path(self) == watched else file
+
+    def read_bytes(self):
+        if Path(self) == watched:
+            spend(self.stat().st_size)
+        return real_read_bytes(self)
+
+    monkeypatch.setattr(Path, "open", open_)
+    monkeypatch.setattr(Path, "read_bytes", read_bytes)
+    return counted
+
+
+@pytest.mark.parametrize("role, content", list(JUNK))
+def test_a_junk_file_is_refused_having_read_its_first_bytes_only(world, junk_files, tmp_path, capfd, monkeypatch,
+                                                                  role, content):
+    """64 MiB of zeros or random bytes handed as the model or the bundle: refused by the library with the code of its
+    framing check and by noisenerf-reveal in one line, each having read at most READ_AT_MOST bytes of it."""
+    from noisenerf.runtime.bundle import load_bundle
+    from noisenerf.runtime.errors import UserError
+    from noisenerf.runtime.model import load_model
+
+    junk = junk_files[content]
+    code, message = JUNK[role, content]
+    counted = count_reads(monkeypatch, junk)
+    with pytest.raises(UserError) as refused:
+        (load_model if role == "model" else load_bundle)(junk)
+    assert refused.value.code == code, refused.value
+    assert 0 < counted[0] <= READ_AT_MOST
+    model, bundle = (junk, world.bundle) if role == "model" else (world.model, junk)
+    out = tmp_path / "out.png"
+    assert_refused(run_main(reveal_main, [model, bundle, "-o", out], capfd), out, message)
+    assert counted[0] <= 2 * READ_AT_MOST
+
+
+def counted_varints(monkeypatch, most: int) -> list[int]:
+    """Count runtime/onnx_file's varint reads into the returned one-item list; more than `most` fails at once."""
+    from noisenerf.runtime import onnx_file
+
+    counted, real = [0], onnx_file.read_varint
+
+    def read_varint(data, position):
+        counted[0] += 1
+        assert counted[0] <= most, f"more than {most} varints read"
+        return real(data, position)
+
+    monkeypatch.setattr(onnx_file, "read_varint", read_varint)
+    return counted
+
+
+@pytest.mark.parametrize("content", ["zeros", "empty fields", "empty fields in the graph"])
+def test_a_model_of_junk_bytes_is_refused_after_a_bounded_walk(monkeypatch, content):
+    """A model's bytes (as the page holds them) are refused for their framing at once (zeros: field number 0), or
+    after MAX_MODEL_FIELDS fields of a file made of tiny well-formed ones, wherever they lie: never walked to their
+    end. (Random bytes were refused within a few fields already; what they cost was reading them: the test above.)"""
+    from noisenerf.runtime.errors import UserError
+    from noisenerf.runtime.limits import MAX_MODEL_FIELDS
+    from noisenerf.runtime.onnx_file import parse_model, varint
+
+    names = b"\x12\x00" * (JUNK_BYTES // 2)  # empty names, again and again: well formed, and skipped
+    data = {"zeros": bytes(JUNK_BYTES), "empty fields": b"\x08\x00" * (JUNK_BYTES // 2),  # ir_version 0, again and again
+            "empty fields in the graph": varint(7 << 3 | 2) + varint(len(names)) + names}[content]
+    most = 100 if content == "zeros" else 2 * MAX_MODEL_FIELDS + 100  # a key and a value a field
+    counted = counted_varints(monkeypatch, most)
+    with pytest.raises(UserError) as refused:
+        parse_model(data, "junk.onnx")
+    assert refused.value.code == "onnx.malformed", refused.value
+    assert counted[0] <= most
+
+
 # ---- allocation: a small file must not dictate a large allocation ---------------------------------
 
 PEAK_WRAPPER = """

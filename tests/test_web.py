@@ -620,6 +620,45 @@ def write_fixtures(root: Path) -> dict:
             lambda meta: meta["tiles"][1].update(band_rows=0))),
         tamper(root, "compact_tiles", "codec", edit_bundle=bundle_metadata_edit(
             lambda meta: meta["noise"].update(codec="zstd"))),
+        # one stream and nothing after it, as Python's decoder reads it (the browser's reads on through zero padding
+        # and further streams, and past a range coder's first byte that is not 0)
+        tamper(root, "compact_tiles", "xz_padded", edit_bundle=replaced_tensor("tile_0001", lambda s: s + bytes(4))),
+        tamper(root, "compact_tiles", "xz_two_streams", edit_bundle=replaced_tensor("tile_0001", lambda s: (
+            raw := lzma.decompress(s), lzma.compress(raw[:len(raw) // 2]) + lzma.compress(raw[len(raw) // 2:]))[-1])),
+        tamper(root, "compact_tiles", "xz_trailing_16", edit_bundle=replaced_tensor("tile_0001", lambda s: s + b"junk" * 4)),
+        tamper(root, "compact_tiles", "xz_range_coder_byte", edit_bundle=replaced_tensor("tile_0001", lambda s: (
+            at := 12 + (s[12] + 1) * 4 + 6, s[:at] + b"\x01" + s[at + 1:])[-1])),
+        # the order of checks (runtime/bundle.py's docstring, web/src/bundle.js): wrong in two ways, refused for the
+        # one checked first; the safetensors header itself edited (its JSON rewritten, the tensor data kept)
+        tamper(root, "ray", "no_metadata_and_offsets", edit_bundle=lambda data: (
+            n := int.from_bytes(data[:8], "little"), header := json.loads(data[8:8 + n]), header.pop("__metadata__"),
+            header["tile_0000"]["data_offsets"].__setitem__(1, header["tile_0000"]["data_offsets"][1] + 2),
+            text := json.dumps(header).encode(), len(text).to_bytes(8, "little") + text + data[8 + n:])[-1]),
+        tamper(root, "ray", "dtype_and_offsets", edit_bundle=lambda data: (
+            n := int.from_bytes(data[:8], "little"), header := json.loads(data[8:8 + n]),
+            header["tile_0000"].update(dtype="F64"),
+            text := json.dumps(header).encode(), len(text).to_bytes(8, "little") + text + data[8 + n:])[-1]),
+        tamper(root, "ray", "metadata_null", edit_bundle=lambda data: (
+            n := int.from_bytes(data[:8], "little"), header := json.loads(data[8:8 + n]), header.update(__metadata__=None),
+            text := json.dumps(header).encode(), len(text).to_bytes(8, "little") + text + data[8 + n:])[-1]),
+        tamper(root, "ray", "metadata_value_number", edit_bundle=lambda data: (
+            n := int.from_bytes(data[:8], "little"), header := json.loads(data[8:8 + n]),
+            header["__metadata__"].update(note=1),
+            text := json.dumps(header).encode(), len(text).to_bytes(8, "little") + text + data[8 + n:])[-1]),
+        tamper(root, "ray", "shape_not_whole", edit_bundle=lambda data: (
+            n := int.from_bytes(data[:8], "little"), header := json.loads(data[8:8 + n]),
+            header["tile_0000"]["shape"].__setitem__(0, float(header["tile_0000"]["shape"][0])),
+            text := json.dumps(header).encode(), len(text).to_bytes(8, "little") + text + data[8 + n:])[-1]),
+        tamper(root, "compact_tiles", "band_rows_and_stream_shape", edit_bundle=lambda data: (
+            data := bundle_metadata_edit(lambda meta: meta["tiles"][1].update(band_rows=0))(data),
+            n := int.from_bytes(data[:8], "little"), header := json.loads(data[8:8 + n]),
+            header["tile_0001"].update(shape=[1, *header["tile_0001"]["shape"]]),
+            text := json.dumps(header).encode(), len(text).to_bytes(8, "little") + text + data[8 + n:])[-1]),
+        tamper(root, "ray", "header_past_end_and_format", edit_bundle=lambda data: (
+            data := bundle_metadata_edit(lambda meta: meta.update(format_version=99))(data),
+            len(data).to_bytes(8, "little") + data[8:])[-1]),
+        tamper(root, "ray", "tile_dtype_and_shape", edit_bundle=edited_tensors(
+            lambda t: t.update(tile_0000=np.zeros((3, *t["tile_0000"].shape[1:]), np.float32)))),
         tamper(root, "fine_compact", "wrong_model", edit_model=lambda data: (root / "scenes" / "plain.onnx").read_bytes()),
         # a float constant (the first level's scale), an integer one (the hash's primes), the table (the fingerprint)
         *(tamper(root, "hashgrid_ray", f"hashgrid_{name}", edit_model=changed_initializer(pick)) for name, pick in (

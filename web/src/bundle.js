@@ -1,12 +1,35 @@
 // Mirrors runtime/bundle.py: the safetensors bundle (header JSON + tensors, dtypes F16/F32/U8/I32 only), its
-// metadata checked with the same messages and caps before anything is allocated (formats 1–3), each tile's noise
+// metadata checked with the same messages and caps before anything is allocated (formats 1–4), each tile's noise
 // read, checked and cut into chunks by its layout (src/layouts.js).
+//
+// The order of checks is runtime/bundle.py's (its docstring numbers them), so that both refuse any input with the
+// same code and params:
+//   1. the file (the page holds its bytes: nothing to check);
+//   2. framing, from the first 8 bytes and the size alone: a header length 0 < n <= min(MAX_HEADER_BYTES, size - 8)
+//      (bundle.not_safetensors): a file of zeros or random bytes is refused here, whatever its size;
+//   3. the header: UTF-8 JSON as parse_json reads it, an object, its "__metadata__" (where present) an object
+//      (bundle.not_safetensors);
+//   4. "__metadata__"["noisenerf_bundle"] a string (bundle.not_noisenerf);
+//   5. that string parsed as JSON (json.invalid, json.too_deep);
+//   6. every tensor's dtype, in the header's order, one of F16 F32 U8 I32 (bundle.tensor_dtype);
+//   7. the safetensors structure, as the safetensors library checks it (bundle.not_safetensors): JSON it reads (no
+//      NaN, Infinity or out-of-range numbers, no lone surrogates, no byte order mark), "__metadata__"'s values
+//      strings, each tensor's shape and data_offsets whole numbers, the offsets tiling the data exactly, each the
+//      size its shape states;
+//   8. the metadata: an object, format, secret and noise, the secret's size, the noise header, tiles a list, every
+//      tile's rect, the layout's streams against what they state, fingerprint, digest; then tile by tile: rect,
+//      tensor name, the layout's tensors (compact: [branch escapes,] basis, offset, scale, escapes, escape noise, band
+//      rows, the stream, its decoding: the stream must end exactly where the tensor does), camera, sampling, view,
+//      network; then the payload;
+//   9. the whole (validate): empty, tile by tile (network, inside the secret, camera, samples, the layout's noise
+//      checks), the areas, overlaps.
 
 import { UserError, PyFloat, cut, show } from "./errors.js";
 import { isJsonObject as isObject, parseJson } from "./json.js";
 import { LAYOUTS, chunkRows, layoutNamed } from "./layouts.js";
 import {
-  MAX_CAMERAS, MAX_IMAGE_SIDE, MAX_NOISE_DIMS, MAX_TILES, checkedImageSize, checkedInt, checkedList, num,
+  MAX_CAMERAS, MAX_HEADER_BYTES, MAX_IMAGE_SIDE, MAX_NOISE_DIMS, MAX_TILES, checkedImageSize, checkedInt, checkedList,
+  num,
 } from "./limits.js";
 import { cameraFromDict } from "./camera.js";
 import { samplingFromDict } from "./sampling.js";
@@ -21,52 +44,98 @@ const READABLE_FORMATS = {
 const NEWEST_FORMAT = Math.max(...Object.keys(READABLE_FORMATS).map(Number));
 const SAFETENSORS_DTYPES = ["F16", "F32", "U8", "I32"];
 const NUMPY_NAMES = { F16: "float16", F32: "float32", U8: "uint8", I32: "int32" };
-const ITEM_SIZE = { F16: 2, F32: 4, U8: 1, I32: 4, I8: 1, I16: 2, BOOL: 1, F64: 8, I64: 8, U16: 2, U32: 4, U64: 8, BF16: 2 };
+const ITEM_SIZE = { F16: 2n, F32: 4n, U8: 1n, I32: 4n };
+const USIZE_END = 2n ** 64n; // safetensors reads shapes and offsets as Rust's usize
 export const NETWORKS = ["coarse", "fine"];
 
 /** A tensor as read: {dtype (numpy name), shape, values (typed array; float16 kept as its bits, a Uint16Array, and
  * widened a chunk at a time as runtime/ does: a float16 view's noise is not held twice as large)}. */
 function decodeTensor(dtype, shape, bytes) {
   const copy = bytes.slice();
-  const count = copy.length / ITEM_SIZE[dtype];
+  const count = copy.length / Number(ITEM_SIZE[dtype]);
   const Kind = { F32: Float32Array, I32: Int32Array, U8: Uint8Array, F16: Uint16Array }[dtype];
   return { dtype: NUMPY_NAMES[dtype], shape, values: new Kind(copy.buffer, 0, count) };
 }
 
-/** The safetensors file: header checks as the safetensors library makes them -> {metadata, tensors (lazy)}. */
-function readSafetensors(data, source) {
-  const fail = (why) => new UserError(`not a readable safetensors bundle: ${source} (${why})`, { code: "bundle.not_safetensors" });
-  if (data.length < 8) throw fail("shorter than its header's size");
-  const view = new DataView(data.buffer, data.byteOffset, data.byteLength);
-  const size = Number(view.getBigUint64(0, true));
-  if (size > 100_000_000) throw fail("header too large");
-  if (8 + size > data.length) throw fail("header runs past the end of the file");
+const notSafetensors = (source, why = null) => new UserError(
+  `not a readable safetensors bundle: ${source}${why === null ? "" : ` (${why})`}`, { code: "bundle.not_safetensors" });
+
+/** Checks 2 and 3: the header length from the first 8 bytes and the size alone, then the header, parsed as Python's
+ * parse_json reads it (split_safetensors). -> the header object. */
+function safetensorsHeader(data, source) {
+  const size = data.length >= 8 ? new DataView(data.buffer, data.byteOffset, 8).getBigUint64(0, true) : 0n;
+  if (!(size > 0n && size <= BigInt(Math.min(data.length - 8, MAX_HEADER_BYTES)))) throw notSafetensors(source);
   let header;
   try {
-    header = JSON.parse(new TextDecoder("utf-8", { fatal: true }).decode(data.subarray(8, 8 + size)));
+    header = parseJson(data.subarray(8, 8 + Number(size)), "bundle header", source);
   } catch (error) {
-    throw fail(`header is not JSON`);
+    if (!(error instanceof UserError)) throw error;
+    throw notSafetensors(source, error.message.split(": ")[0]);
   }
-  if (header === null || typeof header !== "object" || Array.isArray(header)) throw fail("header is not a JSON object");
-  const metadata = header.__metadata__ ?? null;
-  const entries = Object.entries(header).filter(([name]) => name !== "__metadata__")
-    .sort((a, b) => a[1]?.data_offsets?.[0] - b[1]?.data_offsets?.[0]);
-  const body = data.subarray(8 + size);
-  let end = 0;
-  const tensors = new Map();
-  for (const [name, info] of entries) {
-    if (!info || typeof info.dtype !== "string" || !Array.isArray(info.shape) || !Array.isArray(info.data_offsets)) {
-      throw fail(`tensor ${show(name)} is not described by dtype, shape and data_offsets`);
+  if (!isObject(header) || (Object.hasOwn(header, "__metadata__") && !isObject(header.__metadata__))) throw notSafetensors(source);
+  return header;
+}
+
+const LONE_SURROGATE = /\p{Cs}/u; // a surrogate code unit not in a pair
+
+/** Whether every number in a parsed JSON value is one the safetensors library's JSON reads (a finite float) and every
+ * string and key is valid Unicode (no lone surrogate from a \u escape). */
+function readableJson(value) {
+  const stack = [value];
+  while (stack.length) {
+    const item = stack.pop();
+    if (item instanceof PyFloat) {
+      if (!Number.isFinite(item.value)) return false;
+    } else if (typeof item === "string") {
+      if (LONE_SURROGATE.test(item)) return false;
+    } else if (Array.isArray(item)) stack.push(...item);
+    else if (item !== null && typeof item === "object") {
+      for (const [key, child] of Object.entries(item)) {
+        if (LONE_SURROGATE.test(key)) return false;
+        stack.push(child);
+      }
     }
-    const [begin, stop] = info.data_offsets;
-    if (!(info.dtype in ITEM_SIZE)) throw fail(`tensor ${show(name)} has unknown dtype ${show(info.dtype)}`);
-    const count = info.shape.reduce((a, b) => a * b, 1);
-    if (begin !== end || stop < begin || stop - begin !== count * ITEM_SIZE[info.dtype]) throw fail(`tensor ${show(name)} has wrong data offsets`);
-    end = stop;
-    tensors.set(name, { dtype: info.dtype, shape: info.shape, bytes: body.subarray(begin, stop) });
   }
-  if (end !== body.length) throw fail("the tensors do not fill the data");
-  return { metadata, tensors };
+  return true;
+}
+
+/** A parsed JSON value as Rust's usize (a whole number in [0, 2^64)) -> BigInt, or null. */
+const usize = (value) => ((typeof value === "number" && Number.isInteger(value)) || typeof value === "bigint") &&
+  BigInt(value) >= 0n && BigInt(value) < USIZE_END ? BigInt(value) : null;
+
+/** Check 7: the tensors as the safetensors library reads them (every dtype is one of SAFETENSORS_DTYPES by now)
+ * -> Map name -> {dtype, shape, bytes}. */
+function safetensorsTensors(data, header, source) {
+  const size = Number(new DataView(data.buffer, data.byteOffset, 8).getBigUint64(0, true));
+  const metadata = Object.hasOwn(header, "__metadata__") ? header.__metadata__ : {};
+  if ((data[8] === 0xef && data[9] === 0xbb && data[10] === 0xbf) || !readableJson(header)) {
+    throw notSafetensors(source, "a header the safetensors library cannot read");
+  }
+  if (!Object.values(metadata).every((value) => typeof value === "string")) {
+    throw notSafetensors(source, "a metadata value is not a string");
+  }
+  const entries = [];
+  for (const [name, info] of Object.entries(header)) {
+    if (name === "__metadata__") continue;
+    const shape = Array.isArray(info.shape) ? info.shape.map(usize) : null;
+    const offsets = Array.isArray(info.data_offsets) && info.data_offsets.length === 2 ? info.data_offsets.map(usize) : null;
+    if (shape === null || shape.includes(null) || offsets === null || offsets.includes(null)) {
+      throw notSafetensors(source, `tensor ${show(name)} is not described by dtype, shape and data_offsets`);
+    }
+    entries.push({ name, dtype: info.dtype, shape, begin: offsets[0], end: offsets[1] });
+  }
+  entries.sort((a, b) => (a.begin !== b.begin ? (a.begin < b.begin ? -1 : 1) : a.end < b.end ? -1 : a.end > b.end ? 1 : 0));
+  const body = data.subarray(8 + size);
+  let end = 0n;
+  const tensors = new Map();
+  for (const { name, dtype, shape, begin, end: stop } of entries) {
+    const bytes = shape.reduce((n, d) => n * d, ITEM_SIZE[dtype]);
+    if (begin !== end || stop < begin || stop - begin !== bytes) throw notSafetensors(source, `tensor ${show(name)} has wrong data offsets`);
+    end = stop;
+    tensors.set(name, { dtype, shape: shape.map(Number), bytes: body.subarray(Number(begin), Number(stop)) });
+  }
+  if (end !== BigInt(body.length)) throw notSafetensors(source, "the tensors do not fill the data");
+  return tensors;
 }
 
 /** checked_text: a short JSON string (fingerprints, digests, names; at most 256 code points, as Python counts);
@@ -202,20 +271,22 @@ function validate(bundle) {
 
 /** load_bundle: read and validate a bundle's bytes; anything malformed is one UserError. */
 export async function loadBundle(data, source = "secret.bundle") {
-  const file = readSafetensors(data, source);
-  const raw = file.metadata && typeof file.metadata === "object" ? file.metadata[METADATA_KEY] : undefined;
+  const file = safetensorsHeader(data, source);
+  const metadata = Object.hasOwn(file, "__metadata__") ? file.__metadata__ : {};
+  const raw = Object.hasOwn(metadata, METADATA_KEY) ? metadata[METADATA_KEY] : undefined;
   if (typeof raw !== "string") {
     throw new UserError(`not a noisenerf bundle (no '${METADATA_KEY}' metadata): ${source}`, { code: "bundle.not_noisenerf" });
   }
   const meta = parseJson(raw, "bundle metadata", source);
-  const tensors = new Map();
-  for (const [name, info] of file.tensors) {
-    if (!SAFETENSORS_DTYPES.includes(info.dtype)) {
-      throw new UserError(`bundle tensor ${show(name)} is ${info.dtype}; noise is stored as ${SAFETENSORS_DTYPES.join(" or ")}: ${source}`,
-        { code: "bundle.tensor_dtype", tensor: cut(name), dtype: cut(info.dtype) });
+  for (const [name, info] of Object.entries(file)) {
+    const dtype = isObject(info) && Object.hasOwn(info, "dtype") ? info.dtype : null;
+    if (name !== "__metadata__" && !SAFETENSORS_DTYPES.includes(dtype)) {
+      throw new UserError(`bundle tensor ${show(name)} is ${show(dtype, 20)}; noise is stored as ${SAFETENSORS_DTYPES.join(" or ")}: ${source}`,
+        { code: "bundle.tensor_dtype", tensor: cut(name), dtype: typeof dtype === "string" ? cut(dtype) : null });
     }
-    tensors.set(name, decodeTensor(info.dtype, info.shape, info.bytes));
   }
+  const tensors = new Map();
+  for (const [name, info] of safetensorsTensors(data, file, source)) tensors.set(name, decodeTensor(info.dtype, info.shape, info.bytes));
   if (!isObject(meta)) throw new UserError(`bundle metadata must be a JSON object: ${source}`, { code: "bundle.metadata_not_object" });
   const version = checkedFormat(meta, source);
   const secret = meta.secret, noise = meta.noise;

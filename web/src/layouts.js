@@ -36,41 +36,159 @@ export function widened(halves) {
 
 // xz-embedded's error codes (enum xz_ret). Its dictionaries stop at 64 MiB; the next size a stream can state, 96 MiB,
 // is over runtime's MAX_XZ_MEMORY too.
+const XZ_OK = 0, XZ_STREAM_END = 1, XZ_DATA_ERROR = 7, XZ_BUF_ERROR = 8;
 const XZ_ERRORS = { 2: "unsupported integrity check", 3: "cannot allocate memory", 4: "dictionary over the decoder's memory",
   5: "not an xz stream", 6: "unsupported options", 7: "corrupt data" };
-const XZ_BUF_ERROR = 8; // the stream ended early, or more followed it: Python reads on and finds the length wrong
+
+/** xz-decompress's WebAssembly build of xz-embedded (create_context, supply_input, get_next_output, destroy_context),
+ * instantiated once as its XzReadableStream does. That stream decodes concatenated streams and skips the zero padding
+ * between them (xz_dec_catrun), where runtime/ (Python's LZMADecompressor) reads exactly one stream: so the decoder is
+ * driven here, call by call, to find where the first stream ends (firstStream). Pinned to xz-decompress 0.2.3, whose
+ * context is {bufSize, xz_buf {in, in_pos, in_size, out, out_pos, out_size}, xz_dec}, 32-bit words. */
+async function xzDecoder() {
+  if (!XzReadableStream._moduleInstance) {
+    await (XzReadableStream._moduleInstancePromise ||= XzReadableStream._getModuleInstance());
+  }
+  const decoder = XzReadableStream._moduleInstance.exports;
+  if (!["create_context", "supply_input", "get_next_output", "destroy_context"].every((name) => typeof decoder[name] === "function")) {
+    throw new Error("xz-decompress is not the version src/layouts.js drives (0.2.3)");
+  }
+  return decoder;
+}
+
+/** Where an xz stream starting at 0 may end in `packed`: after a stream footer's magic "YZ", at a multiple of 4 bytes,
+ * 32 at least (header, index and footer). Every stream's true end is one; most bytes are none. -> the next after `from`. */
+function nextStreamEnd(packed, from) {
+  for (let p = Math.max(32, from + 4 - (from % 4)); p <= packed.length; p += 4) {
+    if (packed[p - 2] === 0x59 && packed[p - 1] === 0x5a) return p;
+  }
+  return null;
+}
+
+const CHECK_SIZES = { 0: 0, 1: 4, 4: 8 }; // the integrity checks xz-embedded verifies (runtime/ refuses the others)
+
+/** Where each LZMA chunk's range coder starts in the first stream of `packed`, its blocks and LZMA2 chunks followed by
+ * their headers alone (each states its size), as far as they can be (a stream that cannot be followed further is one
+ * the decoder refuses by then). liblzma (runtime/) refuses a chunk whose first range-coder byte is not 0; xz-embedded
+ * reads past it, so the decoder is stopped at each of these places to check it (firstStream). -> ascending positions */
+function rangeCoderStarts(packed) {
+  const starts = [], n = packed.length, check = CHECK_SIZES[packed[7]];
+  let at = 12;
+  while (check !== undefined && at < n && packed[at] !== 0) { // a block header (0: the index)
+    const size = (packed[at] + 1) * 4, flags = packed[at + 1];
+    let field = at + 2;
+    for (const present of [flags & 0x40, flags & 0x80]) { // compressed and uncompressed sizes, varints
+      if (present) while (field < n && packed[field++] & 0x80);
+    }
+    if ((flags & 0x03) !== 0 || packed[field] !== 0x21 || packed[field + 1] !== 1 || field + 3 > at + size) break; // LZMA2 alone
+    at += size;
+    for (;;) { // LZMA2 chunks up to the end marker 0x00
+      const control = packed[at];
+      if (control === undefined) return starts;
+      if (control === 0x00) { at += 1; break; }
+      if (control === 0x01 || control === 0x02) at += 3 + ((packed[at + 1] << 8) | packed[at + 2]) + 1;
+      else if (control >= 0x80) {
+        const header = control >= 0xc0 ? 6 : 5;
+        starts.push(at + header);
+        at += header + ((packed[at + 3] << 8) | packed[at + 4]) + 1;
+      } else return starts;
+    }
+    at += (4 - (at % 4)) % 4 + check; // block padding, then its check
+  }
+  return starts;
+}
+
+/** The first xz stream of `packed`, decoded as runtime/'s lzma.LZMADecompressor(FORMAT_XZ).decompress(packed,
+ * max_length=limit) decodes it: -> {data: at most `limit` bytes, ended: whether the stream ended, and at `packed`'s
+ * end, error: xz-embedded's code of an error inside the stream, else 0}. The decoder is given the bytes up to each
+ * place the stream may end (nextStreamEnd) and then asked to finish: it says the stream ended only where it did (it
+ * decodes the stream's own bytes alone, and so never reads past its end); output stops at `limit` bytes. */
+function firstStream(decoder, packed, limit) {
+  const context = decoder.create_context();
+  let bytes, words;
+  const views = () => {
+    if (bytes?.buffer !== decoder.memory.buffer) {
+      bytes = new Uint8Array(decoder.memory.buffer, context);
+      words = new Uint32Array(decoder.memory.buffer, context);
+    }
+  };
+  try {
+    views();
+    const bufSize = words[0], input = words[1] - context, output = words[4] - context;
+    const data = new Uint8Array(limit + 1);
+    const starts = rangeCoderStarts(packed);
+    let total = 0, position = 0, end = nextStreamEnd(packed, 0), start = 0;
+    const supply = (stop) => {
+      views();
+      bytes.set(packed.subarray(position, stop), input);
+      decoder.supply_input(context, stop - position); // in_size 0: xz_dec_catrun is told the input has ended
+      position = stop;
+    };
+    const run = (extra = 0) => { // one call: its code, and whether it filled the room it had
+      views();
+      const room = Math.min(bufSize, limit + extra - total);
+      words[5] = 0;
+      words[6] = room;
+      const code = decoder.get_next_output(context);
+      views();
+      data.set(bytes.subarray(output, output + words[5]), total);
+      total += words[5];
+      return { code, produced: words[5], full: words[5] === room, consumed: words[2] === words[3] };
+    };
+    const result = (ended, error = 0) => ({ data: data.subarray(0, total), ended: ended && position === packed.length, error });
+    // The output has reached the limit. liblzma reads a chunk's input a symbol ahead of xz-embedded, so a stream whose
+    // input runs out (or goes wrong) right where its output passes the limit is corrupt to runtime/ (its decoder
+    // fails in the call that fills the limit): one more symbol, on the input already given, tells.
+    const atLimit = () => {
+      const { code } = run(1);
+      return result(false, code === XZ_OK || code === XZ_STREAM_END || code === XZ_BUF_ERROR ? 0 : code);
+    };
+    for (;;) {
+      if (position === starts[start]) {
+        if (packed[position] !== 0) return result(false, XZ_DATA_ERROR); // as liblzma refuses it
+        start += 1;
+      }
+      const stop = Math.min(end ?? packed.length, starts[start] ?? packed.length, position + bufSize);
+      if (stop > position) {
+        supply(stop);
+        for (;;) {
+          const { code, full, consumed } = run();
+          if (code !== XZ_OK) return result(false, code);
+          if (total >= limit) return atLimit();
+          if (consumed && !full) break;
+        }
+      }
+      if (position === end) {
+        supply(position);
+        for (;;) {
+          const { code, produced } = run();
+          if (code === XZ_STREAM_END) return result(true);
+          if (total >= limit) return atLimit();
+          if (code !== XZ_OK && code !== XZ_BUF_ERROR) return result(false, code);
+          if (produced === 0) break; // the stream goes on past here
+        }
+        end = nextStreamEnd(packed, position);
+      }
+      if (position === packed.length && end === null) return result(false);
+    }
+  } finally {
+    decoder.destroy_context(context);
+  }
+}
 
 /** unpack_coefficients: the xz stream of byte planes -> Int8Array/Int16Array (h·w·k, row-major (h, w, k)). tile: the
- * tile's number, for the refusal. */
+ * tile's number, for the refusal. As runtime/ refuses: corrupt within the stream (compact.xz_corrupt), or not exactly
+ * one stream holding exactly the stated bytes, nothing after it (compact.xz_size). */
 export async function unpackCoefficients(packed, shape, dtype, what, tile = null) {
   const [height, width, k] = shape;
   const item = dtype === "int16" ? 2 : 1;
   const expected = height * width * k * item;
-  let data;
-  try {
-    const stream = new XzReadableStream(new Blob([packed]).stream());
-    const reader = stream.getReader();
-    const parts = [];
-    let total = 0;
-    for (;;) {
-      const { done, value } = await reader.read();
-      if (done) break;
-      parts.push(value);
-      total += value.length;
-      if (total > expected) { await reader.cancel(); break; }
-    }
-    data = new Uint8Array(total);
-    let at = 0;
-    for (const part of parts) { data.set(part, at); at += part.length; }
-  } catch (error) {
-    const code = Number(/error code (\d+)/.exec(String(error?.message ?? error))?.[1]);
-    if (code !== XZ_BUF_ERROR) {
-      throw new UserError(`${what}: compressed coefficients are corrupt (${XZ_ERRORS[code] ?? "corrupt data"})`,
-        { code: "compact.xz_corrupt", tile });
-    }
-    data = null;
+  const { data, ended, error } = firstStream(await xzDecoder(), packed, expected + 1);
+  if (error !== 0 && error !== XZ_BUF_ERROR) {
+    throw new UserError(`${what}: compressed coefficients are corrupt (${XZ_ERRORS[error] ?? "corrupt data"})`,
+      { code: "compact.xz_corrupt", tile });
   }
-  if (data === null || data.length !== expected) {
+  if (error !== 0 || !ended || data.length !== expected) {
     throw new UserError(`${what}: compressed coefficients do not hold exactly ${height}x${width}x${k} ${dtype} values`,
       { code: "compact.xz_size", tile, shape: [height, width, k], dtype });
   }
@@ -211,10 +329,10 @@ const COMPACT = {
     const basis = tensor(`${name}_basis`), offset = tensor(`${name}_offset`);
     const scale = checkedFloat(data.scale ?? null, `${what} scale`, FLOAT32_TINY, FLOAT32_MAX, { code: "compact.scale", tile });
     const escapes = tensor(`${name}_escapes`), escapeNoise = tensor(`${name}_escape_noise`);
-    const packed = tensor(name, "uint8", 1);
     const interlaced = codecOf(version) === INTERLACED_CODEC;
     const bandRows = interlaced
       ? checkedInt(data.band_rows ?? null, `${what} band rows`, 1, shape[0], { code: "compact.band_rows", tile }) : null;
+    const packed = tensor(name, "uint8", 1);
     const planes = await unpackCoefficients(packed.values, shape, dtype, what, tile);
     const coefficients = interlaced ? decodeInterlaced(planes, ...shape, bandRows) : planes;
     return { coefficients, shape, dtype, basis: { basis, offset, scale, escapes, escapeNoise, ...branch } };

@@ -24,6 +24,8 @@ export const MAX_HASH_RESOLUTION = 2 ** 20;
 export const MAX_GRID_RESOLUTION = 512;
 export const MAX_CAMERAS = 100_000;
 export const MAX_JSON_DEPTH = 32;
+export const MAX_HEADER_BYTES = 100_000_000; // a bundle's safetensors header (the safetensors library's own cap)
+export const MAX_MODEL_FIELDS = 2 ** 18; // protobuf fields a model's parse walks in all
 
 const isInt = (v) => (typeof v === "number" && Number.isInteger(v)) || typeof v === "bigint";
 

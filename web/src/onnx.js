@@ -10,8 +10,17 @@
 //   ValueInfoProto name 1, type 2 (TypeProto tensor_type 1: elem_type 1, shape 2: dim 1: value 1, param 2)
 //   TensorProto dims 1, data_type 2, float_data 4, int64_data 7, name 8, raw_data 9, external_data 13,
 //              data_location 14
+//
+// The checks, in runtime/onnx_file.py's order (its docstring), so that a file is refused with the same code in both:
+//   1. framing: the top-level fields by their keys and lengths alone, payloads skipped unread (field number 0, an
+//      unknown wire type, a varint or length past the end, more than MAX_MODEL_FIELDS fields: onnx.malformed): a file
+//      of zeros or random bytes is refused within a few bytes, whatever its size, and never walked;
+//   2. the walk, in file order (training graphs, functions, sparse initializers, subgraphs, sparse tensors:
+//      onnx.unsupported; anything not well formed, more than MAX_MODEL_FIELDS fields walked in all: onnx.malformed);
+//   3. external data: onnx.external_data.
 
 import { UserError, cut, show } from "./errors.js";
+import { MAX_MODEL_FIELDS } from "./limits.js";
 
 
 export const FLOAT = 1;
@@ -41,17 +50,35 @@ export function readVarint(data, position) {
   throw new WireError("varint longer than 10 bytes");
 }
 
+/** FieldBudget: how many more fields one parse may walk (MAX_MODEL_FIELDS in all). */
+class FieldBudget {
+  constructor(most = MAX_MODEL_FIELDS) { this.most = most; this.left = most; }
+
+  spend() {
+    if (--this.left < 0) throw new WireError(`more than ${this.most} protobuf fields`);
+  }
+}
+
+/** One field's key at `position` -> [number, wire type, next position], refusing field number 0. */
+function fieldKey(data, position) {
+  let key;
+  [key, position] = readVarint(data, position);
+  key = BigInt(key);
+  const number = Number(key >> 3n), wire = Number(key & 7n);
+  if (number === 0) throw new WireError("field number 0");
+  return [number, wire, position];
+}
+
 /** The fields of one message: [number, wire type, value (number | bigint | Uint8Array), start, end], in file order
- * (start..end: the bytes the field occupies, key included). */
-export function* fields(data) {
+ * (start..end: the bytes the field occupies, key included). budget: the parse's (each field spends one). */
+export function* fields(data, budget = null) {
   let position = 0;
   const size = data.length;
   while (position < size) {
     const start = position;
-    let key;
-    [key, position] = readVarint(data, position);
-    key = BigInt(key);
-    const number = Number(key >> 3n), wire = Number(key & 7n);
+    budget?.spend();
+    let number, wire;
+    [number, wire, position] = fieldKey(data, position);
     let value;
     if (wire === VARINT) {
       [value, position] = readVarint(data, position);
@@ -71,6 +98,38 @@ export function* fields(data) {
     }
     yield [number, wire, value, start, position];
   }
+}
+
+/** framing: check 1, the model's top-level fields by their keys and lengths alone, every payload skipped unread (as
+ * `fields` walks them, without making a value of any). Refuses with onnx.malformed. */
+function framing(data, source) {
+  const budget = new FieldBudget();
+  let position = 0;
+  try {
+    while (position < data.length) {
+      budget.spend();
+      let number, wire;
+      [number, wire, position] = fieldKey(data, position);
+      if (wire === VARINT) [, position] = readVarint(data, position);
+      else if (wire === FIXED64 || wire === FIXED32) {
+        position += wire === FIXED64 ? 8 : 4;
+        if (position > data.length) throw new WireError("truncated fixed-width field");
+      } else if (wire === LENGTH) {
+        let length;
+        [length, position] = readVarint(data, position);
+        if (typeof length === "bigint" || position + length > data.length) throw new WireError("length-delimited field runs past the end");
+        position += length;
+      } else throw new WireError(`unsupported wire type ${wire}`);
+    }
+  } catch (error) {
+    throw notOnnx(source, error);
+  }
+}
+
+function notOnnx(source, error) {
+  if (error instanceof UserError) return error;
+  const detail = error instanceof TypeError ? "invalid UTF-8" : error.message;
+  return new UserError(`${source} is not a loadable ONNX model (not ONNX, or truncated): ${detail}`, { code: "onnx.malformed" });
 }
 
 /** field_spans: the fields of one message with the bytes each occupies (key included): [number, span, value]. */
@@ -129,10 +188,10 @@ function text(value, wire) {
 }
 
 /** A TensorProto as stored: values decoded only by tensorArray. */
-export function readTensor(data) {
+export function readTensor(data, budget = null) {
   let name = "", dataType = 0, raw = null, external = false;
   const dims = [], floats = [], integers = [];
-  for (const [number, wire, value] of fields(data)) {
+  for (const [number, wire, value] of fields(data, budget)) {
     if (number === 1) dims.push(...(wire === LENGTH ? packedVarints(value) : [plain(value)]));
     else if (number === 2) dataType = plain(value);
     else if (number === 4) {
@@ -189,20 +248,20 @@ function refuseUnsupported(message, number, source) {
   if (what) throw new UserError(`${source} holds ${what}, which a noisenerf model never has`, { code: "onnx.unsupported", holds: what });
 }
 
-function* nodeTensors(node, source) {
-  for (const [number, wire, attribute] of fields(node)) {
+function* nodeTensors(node, source, budget = null) {
+  for (const [number, wire, attribute] of fields(node, budget)) {
     if (number !== 5) continue;
-    for (const [inner, innerWire, value] of fields(blob(attribute, wire))) {
+    for (const [inner, innerWire, value] of fields(blob(attribute, wire), budget)) {
       refuseUnsupported("attribute", inner, source);
-      if (inner === 5 || inner === 10) yield readTensor(blob(value, innerWire));
+      if (inner === 5 || inner === 10) yield readTensor(blob(value, innerWire), budget);
     }
   }
 }
 
-function readAttribute(data) {
+function readAttribute(data, budget = null) {
   let name = "", value = "not an integer";
   const kinds = new Set();
-  for (const [number, wire, item] of fields(data)) {
+  for (const [number, wire, item] of fields(data, budget)) {
     if (number === 1) name = text(item, wire);
     else if (number === 3 && wire === VARINT) {
       const big = BigInt.asIntN(64, BigInt(item));
@@ -213,15 +272,15 @@ function readAttribute(data) {
 }
 
 /** runtime.graph.Node: {op, inputs, outputs, attributes: [[name, value], …] sorted as Python sorts by str}. */
-export function readNode(data) {
+export function readNode(data, budget = null) {
   const inputs = [], outputs = [], attributes = [];
   let op = "", domain = "";
-  for (const [number, wire, value] of fields(data)) {
+  for (const [number, wire, value] of fields(data, budget)) {
     if (number === 1) inputs.push(text(value, wire));
     else if (number === 2) outputs.push(text(value, wire));
     else if (number === 4) op = text(value, wire);
     else if (number === 7) domain = text(value, wire);
-    else if (number === 5) attributes.push(readAttribute(blob(value, wire)));
+    else if (number === 5) attributes.push(readAttribute(blob(value, wire), budget));
     else if (number !== 3 && number !== 6) attributes.push([`field ${number}`, "unexpected"]);
   }
   if (domain !== "" && domain !== "ai.onnx") op = `${domain}.${op}`;
@@ -233,21 +292,21 @@ export function readNode(data) {
 }
 
 /** runtime.graph.Port {name, shape, elemType}, or null when it is not a tensor of known dims. */
-export function readPort(data) {
+export function readPort(data, budget = null) {
   let name = "", elemType = 0, shape = null, tensor = false;
-  for (const [number, wire, value] of fields(data)) {
+  for (const [number, wire, value] of fields(data, budget)) {
     if (number === 1) name = text(value, wire);
     else if (number === 2) {
-      for (const [kind, kindWire, tensorType] of fields(blob(value, wire))) {
+      for (const [kind, kindWire, tensorType] of fields(blob(value, wire), budget)) {
         if (kind !== 1) return null;
         tensor = true;
-        for (const [part, partWire, item] of fields(blob(tensorType, kindWire))) {
+        for (const [part, partWire, item] of fields(blob(tensorType, kindWire), budget)) {
           if (part === 1) elemType = plain(item);
           else if (part === 2) {
             shape = [];
-            for (const [, dimWire, dim] of fields(blob(item, partWire))) {
+            for (const [, dimWire, dim] of fields(blob(item, partWire), budget)) {
               const sizes = new Map();
-              for (const [k, w, v] of fields(blob(dim, dimWire))) if (k === 1 || k === 2) sizes.set(k, [w, v]);
+              for (const [k, w, v] of fields(blob(dim, dimWire), budget)) if (k === 1 || k === 2) sizes.set(k, [w, v]);
               if (sizes.size !== 1) return null;
               shape.push(sizes.has(1) ? plain(sizes.get(1)[1]) : text(sizes.get(2)[1], sizes.get(2)[0]));
             }
@@ -259,41 +318,41 @@ export function readPort(data) {
   return tensor && shape !== null ? { name, shape, elemType } : null;
 }
 
-/** parse_model: a model's metadata, tensors and graph; refuses malformed bytes, unsupported structures and
- * tensors whose data lives outside the file. */
+/** parse_model: a model's metadata, tensors and graph, in the order of checks above: its framing, then the walk,
+ * refusing malformed bytes and unsupported structures, then tensors whose data lives outside the file. */
 export function parseModel(data, source) {
+  framing(data, source);
   const props = new Map(), initializers = [], attributes = [], nodes = [], opsets = [], unexpected = [];
   const ports = { 11: [], 12: [] };
+  const budget = new FieldBudget();
   let irVersion = 0;
   try {
-    for (const [number, wire, value] of fields(data)) {
+    for (const [number, wire, value] of fields(data, budget)) {
       refuseUnsupported("model", number, source);
       if (number === 14) {
         const entry = new Map();
-        for (const [k, w, v] of fields(blob(value, wire))) if (k === 1 || k === 2) entry.set(k, text(v, w));
+        for (const [k, w, v] of fields(blob(value, wire), budget)) if (k === 1 || k === 2) entry.set(k, text(v, w));
         props.set(entry.get(1) ?? "", entry.get(2) ?? "");
       } else if (number === 1) irVersion = plain(value);
       else if (number === 8) {
         const entry = new Map();
-        for (const [k, w, v] of fields(blob(value, wire))) if (k === 1 || k === 2) entry.set(k, [w, v]);
+        for (const [k, w, v] of fields(blob(value, wire), budget)) if (k === 1 || k === 2) entry.set(k, [w, v]);
         const domain = entry.has(1) ? text(entry.get(1)[1], entry.get(1)[0]) : "";
         opsets.push([domain, entry.has(2) ? plain(entry.get(2)[1]) : 0]);
       } else if (number === 7) {
-        for (const [inner, innerWire, item] of fields(blob(value, wire))) {
+        for (const [inner, innerWire, item] of fields(blob(value, wire), budget)) {
           refuseUnsupported("graph", inner, source);
-          if (inner === 5) initializers.push(readTensor(blob(item, innerWire)));
+          if (inner === 5) initializers.push(readTensor(blob(item, innerWire), budget));
           else if (inner === 1) {
-            attributes.push(...nodeTensors(blob(item, innerWire), source));
-            nodes.push(readNode(blob(item, innerWire)));
-          } else if (inner in ports) ports[inner].push(readPort(blob(item, innerWire)));
+            attributes.push(...nodeTensors(blob(item, innerWire), source, budget));
+            nodes.push(readNode(blob(item, innerWire), budget));
+          } else if (inner in ports) ports[inner].push(readPort(blob(item, innerWire), budget));
           else if (inner !== 2 && inner !== 10) unexpected.push(`graph field ${inner}`);
         }
       }
     }
   } catch (error) {
-    if (error instanceof UserError) throw error;
-    const detail = error instanceof TypeError ? "invalid UTF-8" : error.message;
-    throw new UserError(`${source} is not a loadable ONNX model (not ONNX, or truncated): ${detail}`, { code: "onnx.malformed" });
+    throw notOnnx(source, error);
   }
   const external = [...initializers, ...attributes].filter((t) => t.external).map((t) => t.name || "(unnamed)");
   if (external.length) {
