@@ -51,7 +51,7 @@ def fit(data: PathLike, output: PathLike, *, field: str | None = None, preset: s
     """Fit a scene to the dataset at `data` (NeRF-Synthetic, LLFF or a capture's transforms.json) into the
     folder `output`, for exactly one of `minutes` or `iters`; run again to resume from its checkpoint. field:
     the kind (`mlp`, `hashgrid`), fitted with its default preset unless `preset` names another of its kind;
-    neither: the `hashgrid` preset (fit.DEFAULT_FIELD). -> fit's report (test PSNR under test.psnr)."""
+    neither: the `hashgrid` preset (presets.DEFAULT_FIELD). -> fit's report (test PSNR under test.psnr)."""
     data, output, progress = checked_path(data, "data"), checked_path(output, "output"), \
         optional(checked_callback, progress, "progress")
     field, preset, device = optional(checked_text, field, "field"), optional(checked_text, preset, "preset"), \
@@ -61,8 +61,7 @@ def fit(data: PathLike, output: PathLike, *, field: str | None = None, preset: s
     minutes, skip = optional(checked_number, minutes, "minutes"), checked_flag(skip, "skip")
 
     from noisenerf.runtime.files import check_output_directory
-    from noisenerf.train.scene.datasets import load_dataset
-    from noisenerf.train.scene.fit import DEFAULT_FIELD, DEFAULT_PRESETS, PRESETS, Budget, fit as fit_scene
+    from noisenerf.train.scene.presets import DEFAULT_FIELD, DEFAULT_PRESETS, PRESET_KINDS
 
     if (minutes is None) == (iters is None):
         raise UserError("give exactly one of --minutes M or --iters N")
@@ -71,10 +70,13 @@ def fit(data: PathLike, output: PathLike, *, field: str | None = None, preset: s
     if field is not None and field not in DEFAULT_PRESETS:
         raise UserError(f"unknown field kind {field!r:.40} (expected one of {', '.join(DEFAULT_PRESETS)})")
     preset = preset or DEFAULT_PRESETS[field or DEFAULT_FIELD]
-    if preset not in PRESETS:
-        raise UserError(f"unknown preset {preset!r:.40} (expected one of {', '.join(PRESETS)})")
-    if field is not None and PRESETS[preset].field.kind != field:
-        raise UserError(f"preset {preset} fits the {PRESETS[preset].field.kind} kind, not {field}")
+    if preset not in PRESET_KINDS:
+        raise UserError(f"unknown preset {preset!r:.40} (expected one of {', '.join(PRESET_KINDS)})")
+    if field is not None and PRESET_KINDS[preset] != field:
+        raise UserError(f"preset {preset} fits the {PRESET_KINDS[preset]} kind, not {field}")
+    from noisenerf.train.scene.datasets import load_dataset
+    from noisenerf.train.scene.fit import PRESETS, Budget, fit as fit_scene
+
     torch_device = resolve_device(device)
     check_output_directory(output)
     config = PRESETS[preset]

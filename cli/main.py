@@ -20,6 +20,7 @@ from noisenerf.runtime.files import json_text
 from noisenerf.train.hide.methods import METHODS
 from noisenerf.train.hide.plan import HideConfig
 from noisenerf.train.hide.tiling import DEFAULT_TILE_SIZE
+from noisenerf.train.scene.presets import DEFAULT_PRESETS, PRESET_KINDS
 
 PROG = "noisenerf"
 
@@ -171,10 +172,10 @@ def device_argument(p: argparse.ArgumentParser) -> None:
 def fit_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("data_dir")
     p.add_argument("-o", "--output", required=True, help="scene directory to write (resumes if it holds a checkpoint)")
-    p.add_argument("--field", choices=("mlp", "hashgrid"),
+    p.add_argument("--field", choices=tuple(DEFAULT_PRESETS),
                    help="field kind: hashgrid (Instant-NGP's hash grid, the default) or mlp (the standard NeRF MLP, "
                         "preset small)")
-    p.add_argument("--preset", choices=("small", "paper", "hashgrid"),
+    p.add_argument("--preset", choices=tuple(PRESET_KINDS),
                    help="small or paper (mlp kind), hashgrid (default: the field kind's)")
     p.add_argument("--resolution", type=int, help="image width in pixels (default: the dataset's)")
     p.add_argument("--minutes", type=float, help="training wall-time budget (progress-curve renders excluded)")

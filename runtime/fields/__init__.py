@@ -15,8 +15,6 @@ rgb and sigma outputs) and the opset that part needs. Its torch twin is train.sc
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Protocol
-
 from noisenerf.runtime.errors import UserError
 from noisenerf.runtime.graph import (
     BATCH, COARSE_OUTPUT_NAMES, OUTPUT_NAMES, FieldGraph, GraphBuilder, Port, proposal_output,
@@ -33,29 +31,37 @@ class Segment:
     dims: int
 
 
-class FieldKind(Protocol):
+class FieldKind:
+    """What every field kind is: a name, the opset its graph part needs, and the methods below; a kind subclasses
+    this and overrides what it has (a kind rendered with the scene's own sampling keeps proposal_sampler's None)."""
+
     name: str
     opset: int  # the default domain's opset its graph needs
 
     def checked(self, config, what: str) -> dict:
         """The architecture as metadata states it, every number within the caps (UserError otherwise)."""
+        raise NotImplementedError
 
     def segments(self, config: dict) -> tuple[Segment, ...]:
         """The noise segments of a checked architecture, in the noise vector's order."""
+        raise NotImplementedError
 
     def build(self, builder: GraphBuilder, prefix: str, config: dict, rgb: str, sigma: str) -> None:
         """One network of a checked architecture: noisy encodings of the `points`, `viewdirs` and `noise`
         inputs through its layers (weights named `prefix.…`) to the outputs rgb (n, 3) and sigma (n,), and
         one density output per proposal network (proposal_sampler)."""
+        raise NotImplementedError
 
     def proposal_sampler(self, config: dict) -> dict | None:
         """A checked architecture's proposal sampler (runtime.proposal.ProposalSampling's fields), one stage
         per proposal network (outputs sigma_proposal0, …: density alone, no noise); None for a field
         rendered with the scene's own sampling."""
+        return None
 
 
 def field_kinds() -> dict[str, FieldKind]:
-    """Every registered kind by name (imported here, not at the top: the kinds import this module)."""
+    """Every registered kind by name: the one list of kinds (imported here, not at the top: the kinds import this
+    module). web/src/fields/index.js and train/scene/field_kinds.py register the same names (tests tie them)."""
     from noisenerf.runtime.fields.hashgrid import HASHGRID
     from noisenerf.runtime.fields.mlp import MLP
     from noisenerf.runtime.fields.nerfacto import NERFACTO

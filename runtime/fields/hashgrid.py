@@ -23,7 +23,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from noisenerf.runtime.errors import UserError
-from noisenerf.runtime.fields import Segment
+from noisenerf.runtime.fields import FieldKind, Segment
 from noisenerf.runtime.graph import GraphBuilder
 from noisenerf.runtime.limits import (
     MAX_FIELD_DEPTH, MAX_FIELD_WIDTH, MAX_HASH_FEATURES, MAX_HASH_LEVELS, MAX_HASH_RESOLUTION, MAX_LOG2_TABLE,
@@ -117,7 +117,7 @@ def corner_offsets() -> np.ndarray:
     return np.array([[(i >> d) & 1 for d in range(3)] for i in range(8)], np.int64)
 
 
-class HashGridKind:
+class HashGridKind(FieldKind):
     name = "hashgrid"
     opset = 18
 
@@ -155,9 +155,6 @@ class HashGridKind:
                             f"than {MAX_TABLE_VALUES}", code="field.table_values", network=what,
                             values=levels.total_rows * checked["features"], most=MAX_TABLE_VALUES)
         return checked
-
-    def proposal_sampler(self, config: dict) -> None:
-        return None
 
     def segments(self, config: dict) -> tuple[Segment, ...]:
         return Segment("position", config["levels"] * config["features"]), Segment("direction", config["sh_degree"] ** 2)

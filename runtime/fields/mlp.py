@@ -14,7 +14,7 @@ import numpy as np
 
 from noisenerf.runtime.encoding import encoding_dims
 from noisenerf.runtime.errors import UserError
-from noisenerf.runtime.fields import Segment
+from noisenerf.runtime.fields import FieldKind, Segment
 from noisenerf.runtime.graph import GraphBuilder
 from noisenerf.runtime.limits import MAX_FIELD_DEPTH, MAX_FIELD_WIDTH, MAX_FREQUENCIES, checked_int, checked_list
 
@@ -50,7 +50,7 @@ def noisy_inputs(builder: GraphBuilder, config: dict) -> tuple[str, str | None]:
         [encoding_dims(config["xyz_freqs"]), encoding_dims(config["dir_freqs"])], np.int64)))
 
 
-class MlpKind:
+class MlpKind(FieldKind):
     name = "mlp"
     opset = 17
 
@@ -71,9 +71,6 @@ class MlpKind:
                 "skips": sorted(set(skips)), "use_viewdirs": config["use_viewdirs"],
                 **{key: checked_int(config[key], f"{what} {key}", 0, MAX_FREQUENCIES, code="field.frequencies")
                    for key in ("xyz_freqs", "dir_freqs")}}
-
-    def proposal_sampler(self, config: dict) -> None:
-        return None
 
     def segments(self, config: dict) -> tuple[Segment, ...]:
         position = Segment("position", encoding_dims(config["xyz_freqs"]))

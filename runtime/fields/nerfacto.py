@@ -27,7 +27,7 @@ from __future__ import annotations
 import numpy as np
 
 from noisenerf.runtime.errors import UserError
-from noisenerf.runtime.fields import Segment
+from noisenerf.runtime.fields import FieldKind, Segment
 from noisenerf.runtime.fields.hashgrid import (
     DENSITY_EXPONENT_CAP, GridLevels, checked_mlps, field_mlps, grid_axes, interpolated_features, layout_levels,
     spherical_harmonics,
@@ -52,7 +52,7 @@ def grid_layout(implementation: str, scales, log2_table: int) -> GridLevels:
     return layout_levels(np.asarray(scales, np.float32), log2_table, all_hashed=implementation == "torch")
 
 
-class NerfactoKind:
+class NerfactoKind(FieldKind):
     name = "nerfacto"
     opset = 18
 

@@ -1,6 +1,6 @@
 """`noisenerf fit`: fit a NeRF to a dataset on a CPU (or GPU), with skipping, checkpoints and resume.
 
-Presets (`--field` picks a kind's default preset; without either, `hashgrid`: DEFAULT_FIELD):
+Presets (`--field` picks a kind's default preset; without either, `hashgrid`: presets.DEFAULT_FIELD):
 - `small` (the `mlp` kind's default): one 6×128 MLP (nerf-pytorch compatible: netdepth 6, netwidth 128,
   skip at 4), 128 uniform samples per ray of which only those in occupied grid cells and before the ray
   turns opaque are evaluated. Chosen for 2 CPU cores: several times the training throughput of 8×256.
@@ -103,11 +103,6 @@ PRESETS = {
                           n_importance=0, batch_rays=1024, lr=1e-2, lr_final=1e-3, render_samples=256,
                           occupancy=OccupancyConfig(warmup_steps=100, final_resolution=128)),
 }
-DEFAULT_PRESETS = {"mlp": "small", "hashgrid": "hashgrid"}  # the preset `--field KIND` fits with
-# the kind new fits take without --field or --preset: in the same minutes it fits better than the small
-# preset, its keys are no larger and every camera takes every hard secret (docs/field-kinds.md has the
-# figures); the MLP stays the choice for a smaller model file and faster reveals
-DEFAULT_FIELD = "hashgrid"
 
 
 @dataclass(frozen=True)

@@ -120,10 +120,6 @@ export const HASHGRID = {
     return checked;
   },
 
-  proposalSampler() {
-    return null;
-  },
-
   segments(config) {
     return [segment("position", config.levels * config.features), segment("direction", config.sh_degree ** 2)];
   },

@@ -14,6 +14,10 @@ import { NERFACTO } from "./nerfacto.js";
 
 export const DEFAULT_KIND = "mlp";
 
+/** A field kind: its name, opset, `checked`, `segments` and `build`, and what it does not override of the defaults
+ * (FieldKind's in Python): `proposalSampler` null, for a field rendered with the scene's own sampling. */
+const fieldKindOf = (kind) => ({ proposalSampler: () => null, ...kind });
+
 /** A named run of a network's noise vector: `dims` values added to the encoding called `name`. */
 export const segment = (name, dims) => ({ name, dims });
 
@@ -23,7 +27,7 @@ export const hasExactly = (config, keys) => isJsonObject(config) && Object.keys(
 
 /** Every registered kind by name (built on each call, as Python's: the kinds import this module). */
 export function fieldKinds() {
-  return Object.fromEntries([MLP, HASHGRID, NERFACTO].map((kind) => [kind.name, kind]));
+  return Object.fromEntries([MLP, HASHGRID, NERFACTO].map((kind) => [kind.name, fieldKindOf(kind)]));
 }
 
 /** field_kind: the kind an architecture names (an `mlp` where it names none); an unknown one is refused. */

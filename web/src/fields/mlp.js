@@ -64,10 +64,6 @@ export const MLP = {
     return { depth, width, skips: [...new Set(skips)].sort((a, b) => a - b), use_viewdirs: config.use_viewdirs, ...freqs };
   },
 
-  proposalSampler() {
-    return null;
-  },
-
   segments(config) {
     const position = segment("position", encodingDims(config.xyz_freqs));
     return config.use_viewdirs ? [position, segment("direction", encodingDims(config.dir_freqs))] : [position];
