@@ -1,5 +1,6 @@
 """Scene datasets: NeRF-Synthetic (`transforms_*.json`), LLFF (`poses_bounds.npy` + `images_N/`) and captures
-(one `transforms.json`, as Instant-NGP's colmap2nerf.py and nerfstudio's ns-process-data write it).
+(one `transforms.json`, as Instant-NGP's colmap2nerf.py and nerfstudio's ns-process-data write it, read by
+`train.scene.captures`, which the nerfstudio import shares).
 
 All load to one `Dataset`: images composited on a background, one `Camera` per image (OpenGL c2w, at the
 loaded resolution), splits, the ray interval, for forward-facing LLFF scenes nerf-pytorch's NDC space, and
@@ -22,7 +23,7 @@ from noisenerf.runtime.camera import Camera, NDCSpace, camera_rays
 from noisenerf.runtime.errors import UserError
 from noisenerf.runtime.files import read_json
 from noisenerf.runtime.images import composite_over, image_shape, read_image, resize_image
-from noisenerf.runtime.limits import checked_float, checked_image_size, checked_list
+from noisenerf.train.scene.captures import CAPTURE_FILE, CaptureFrame, frame_file_and_pose, read_capture
 from noisenerf.train.scene.distortion import distorted_camera_rays
 
 BLENDER_SPLITS = ("train", "val", "test")
@@ -33,12 +34,8 @@ LLFF_BD_FACTOR = 0.75
 LLFF_HOLD = 8  # nerf-pytorch's llffhold: every 8th view is held out
 LLFF_DEFAULT_FACTOR = 8
 LLFF_IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png")
-IMAGE_SUFFIXES = LLFF_IMAGE_SUFFIXES + (".tif", ".tiff", ".exr")
-CAPTURE_FILE = "transforms.json"
-CAPTURE_MODELS = ("OPENCV", "PINHOLE")  # OpenCV's radial-tangential distortion, or none: pinhole rays, bent or not
-DISTORTION_KEYS = ("k1", "k2", "k3", "p1", "p2")
+DISTORTION_KEYS = ("k1", "k2", "k3", "p1", "p2")  # the fit's lens (train.scene.distortion): OpenCV's without k4
 CAPTURE_NEAR = 0.05  # in normalised units, where the cameras span [-1, 1]
-MAX_AABB_SCALE = 128  # Instant-NGP's largest
 
 
 @dataclass(frozen=True)
@@ -146,25 +143,6 @@ class BlenderFrame:
     path: Path
     c2w: np.ndarray  # (4, 4) OpenGL camera-to-world
     fov_x: float
-
-
-def image_path(data_dir: Path, file_path: str) -> Path:
-    """A frame's file: `file_path` relative to the dataset, `.png` added unless it names an image file."""
-    path = data_dir / file_path
-    return path if path.suffix.lower() in IMAGE_SUFFIXES else path.with_name(path.name + ".png")
-
-
-def frame_file_and_pose(data_dir: Path, frame, where: str) -> tuple[Path, np.ndarray]:
-    """One entry of `frames`: its image file and (4, 4) float64 c2w; UserError naming `where` when malformed."""
-    if not isinstance(frame, dict) or not isinstance(frame.get("file_path"), str):
-        raise UserError(f"{where}: needs a string 'file_path'")
-    try:
-        c2w = np.asarray(frame["transform_matrix"], dtype=np.float64)
-    except (KeyError, TypeError, ValueError):
-        raise UserError(f"{where}: needs a numeric 4x4 'transform_matrix'") from None
-    if c2w.shape != (4, 4) or not np.isfinite(c2w).all():
-        raise UserError(f"{where}: 'transform_matrix' must be a finite 4x4 matrix")
-    return image_path(data_dir, frame["file_path"]), c2w
 
 
 def parse_frame(data_dir: Path, frame, fov_x: float, where: str) -> BlenderFrame:
@@ -341,96 +319,26 @@ def load_llff(data_dir: Path, resolution: int | None, with_images: bool,
     return Dataset("llff", images, cameras, holdout_splits(len(poses)), 0.0, 1.0, ndc, background, LLFF_AABB)
 
 
-# ---- captures: Instant-NGP's and nerfstudio's transforms.json ------------------------------------
+# ---- captures: Instant-NGP's and nerfstudio's transforms.json (read by train.scene.captures) --------------
 
-@dataclass(frozen=True)
-class CaptureFrame:
-    """One entry of a capture's `frames`, its pose checked, its intrinsics not yet (they need the image size)."""
-
-    path: Path
-    c2w: np.ndarray  # (4, 4) OpenGL camera-to-world as written (both tools write OpenGL's convention)
-    entry: dict  # the frame's JSON object: its own intrinsics win over the file's
-    where: str  # how errors name it
-
-
-@dataclass(frozen=True)
-class Lens:
-    """A frame's pinhole intrinsics in pixels of its stored image, and its OpenCV distortion."""
-
-    fx: float
-    fy: float
-    cx: float
-    cy: float
-    distortion: tuple[float, ...]  # k1, k2, k3, p1, p2
-
-    def camera(self, c2w: np.ndarray, size: tuple[int, int], stored: tuple[int, int]) -> Camera:
-        """The camera at `size` (width, height) of an image stored at `stored`: x scales by the width ratio and
-        y by the height ratio, as the area downscale maps them (they differ by the height's rounding).
-        Distortion acts on normalised coordinates, so it does not scale. c2w: (4, 4)."""
-        sx, sy = size[0] / stored[0], size[1] / stored[1]
-        return Camera(matrix_rows(c2w), *size, self.fx * sx, self.fy * sy, self.cx * sx, self.cy * sy)
+def fit_lens(frame: CaptureFrame, stored: tuple[int, int]) -> tuple[Camera, tuple[float, ...]]:
+    """A frame's camera at its image as stored (`stored`: width, height, which w and h must say where given), and
+    its lens as the fit bends rays (DISTORTION_KEYS: OpenCV's without k4)."""
+    camera = frame.camera(stored)
+    if (camera.width, camera.height) != stored:
+        raise UserError(f"{frame.where}: w and h say {camera.width}x{camera.height}, but {frame.path} is "
+                        f"{stored[0]}x{stored[1]}")
+    if frame.coefficients(("k4",))[0]:
+        raise UserError(f"{frame.where}: k4 is not supported (an r^8 term the fit's lens lacks: k1, k2, k3, p1, p2)")
+    return camera, frame.coefficients(DISTORTION_KEYS)
 
 
-def lens_may_distort(meta: dict, path: Path) -> bool:
-    """Whether the file's camera model has OpenCV's radial-tangential distortion: OPENCV, or no model named
-    (Instant-NGP writes k1, k2, p1, p2 without one); PINHOLE has none. UserError for any other model
-    (fisheye, equirectangular, ...): its rays are not a pinhole's bent by OpenCV's polynomial."""
-    model = "OPENCV_FISHEYE" if meta.get("is_fisheye") is True else meta.get("camera_model")
-    if model is not None and model not in CAPTURE_MODELS:
-        raise UserError(f"{path}: camera_model {model!r:.40} is not supported (expected OPENCV or PINHOLE; "
-                        "undistort the images first, e.g. with COLMAP's image_undistorter)")
-    return model != "PINHOLE"
-
-
-def read_capture_frame(data_dir: Path, entry, where: str) -> CaptureFrame:
-    """One entry of `frames`: its file and a finite pose whose rotation is invertible; UserError naming `where`."""
-    path, c2w = frame_file_and_pose(data_dir, entry, where)
-    if not abs(np.linalg.det(c2w[:3, :3])) > 1e-6:
-        raise UserError(f"{where}: 'transform_matrix' has a rotation that is not invertible")
-    return CaptureFrame(path, c2w, entry, where)
-
-
-def focal_length(value, key: str, angle_key: str, side: int, where: str) -> float | None:
-    """`key` in pixels, else from the field of view `angle_key` (radians) across `side` pixels; None if neither
-    is given. value: key -> the frame's or the file's JSON value."""
-    if value(key) is not None:
-        return checked_float(value(key), f"{where}: '{key}'", 1e-6, 1e9)
-    if value(angle_key) is None:
-        return None
-    angle = checked_float(value(angle_key), f"{where}: '{angle_key}'", 1e-6, math.pi - 1e-6)
-    return 0.5 * side / math.tan(0.5 * angle)
-
-
-def capture_lens(meta: dict, frame: CaptureFrame, stored: tuple[int, int], distorts: bool) -> Lens:
-    """A frame's lens, each key from the frame if it has it, else from the file. w, h (default: the image's
-    size) must be the stored image's; fl_x may be given as camera_angle_x (Instant-NGP's older files), fl_y as
-    camera_angle_y, else it is fl_x; cx, cy default to the image centre, k1, k2, k3, p1, p2 to 0."""
-    def value(key, default=None):
-        found = frame.entry.get(key, meta.get(key))
-        return default if found is None else found
-
-    where = frame.where
-    width, height = checked_image_size(value("w", stored[0]), value("h", stored[1]), f"{where}: image")
-    if (width, height) != stored:
-        raise UserError(f"{where}: w and h say {width}x{height}, but {frame.path} is {stored[0]}x{stored[1]}")
-    fx = focal_length(value, "fl_x", "camera_angle_x", width, where)
-    if fx is None:
-        raise UserError(f"{where}: needs a focal length, 'fl_x' or 'camera_angle_x'")
-    fy = focal_length(value, "fl_y", "camera_angle_y", height, where)
-    cx, cy = (checked_float(value(key, 0.5 * side), f"{where}: '{key}'", -1e9, 1e9)
-              for key, side in (("cx", width), ("cy", height)))
-    distortion = tuple(checked_float(value(key, 0.0), f"{where}: '{key}'") for key in DISTORTION_KEYS)
-    if not distorts and any(distortion):
-        raise UserError(f"{where}: camera_model PINHOLE has no distortion, yet "
-                        f"{next(k for k, c in zip(DISTORTION_KEYS, distortion) if c)} is not 0")
-    return Lens(fx, fx if fy is None else fy, cx, cy, distortion)
-
-
-def capture_box(meta: dict, path: Path) -> tuple[float, ...]:
-    """The cube [-aabb_scale, aabb_scale]^3 in normalised units: the cameras span [-1, 1]^3, and Instant-NGP's
-    aabb_scale (default 1) extends the box beyond them for the content around them."""
-    scale = checked_float(meta.get("aabb_scale", 1), f"{path}: 'aabb_scale'", 1.0, MAX_AABB_SCALE)
-    return (-scale,) * 3 + (scale,) * 3
+def capture_camera(lens: Camera, c2w: np.ndarray, size: tuple[int, int]) -> Camera:
+    """`lens`'s intrinsics at `size` (width, height) and pose c2w (4, 4): x scales by the width ratio and y by
+    the height ratio, as the area downscale maps them (they differ by the height's rounding). Distortion acts on
+    normalised coordinates, so it does not scale."""
+    sx, sy = size[0] / lens.width, size[1] / lens.height
+    return Camera(matrix_rows(c2w), *size, lens.fx * sx, lens.fy * sy, lens.cx * sx, lens.cy * sy)
 
 
 def rotation_onto_z(up: np.ndarray) -> np.ndarray:
@@ -473,34 +381,34 @@ def farthest_corner(positions: np.ndarray, aabb: tuple[float, ...]) -> float:
 
 def load_capture(data_dir: Path, resolution: int | None, with_images: bool,
                  background: tuple[float, float, float]) -> Dataset:
-    """One transforms.json, as Instant-NGP's colmap2nerf.py and nerfstudio's ns-process-data write it.
+    """One transforms.json, as Instant-NGP's colmap2nerf.py and nerfstudio's ns-process-data write it, read and
+    checked by `read_capture` (train.scene.captures: what is accepted).
 
     Frames (file_path relative to the folder) are sorted by image file, then every 8th from the first is
     held out as test (and val), LLFF's convention (`holdout_splits`): a capture has no test split of its own.
-    Intrinsics are each frame's (`capture_lens`), scaled with the image to `resolution` (`Lens.camera`).
+    Intrinsics are each frame's (`fit_lens`), scaled with the image to `resolution` (`capture_camera`).
     Poses are normalised as nerfstudio's dataparser does (`normalized_poses`), so the cameras span [-1, 1]^3;
-    the box is [-aabb_scale, aabb_scale]^3 (`capture_box`). Rays run from near 0.05 to the farthest box corner
-    seen from any camera: with the near plane close to the cameras, every ray's samples cover all of the box
-    in front of it. RGBA images are composited on `background` as NeRF-Synthetic's are; their alpha is kept
-    for space carving only without distortion, since carving projects through the pinhole cameras.
+    the box is [-aabb_scale, aabb_scale]^3: Instant-NGP's aabb_scale (default 1) extends it beyond the cameras
+    for the content around them. Rays run from near 0.05 to the farthest box corner seen from any camera: with
+    the near plane close to the cameras, every ray's samples cover all of the box in front of it. RGBA images are
+    composited on `background` as NeRF-Synthetic's are; their alpha is kept for space carving only without
+    distortion, since carving projects through the pinhole cameras. nerfstudio's applied_transform and
+    applied_scale change nothing here: the normalisation orients, centres and scales the poses as saved.
     """
-    path = data_dir / CAPTURE_FILE
-    meta = read_json(path, CAPTURE_FILE)
-    distorts = lens_may_distort(meta, path)
-    aabb = capture_box(meta, path)
-    entries = checked_list(meta.get("frames"), f"{path}: 'frames'")
-    if len(entries) < 2:
-        raise UserError(f"{path}: needs at least two frames (one is held out for testing), got {len(entries)}")
-    frames = sorted((read_capture_frame(data_dir, entry, f"{path} frame {k}") for k, entry in enumerate(entries)),
-                    key=lambda frame: str(frame.path))
+    capture = read_capture(data_dir)
+    if len(capture.frames) < 2:
+        raise UserError(f"{capture.path}: needs at least two frames (one is held out for testing), "
+                        f"got {len(capture.frames)}")
+    frames = sorted(capture.frames, key=lambda frame: str(frame.path))
     paths = [frame.path for frame in frames]
     height, width = common_shape(paths, (3, 4))
-    lenses = [capture_lens(meta, frame, (width, height), distorts) for frame in frames]
-    c2w = normalized_poses(np.stack([frame.c2w for frame in frames]), path)
+    lenses, distortion = zip(*(fit_lens(frame, (width, height)) for frame in frames))
+    c2w = normalized_poses(np.stack([frame.c2w for frame in frames]), capture.path)
     size = scaled_size(width, height, resolution)
-    cameras = tuple(lens.camera(matrix, size, (width, height)) for lens, matrix in zip(lenses, c2w))
-    distortion = np.array([lens.distortion for lens in lenses])
+    cameras = tuple(capture_camera(lens, matrix, size) for lens, matrix in zip(lenses, c2w))
+    distortion = np.array(distortion)
     distorted = bool(distortion.any())
+    aabb = (-capture.aabb_scale,) * 3 + (capture.aabb_scale,) * 3
     images, alphas = load_images(paths, size, background, composite=True) if with_images else (None, None)
     return Dataset("capture", images, cameras, holdout_splits(len(frames)), CAPTURE_NEAR,
                    farthest_corner(c2w[:, :3, 3], aabb), None, background, aabb, None if distorted else alphas,

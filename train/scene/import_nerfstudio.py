@@ -8,9 +8,9 @@ Read without nerfstudio and without running anything a file says:
   globals real checkpoints hold (their learning rates) allowed; the pipeline's `_model.field.*` and
   `_model.proposal_networks.*` tensors are used (`module.` prefixes of multi-GPU runs stripped), the rest
   (LPIPS, camera optimizer, optimizer state) ignored;
-- the dataset's `transforms.json` (from --data, or the run's recorded data path): frames sorted by file
-  name as nerfstudio sorts them, each pose mapped by the dataparser transform, intrinsics scaled by the
-  downscale nerfstudio chose.
+- the dataset's `transforms.json` (from --data, or the run's recorded data path), read and checked by
+  train.scene.captures as the fit reads it: frames sorted by file name as nerfstudio sorts them, each pose
+  mapped by the dataparser transform, intrinsics scaled by the downscale nerfstudio chose.
 
 Both implementations are reproduced as trained (runtime.fields.nerfacto): `torch` runs map tensor for
 tensor; `tcnn` runs hold flat parameter vectors (each MLP before its grid, row-major matrices without
@@ -22,7 +22,7 @@ nerfacto uses at eval is folded into the colour MLP's first bias.
 Refused in one line, because they would not be reproduced: other methods, nerfstudio runs older than
 1.0 (their key layout), scene contraction off, proposal networks that share weights or use a linear
 head, an initial sampler other than the piecewise one, backgrounds other than `last_sample`, lens
-distortion and camera models other than pinhole ones.
+distortion, and camera models other than pinhole ones (which train.scene.captures refuses for the fit too).
 """
 
 from __future__ import annotations
@@ -45,11 +45,11 @@ from noisenerf.runtime.files import parse_json
 from noisenerf.runtime.occupancy import OccupancyGrid
 from noisenerf.runtime.render import RenderConfig
 from noisenerf.runtime.sampling import SamplingConfig
+from noisenerf.train.scene.captures import read_capture
 from noisenerf.train.scene.nerfacto import NerfactoConfig, NerfactoField, ProposalConfig, SamplerConfig
 from noisenerf.train.scene.scene import Scene, SceneConfig, check_scene_output
 
 MAX_CONFIG_BYTES = 1 << 20
-MAX_TRANSFORMS_BYTES = 64 << 20
 TCNN_ALIGNMENT = 16  # tiny-cuda-nn pads MLP inputs and outputs to multiples of this
 # secret views sample uniformly along depth (runtime.sampling): from nerfacto's training near plane to a
 # depth that leaves nerfstudio's auto-scaled scene (cameras within the unit cube) behind
@@ -57,8 +57,7 @@ SECRET_NEAR, SECRET_FAR = 0.05, 4.0
 # the occupancy grid an imported scene carries rules nothing out: nerfacto renders with its proposal sampler
 GRID_BOX = 1e6
 NUMPY_SCALAR_GLOBALS = ("numpy._core.multiarray.scalar", "numpy.core.multiarray.scalar")
-DISTORTION_KEYS = ("k1", "k2", "k3", "k4", "p1", "p2")
-PINHOLE_MODELS = ("OPENCV", "PINHOLE", "SIMPLE_PINHOLE")
+COLMAP_APPLIED = [[0, 1, 0, 0], [1, 0, 0, 0], [0, 0, -1, 0]]  # nerfstudio's applied_transform for COLMAP data
 
 
 class PlainLoader(yaml.SafeLoader):
@@ -424,45 +423,30 @@ def data_directory(config: dict, run_dir: Path, data: Path | None) -> Path:
     raise UserError("the run's dataset (transforms.json) was not found; give it with --data")
 
 
-def dataset_cameras(data_dir: Path, transform: np.ndarray, scale: float, downscale: int | None, source: str
+def dataset_cameras(data_dir: Path, transform: np.ndarray, scale: float, downscale: int | None
                     ) -> tuple[Camera, ...]:
     """Every frame's camera as nerfstudio builds it at eval: frames sorted by file name, the pose mapped
     into nerfstudio's frame (the transform applies to poses as saved; a transforms.json's applied_transform
-    is already in them), intrinsics divided by the downscale."""
-    path = data_dir / "transforms.json"
-    meta = read_json_file(path, MAX_TRANSFORMS_BYTES)
-    if not isinstance(meta, dict) or not isinstance(meta.get("frames"), list) or not meta["frames"]:
-        raise UserError(f"{path}: not a nerfstudio dataset (no frames)")
-    if meta.get("camera_model", "OPENCV") not in PINHOLE_MODELS:
-        raise UserError(f"{path}: camera model {meta['camera_model']!r} is not reproduced (pinhole models only)")
-    applied = meta.get("applied_transform")
-    if applied is None and (data_dir / "colmap" / "sparse" / "0").exists():
-        applied = [[0, 1, 0, 0], [1, 0, 0, 0], [0, 0, -1, 0]]  # nerfstudio's default for COLMAP data
+    is already in them), intrinsics divided by the downscale. Lens distortion is refused."""
+    capture = read_capture(data_dir)
+    applied = capture.applied_transform
+    if applied is None and (Path(data_dir) / "colmap" / "sparse" / "0").exists():
+        applied = np.asarray(COLMAP_APPLIED, np.float64)  # nerfstudio's default for COLMAP data
     saved = np.vstack([transform, [0, 0, 0, 1]])
     if applied is not None:  # dataparser_transforms.json holds transform·applied; the frames are already applied
-        saved = saved @ np.linalg.inv(np.vstack([np.asarray(applied, np.float64), [0, 0, 0, 1]]))
-    pose_scale = scale / float(meta.get("applied_scale", 1.0))
-    frames = sorted(meta["frames"], key=lambda frame: str(Path(str(frame.get("file_path", ""))).name))
+        saved = saved @ np.linalg.inv(np.vstack([applied, [0, 0, 0, 1]]))
+    pose_scale = scale / capture.applied_scale
     cameras = []
-    for frame in frames:
-        value = lambda key: frame.get(key, meta.get(key))  # noqa: E731
-        if any(float(value(key) or 0.0) != 0.0 for key in DISTORTION_KEYS) or value("distortion_params"):
-            raise UserError(f"{path}: lens distortion is not reproduced (frame {frame.get('file_path')})")
-        try:
-            pose = np.asarray(frame["transform_matrix"], np.float64)
-            width, height = int(value("w")), int(value("h"))
-            fx, fy, cx, cy = (float(value(key)) for key in ("fl_x", "fl_y", "cx", "cy"))
-        except (KeyError, TypeError, ValueError):
-            raise UserError(f"{path}: frame {frame.get('file_path')} lacks a 4×4 transform_matrix, w, h, fl_x, fl_y, "
-                            "cx or cy") from None
-        if pose.shape != (4, 4) or not np.isfinite(pose).all():
-            raise UserError(f"{path}: frame {frame.get('file_path')} has no finite 4×4 transform_matrix")
-        c2w = saved @ pose
+    for frame in sorted(capture.frames, key=lambda frame: Path(frame.file_path).name):
+        if any(frame.distortion):
+            raise UserError(f"{frame.where}: lens distortion is not reproduced ({frame.file_path})")
+        stated = frame.camera()
+        c2w = saved @ frame.c2w
         c2w[:3, 3] *= pose_scale
-        factor = downscale or auto_downscale(data_dir, frame, width, height)
+        factor = downscale or auto_downscale(Path(data_dir), frame.file_path, stated.width, stated.height)
         cameras.append(Camera.from_dict({
-            "c2w": c2w.tolist(), "width": int(width / factor), "height": int(height / factor),
-            "fx": fx / factor, "fy": fy / factor, "cx": cx / factor, "cy": cy / factor}))
+            "c2w": c2w.tolist(), "width": int(stated.width / factor), "height": int(stated.height / factor),
+            "fx": stated.fx / factor, "fy": stated.fy / factor, "cx": stated.cx / factor, "cy": stated.cy / factor}))
     return tuple(cameras)
 
 
@@ -476,9 +460,9 @@ def check_within_reach(cameras: tuple[Camera, ...], far: float, source: Path, sc
                         f"scene's centre, beyond the far plane ({far:g}): its renders would be empty")
 
 
-def auto_downscale(data_dir: Path, frame: dict, width: int, height: int) -> int:
+def auto_downscale(data_dir: Path, file_path: str, width: int, height: int) -> int:
     """nerfstudio's automatic downscale: halve while the larger side exceeds 1600 px and images_<2^k> exist."""
-    name, factor = Path(str(frame.get("file_path", ""))).name, 1
+    name, factor = Path(file_path).name, 1
     while max(width, height) / factor > 1600 and (data_dir / f"images_{factor * 2}" / name).exists():
         factor *= 2
     return factor
@@ -506,7 +490,7 @@ def import_nerfstudio(run_dir: Path, out_dir: Path, data: Path | None = None, fo
     dataparser = config["pipeline"].get("datamanager", {}).get("dataparser", {})
     downscale = dataparser.get("downscale_factor") if isinstance(dataparser, dict) else None
     cameras = dataset_cameras(data_directory(config, run_dir, data), transform, scale,
-                              int(downscale) if downscale else None, str(run_dir))
+                              int(downscale) if downscale else None)
     check_within_reach(cameras, field_settings.sampler.far, run_dir / "dataparser_transforms.json", scale)
     box = (-GRID_BOX,) * 3 + (GRID_BOX,) * 3
     render = RenderConfig(SamplingConfig(SECRET_NEAR, SECRET_FAR, 128), background=(1.0, 1.0, 1.0), pixel_center=0.5)
