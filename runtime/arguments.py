@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import numbers
 import os
-from typing import Any
+from typing import Any, Callable
 
 from noisenerf.runtime.errors import UserError
 
@@ -19,50 +19,32 @@ def wrong(name: str, expected: str, value: Any) -> UserError:
                      expected=expected, got=type(value).__name__)
 
 
-def checked_path(value: Any, name: str) -> str | os.PathLike:
-    if isinstance(value, (str, os.PathLike)):
-        return value
-    raise wrong(name, PATH, value)
+def accepting(expected: str, accepts: Callable[[Any], bool], convert: Callable[[Any], Any] = lambda value: value):
+    """A check of one kind: check(value, name) -> the value (converted) where accepts(value), else a UserError
+    saying what `name` must be."""
+    def check(value: Any, name: str):
+        if accepts(value):
+            return convert(value)
+        raise wrong(name, expected, value)
+    return check
 
 
-def checked_source(value: Any, name: str) -> str | os.PathLike | bytes:
-    """A file given as a path or as its bytes (bytearray and memoryview taken as bytes)."""
-    if isinstance(value, (bytearray, memoryview)):
-        return bytes(value)
-    if isinstance(value, (str, os.PathLike, bytes)):
-        return value
-    raise wrong(name, f"{PATH} or bytes", value)
+def integral(value: Any) -> bool:
+    """A Python or numpy integer, not a bool (nor a float that happens to be whole)."""
+    return isinstance(value, numbers.Integral) and not isinstance(value, bool)
 
 
-def checked_int(value: Any, name: str) -> int:
-    """A Python or numpy integer (not a bool, not a float that happens to be whole)."""
-    if isinstance(value, numbers.Integral) and not isinstance(value, bool):
-        return int(value)
-    raise wrong(name, "an integer", value)
-
-
-def checked_flag(value: Any, name: str) -> bool:
-    if isinstance(value, bool):
-        return value
-    raise wrong(name, "True or False", value)
-
-
-def checked_number(value: Any, name: str) -> float:
-    if isinstance(value, numbers.Real) and not isinstance(value, bool):
-        return float(value)
-    raise wrong(name, "a number", value)
-
-
-def checked_text(value: Any, name: str) -> str:
-    if isinstance(value, str):
-        return value
-    raise wrong(name, "a str", value)
-
-
-def checked_callback(value: Any, name: str):
-    if callable(value):
-        return value
-    raise wrong(name, "a function", value)
+checked_path = accepting(PATH, lambda value: isinstance(value, (str, os.PathLike)))
+# a file given as a path or as its bytes (bytearray and memoryview taken as bytes)
+checked_source = accepting(f"{PATH} or bytes",
+                           lambda value: isinstance(value, (str, os.PathLike, bytes, bytearray, memoryview)),
+                           lambda value: bytes(value) if isinstance(value, (bytearray, memoryview)) else value)
+checked_int = accepting("an integer", integral, int)
+checked_number = accepting("a number", lambda value: isinstance(value, numbers.Real) and not isinstance(value, bool),
+                           float)
+checked_flag = accepting("True or False", lambda value: isinstance(value, bool))
+checked_text = accepting("a str", lambda value: isinstance(value, str))
+checked_callback = accepting("a function", callable)
 
 
 def optional(check, value: Any, name: str):

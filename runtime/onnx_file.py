@@ -92,6 +92,30 @@ def read_varint(data: memoryview, position: int) -> tuple[int, int]:
     raise WireError("varint longer than 10 bytes")
 
 
+def field_head(data: memoryview, position: int, size: int) -> tuple[int, int, int, int]:
+    """One field's key and extent, its payload unread: data holds the message from its start at least up to the
+    key and its varints; size: the message's length. -> (number, wire type, where the payload starts, the varint's
+    value for VARINT, else the payload's length)."""
+    key, position = read_varint(data, position)
+    number, wire = key >> 3, key & 7
+    if number == 0:
+        raise WireError("field number 0")
+    if wire == VARINT:
+        value, position = read_varint(data, position)
+        return number, wire, position, value
+    if wire in (FIXED64, FIXED32):
+        width = 8 if wire == FIXED64 else 4
+        if position + width > size:
+            raise WireError("truncated fixed-width field")
+        return number, wire, position, width
+    if wire == LENGTH:
+        length, position = read_varint(data, position)
+        if position + length > size:
+            raise WireError("length-delimited field runs past the end")
+        return number, wire, position, length
+    raise WireError(f"unsupported wire type {wire}")
+
+
 def fields(data: memoryview, budget: FieldBudget | None = None) -> Iterator[tuple[int, int, int | memoryview]]:
     """The fields of one message: (field number, wire type, integer or bytes), in file order. budget: the parse's
     (each field spends one)."""
@@ -99,24 +123,13 @@ def fields(data: memoryview, budget: FieldBudget | None = None) -> Iterator[tupl
     while position < size:
         if budget is not None:
             budget.spend()
-        key, position = read_varint(data, position)
-        number, wire = key >> 3, key & 7
-        if number == 0:
-            raise WireError("field number 0")
+        number, wire, start, extent = field_head(data, position, size)
         if wire == VARINT:
-            value, position = read_varint(data, position)
-        elif wire in (FIXED64, FIXED32):
-            width = 8 if wire == FIXED64 else 4
-            if position + width > size:
-                raise WireError("truncated fixed-width field")
-            value, position = int.from_bytes(data[position:position + width], "little"), position + width
+            value, position = extent, start
         elif wire == LENGTH:
-            length, position = read_varint(data, position)
-            if position + length > size:
-                raise WireError("length-delimited field runs past the end")
-            value, position = data[position:position + length], position + length
+            value, position = data[start:start + extent], start + extent
         else:
-            raise WireError(f"unsupported wire type {wire}")
+            value, position = int.from_bytes(data[start:start + extent], "little"), start + extent
         yield number, wire, value
 
 
@@ -129,24 +142,8 @@ def framing(read: Callable[[int, int], bytes], size: int, source: str) -> None:
         while position < size:
             budget.spend()
             head = memoryview(read(position, min(20, size - position)))  # a key and a varint: 10 bytes each at most
-            key, at = read_varint(head, 0)
-            number, wire = key >> 3, key & 7
-            if number == 0:
-                raise WireError("field number 0")
-            if wire == VARINT:
-                _, at = read_varint(head, at)
-            elif wire in (FIXED64, FIXED32):
-                at += 8 if wire == FIXED64 else 4
-                if position + at > size:
-                    raise WireError("truncated fixed-width field")
-            elif wire == LENGTH:
-                length, at = read_varint(head, at)
-                if position + at + length > size:
-                    raise WireError("length-delimited field runs past the end")
-                at += length
-            else:
-                raise WireError(f"unsupported wire type {wire}")
-            position += at
+            _, wire, start, extent = field_head(head, 0, size - position)
+            position += start + (0 if wire == VARINT else extent)
     except WireError as error:
         raise not_onnx(source, error) from None
 

@@ -38,11 +38,18 @@ def imported(tmp_path, capfd, run, data, output, *flags):
     return run_main(main, ["import-nerfstudio", run, "-o", output, "--data", data, *flags], capfd)
 
 
-def test_an_import_onto_a_scene_is_refused_without_force_and_the_scene_kept(runs, tmp_path, capfd):
-    first, second, data = runs
+def earlier_scene(runs, tmp_path, capfd) -> Path:
+    """The first run imported as tmp_path/scene, with an earlier fit's checkpoint beside its weights."""
+    first, _, data = runs
     scene = tmp_path / "scene"
     assert imported(tmp_path, capfd, first, data, scene).code in (0, None)
     (scene / "checkpoint.safetensors").write_bytes(b"an earlier fit's checkpoint")
+    return scene
+
+
+def test_an_import_onto_a_scene_is_refused_without_force_and_the_scene_kept(runs, tmp_path, capfd):
+    _, second, data = runs
+    scene = earlier_scene(runs, tmp_path, capfd)
     before = digests(scene)
     result = imported(tmp_path, capfd, second, data, scene)
     assert_refused(result, None, f"output folder is not empty (pass --force to replace the scene in it): {scene}",
@@ -51,10 +58,8 @@ def test_an_import_onto_a_scene_is_refused_without_force_and_the_scene_kept(runs
 
 
 def test_force_replaces_the_whole_scene_folder(runs, tmp_path, capfd):
-    first, second, data = runs
-    scene = tmp_path / "scene"
-    assert imported(tmp_path, capfd, first, data, scene).code in (0, None)
-    (scene / "checkpoint.safetensors").write_bytes(b"an earlier fit's checkpoint")
+    _, second, data = runs
+    scene = earlier_scene(runs, tmp_path, capfd)
     old = digests(scene)
     assert imported(tmp_path, capfd, second, data, scene, "--force").code in (0, None)
     fresh = tmp_path / "fresh"
