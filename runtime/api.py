@@ -168,33 +168,33 @@ def reveal(model: Source | Model, bundle: Source | ReadBundle, passphrase: str |
     """Reveal the secret `bundle` holds in `model` (paths, or their bytes; a loaded Model or read bundle is reused).
     passphrase: a sealed bundle's (refused for one that is not sealed). An image comes back whether exact or
     not (see `exact`); a payload only when every byte checks, else a UserError."""
-    from noisenerf.runtime.reveal import reveal as reveal_tiles
+    from noisenerf.runtime.reveal import reveal_tiles
 
     start = time.perf_counter()
     progress = optional(checked_callback, progress, "progress")
     read = read_bundle(bundle)
-    secret = read.bundle
+    bundle = read.bundle
     keys = unseal(read, passphrase_bytes(passphrase))
     model = open_model(model, device, threads)
-    check_bundle(model, secret)
+    check_bundle(model, bundle)
     loaded = time.perf_counter()
-    rays = Counter(progress, "render", secret.width * secret.height, "ray")
-    revealed = reveal_tiles(secret, model.render_config, model.fields(), progress=rays)
-    counts = {"secret_size": (secret.width, secret.height), "tiles": len(secret.tiles),
-              "rays": secret.width * secret.height,
-              "samples": sum(t.rect[2] * t.rect[3] * t.sampling.n_samples for t in secret.tiles),
+    rays = Counter(progress, "render", bundle.width * bundle.height, "ray")
+    revealed = reveal_tiles(bundle, model.render_config, model.fields(), progress=rays)
+    counts = {"secret_size": (bundle.width, bundle.height), "tiles": len(bundle.tiles),
+              "rays": bundle.width * bundle.height,
+              "samples": sum(t.rect[2] * t.rect[3] * t.sampling.n_samples for t in bundle.tiles),
               "timings": {"load": loaded - start, "render": time.perf_counter() - loaded}}
-    if secret.payload is None:
-        return RevealResult("image", revealed.exact, secret_digest(revealed.pixels), secret.width, secret.height,
+    if bundle.payload is None:
+        return RevealResult("image", revealed.exact, secret_digest(revealed.pixels), bundle.width, bundle.height,
                             pixels=revealed.pixels, **counts)
     if not revealed.exact:
         raise UserError(INEXACT, code="payload.inexact")
-    record = open_payload(revealed.pixels, secret.payload, model.fingerprint, keys)
+    record = open_payload(revealed.pixels, bundle.payload, model.fingerprint, keys)
     common = {"exact": True, "sha256": record.sha256, "name": record.name.decode("utf-8", "replace") or None,
               "sealed": keys is not None, "payload": True, **counts}
     if record.kind == "image":
         return RevealResult("image", width=record.width, height=record.height, pixels=record.pixels(), **common)
-    return RevealResult("file", width=secret.width, height=secret.height, bytes=record.body, **common)
+    return RevealResult("file", width=bundle.width, height=bundle.height, bytes=record.body, **common)
 
 
 def render(model: Source | Model, view: int, *, skip: bool = True, device: str = "cpu", threads: int | None = None,

@@ -56,7 +56,7 @@ def tile_field(tile: Tile, fields: Mapping[str, NoisyFieldFn]) -> NoisyFieldFn:
     return fields[name]
 
 
-def reveal(bundle: Bundle, config: RenderConfig, fields: Mapping[str, NoisyFieldFn], progress=None,
+def reveal_tiles(bundle: Bundle, config: RenderConfig, fields: Mapping[str, NoisyFieldFn], progress=None,
            keep_float: bool = False) -> Revealed:
     """Render and stitch all tiles of a bundle. fields: network name ("coarse", and "fine" where the
     scene has one) -> noisy field; every tile's network is checked before anything is rendered.

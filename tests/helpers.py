@@ -130,9 +130,9 @@ def make_tiny_scene(seed: int = 0, **kwargs):
 @contextlib.contextmanager
 def interrupted_after_saves(n: int):
     """Inside, a hide is interrupted (KeyboardInterrupt) right after its n-th saved part or block."""
-    from noisenerf.train.hide import progress as progress_module
+    from noisenerf.train.hide import resume as resume_module
 
-    original, saved = progress_module.Progress.save, []
+    original, saved = resume_module.ResumeStore.save, []
 
     def save_then_die(self, *args):
         original(self, *args)
@@ -141,7 +141,7 @@ def interrupted_after_saves(n: int):
             raise KeyboardInterrupt
 
     with pytest.MonkeyPatch.context() as patch:
-        patch.setattr(progress_module.Progress, "save", save_then_die)
+        patch.setattr(resume_module.ResumeStore, "save", save_then_die)
         yield
 
 
@@ -150,7 +150,7 @@ def two_tile_bundle(scene, layout: str = "ray", seed: int = 0, network: str | No
     before it existed); the digest is that of torch's render of this very noise."""
     from noisenerf.runtime.bundle import Bundle, Tile, secret_digest
     from noisenerf.runtime.layouts import VectorNoise
-    from noisenerf.runtime.reveal import reveal
+    from noisenerf.runtime.reveal import reveal_tiles
     from noisenerf.train.scene.render import numpy_fields
 
     config, dims = scene.config.render, scene.render_field.config.noise_dims
@@ -163,7 +163,7 @@ def two_tile_bundle(scene, layout: str = "ray", seed: int = 0, network: str | No
                           network))
     width, height = sum(t.rect[2] for t in tiles), tiles[0].rect[3]
     bundle = Bundle(scene.fingerprint(), width, height, "0" * 64, layout, dims, "float32", tuple(tiles), {})
-    pixels = reveal(bundle, config, numpy_fields(scene.fields())).pixels
+    pixels = reveal_tiles(bundle, config, numpy_fields(scene.fields())).pixels
     return dataclasses.replace(bundle, secret_sha256=secret_digest(pixels))
 
 

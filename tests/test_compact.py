@@ -48,7 +48,7 @@ def test_compact_bundle_reveals_exactly_through_onnxruntime(demo):
 def test_tiles_beyond_the_kept_budget_are_unpacked_again_when_rendered_with_the_same_pixels(demo, monkeypatch):
     from noisenerf.runtime import layouts as layouts_module
     from noisenerf.runtime.model import load_model
-    from noisenerf.runtime.reveal import reveal
+    from noisenerf.runtime.reveal import reveal_tiles
 
     folder, secret, _, model = demo
     kept = load_bundle(folder / "compact.bundle")
@@ -59,7 +59,7 @@ def test_tiles_beyond_the_kept_budget_are_unpacked_again_when_rendered_with_the_
     assert [t.noise.unpacked is not None for t in partly.tiles] == [True, False]
     loaded = load_model(model)
     for bundle in (kept, partly):
-        revealed = reveal(bundle, loaded.render_config, loaded.fields())
+        revealed = reveal_tiles(bundle, loaded.render_config, loaded.fields())
         assert revealed.exact
         np.testing.assert_array_equal(revealed.pixels, secret)
 

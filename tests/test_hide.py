@@ -11,7 +11,7 @@ from helpers import interrupted_after_saves, make_tiny_scene
 from noisenerf.runtime.bundle import load_bundle
 from noisenerf.runtime.errors import UserError
 from noisenerf.runtime.images import to_uint8
-from noisenerf.runtime.reveal import reveal
+from noisenerf.runtime.reveal import reveal_tiles
 from noisenerf.train.hide.settings import CompactSettings, PaperSettings
 from noisenerf.train.hide.plan import HideConfig
 from noisenerf.train.hide.run import hide
@@ -48,7 +48,7 @@ def test_exact_hide_recovers_every_value_and_leaves_weights_unchanged(scene, tmp
     assert [t["rect"] for t in report["tiles"]] == [list(r) for r in tile_rects(30, 20, 16)]
     bundle = load_bundle(tmp_path / "s.bundle")
     assert bundle.layout == layout and bundle.dtype == dtype and bundle.tiles[0].noise.shape == (16, 16, stored)
-    revealed = reveal(bundle, scene.config.render, numpy_fields(scene.fields()))
+    revealed = reveal_tiles(bundle, scene.config.render, numpy_fields(scene.fields()))
     np.testing.assert_array_equal(revealed.pixels, secret)
     assert revealed.exact
     if layout == "compact":  # coefficients, not escapes: this random net's density no shared γ(x) lifts
@@ -63,7 +63,7 @@ def test_bundle_holds_no_secret_and_other_weights_reveal_nothing(scene, tmp_path
     bundle = load_bundle(tmp_path / "s.bundle")
     other = make_tiny_scene(seed=1, width=64, depth=4)
     assert other.fingerprint() != bundle.model_fingerprint
-    wrong = reveal(bundle, other.config.render, numpy_fields(other.fields()))
+    wrong = reveal_tiles(bundle, other.config.render, numpy_fields(other.fields()))
     assert not wrong.exact
     assert np.mean(wrong.pixels == secret) < 0.2
 

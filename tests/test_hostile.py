@@ -35,7 +35,7 @@ from noisenerf.cli.reveal import main as reveal_main
 from noisenerf.runtime.bundle import METADATA_KEY, load_bundle
 from noisenerf.runtime.images import write_image
 from noisenerf.runtime.model import METADATA_KEY as MODEL_KEY
-from noisenerf.train.hide import exact_solver, progress as progress_module
+from noisenerf.train.hide import exact_solver, resume as resume_module
 from noisenerf.train.scene.procedural import write_procedural_dataset
 
 PEAK_MB = 400  # what an allocation case may cost at most, interpreter and libraries included
@@ -62,14 +62,14 @@ def hide_args(world: World, output: Path, *extra) -> list:
 @pytest.fixture(scope="session")
 def world(reveal_inputs, tmp_path_factory) -> World:
     """Built once: the reveal inputs, an 8x24 secret (tiles of 16x8 and 8x8 px), and one hide of it whose partial
-    folder is kept (Progress.clear disabled) for the resume cases."""
+    folder is kept (ResumeStore.clear disabled) for the resume cases."""
     inputs, model, bundle = reveal_inputs
     directory = tmp_path_factory.mktemp("hostile")
     secret = directory / "secret.png"
     write_image(secret, np.random.default_rng(7).integers(0, 256, (8, 24, 3), dtype=np.uint8))
     incomplete = World(directory, inputs / "scene", model, bundle, secret, b"", directory / "kept.bundle.partial")
     with pytest.MonkeyPatch.context() as patch:
-        patch.setattr(progress_module.Progress, "clear", lambda self: None)
+        patch.setattr(resume_module.ResumeStore, "clear", lambda self: None)
         assert noisenerf_main([str(a) for a in hide_args(incomplete, directory / "kept.bundle")]) == 0
     return World(**{**incomplete.__dict__, "hidden": (directory / "kept.bundle").read_bytes()})
 
@@ -842,7 +842,7 @@ def restamped(path: Path, key: str, tensors: dict) -> None:
     """Write `tensors` as part `path` with a valid stamp for run `key` (what a careless or hostile writer
     that knows the key could do): only the shape and value checks stand between it and the bundle."""
     tile, part = (int(piece[-4:] if i == 0 else piece[-5:]) for i, piece in enumerate(path.stem.split("_")))
-    stamp = progress_module.Progress.stamp(SimpleNamespace(key=key), tile, part, tensors)
+    stamp = resume_module.ResumeStore.stamp(SimpleNamespace(key=key), tile, part, tensors)
     save_torch_file(tensors, str(path), metadata=stamp)
 
 

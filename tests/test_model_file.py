@@ -24,7 +24,7 @@ from noisenerf.runtime.images import read_native
 from noisenerf.runtime.model import load_model
 from noisenerf.runtime.onnx_file import parse_model
 from noisenerf.runtime.render import render_view
-from noisenerf.runtime.reveal import render_tile, reveal
+from noisenerf.runtime.reveal import render_tile, reveal_tiles
 from noisenerf.train.hide.plan import HideConfig, plan
 from noisenerf.train.scene.render import numpy_coarse, numpy_field, numpy_fields
 
@@ -128,7 +128,7 @@ def test_tiles_reveal_through_their_network(fine_model, tmp_path, network):
         assert np.abs(ours - render_tile(tile, scene.config.render, other_field)).max() > 1e-2
     result = run_reveal(model, tmp_path / "s.bundle", "-o", tmp_path / "out.png", "--threads", 1)
     assert result.returncode == 0 and result.stdout.startswith("exact: true"), result.stderr
-    expected = reveal(reread, scene.config.render, numpy_fields(scene.fields())).pixels
+    expected = reveal_tiles(reread, scene.config.render, numpy_fields(scene.fields())).pixels
     np.testing.assert_array_equal(read_native(tmp_path / "out.png"), expected)
 
 

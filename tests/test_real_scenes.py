@@ -13,7 +13,7 @@ from noisenerf.runtime.images import load_secret, resize_image
 from noisenerf.runtime.images import to_uint8
 from noisenerf.runtime.model import load_model
 from noisenerf.runtime.render import render_view
-from noisenerf.runtime.reveal import render_tile, reveal
+from noisenerf.runtime.reveal import render_tile, reveal_tiles
 from noisenerf.train.hide.plan import HideConfig
 from noisenerf.train.hide.run import hide
 from noisenerf.train.scene.datasets import load_dataset
@@ -67,7 +67,7 @@ def test_real_photo_hides_exactly_and_reveals_in_onnxruntime(lego, shared_data, 
                   CPU, force=True)
     assert report["exact"], report["tiles"]
     bundle = load_bundle(folder / f"{layout}.bundle")
-    revealed = reveal(bundle, model.render_config, model.fields(), keep_float=True)
+    revealed = reveal_tiles(bundle, model.render_config, model.fields(), keep_float=True)
     assert revealed.exact
     np.testing.assert_array_equal(revealed.pixels, secret)
     torch_image = render_tile(bundle.tiles[0], scene.config.render, numpy_field(scene.render_field))

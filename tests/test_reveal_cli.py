@@ -14,7 +14,7 @@ from noisenerf.runtime.bundle import load_bundle
 from noisenerf.runtime.images import read_native
 from noisenerf.runtime.model import load_model
 from noisenerf.runtime.rays import camera_ray_batch
-from noisenerf.runtime.reveal import reveal
+from noisenerf.runtime.reveal import reveal_tiles
 from noisenerf.runtime.sampling import sample_along
 from noisenerf.runtime.sampling import sample_positions
 from noisenerf.train.scene.scene import load_scene
@@ -30,7 +30,7 @@ def test_reveal_writes_the_library_reveal_and_reports_exact(reveal_inputs, tmp_p
     assert report["rays"] == 32 * 12 and report["samples"] == 32 * 12 * 24
     assert report["output"] == str(tmp_path / "out.png") and report["seconds"] > 0
     loaded = load_model(model)
-    expected = reveal(load_bundle(bundle), loaded.render_config, loaded.fields())
+    expected = reveal_tiles(load_bundle(bundle), loaded.render_config, loaded.fields())
     np.testing.assert_array_equal(read_native(tmp_path / "out.png"), expected.pixels)
 
 
@@ -57,7 +57,7 @@ def test_wide_outputs_hold_the_pixels_exact_judged(reveal_inputs, tmp_path, name
     report = json.loads(result.stdout)
     assert report["exact"] is True and report["written"].endswith(written)
     loaded = load_model(model)
-    expected = reveal(load_bundle(bundle), loaded.render_config, loaded.fields(), keep_float=True)
+    expected = reveal_tiles(load_bundle(bundle), loaded.render_config, loaded.fields(), keep_float=True)
     stored = read_native(tmp_path / name)
     np.testing.assert_array_equal(stored, scaled(expected.pixels))
     assert not np.array_equal(stored, scaled(expected.image * 255).astype(stored.dtype))  # not the float render

@@ -70,10 +70,10 @@ def test_malformed_json_is_refused(tmp_path):
     {"depth": 4, "width": 32, "use_viewdirs": False},
 ])
 def test_hand_written_jacobian_equals_autograd(config):
-    from noisenerf.train.scene.field import FieldConfig, NeRFField
+    from noisenerf.train.scene.field import MlpConfig, MlpField
 
     torch.manual_seed(0)
-    field = NeRFField(FieldConfig(**config)).double().requires_grad_(False)
+    field = MlpField(MlpConfig(**config)).double().requires_grad_(False)
     encoded = 2.0 * torch.randn(64, field.config.noise_dims, dtype=torch.float64)
     raw, jacobian = field.outputs_and_jacobian(encoded)
 

@@ -6,7 +6,7 @@ multi-tile bundle; a hash-grid field; nerfacto fields of both implementations, i
 nerfstudio runs), exports the models, and writes beside each model.onnx and
 secret.bundle what the Python runtime computes on them: per tile the rays (runtime.rays.camera_ray_batch),
 the expanded noise (the tile noise's `rows`), the rendered colours (runtime.reveal.render_tile), and the
-revealed 8-bit pixels, digest and exactness (runtime.reveal.reveal). Tampered copies carry the refusal's code and
+revealed 8-bit pixels, digest and exactness (runtime.reveal.reveal_tiles). Tampered copies carry the refusal's code and
 params (`noisenerf.reveal` raises them; `noisenerf-reveal` exits 2 with its message). The manifest also holds the
 graphs runtime.fields derives for hash-grid and nerfacto architectures, and the refusals of those out of the caps,
 and the models of a fine
@@ -104,7 +104,7 @@ def golden(folder: Path) -> dict:
     from noisenerf.runtime.bundle import load_bundle
     from noisenerf.runtime.model import check_bundle, load_model
     from noisenerf.runtime.rays import camera_ray_batch
-    from noisenerf.runtime.reveal import render_tile, reveal, tile_field
+    from noisenerf.runtime.reveal import render_tile, reveal_tiles, tile_field
 
     model, bundle = load_model(folder / "model.onnx", threads=1), load_bundle(folder / "secret.bundle")
     check_bundle(model, bundle)
@@ -124,7 +124,7 @@ def golden(folder: Path) -> dict:
             "colors": write_array(folder, f"tile{i}_colors",
                                   render_tile(tile, model.render_config, tile_field(tile, fields))),
         })
-    revealed = reveal(bundle, model.render_config, fields, keep_float=True)
+    revealed = reveal_tiles(bundle, model.render_config, fields, keep_float=True)
     return {"width": bundle.width, "height": bundle.height, "layout": bundle.layout, "exact": revealed.exact,
             "sha256": bundle.secret_sha256, "fingerprint": model.fingerprint, "tiles": tiles,
             "image": write_array(folder, "image", revealed.image),

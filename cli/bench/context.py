@@ -17,7 +17,7 @@ import torch
 from noisenerf.runtime.bundle import load_bundle
 from noisenerf.runtime.images import resize_image, to_uint8
 from noisenerf.runtime.model import Model
-from noisenerf.runtime.reveal import Revealed, reveal
+from noisenerf.runtime.reveal import Revealed, reveal_tiles
 from noisenerf.train.hide.plan import HideConfig
 from noisenerf.train.hide.run import hide
 from noisenerf.train.scene.scene import Scene
@@ -52,7 +52,7 @@ class BenchContext:
     def hide_and_reveal(self, secret: np.ndarray, name: str, config: HideConfig) -> tuple[dict, Revealed, float]:
         """self.hide, then the bundle revealed with onnxruntime: hide's report, the reveal, its seconds."""
         report = self.hide(secret, name, config)
-        revealed, seconds = timed(reveal, load_bundle(self.work / f"{name}.bundle"), self.model.render_config,
+        revealed, seconds = timed(reveal_tiles, load_bundle(self.work / f"{name}.bundle"), self.model.render_config,
                                   self.model.fields())
         return report, revealed, seconds
 

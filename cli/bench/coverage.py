@@ -16,7 +16,7 @@ import numpy as np
 
 from noisenerf.runtime.bundle import load_bundle
 from noisenerf.runtime.images import load_secret, to_uint8
-from noisenerf.runtime.reveal import reveal
+from noisenerf.runtime.reveal import reveal_tiles
 from noisenerf.train.hide.plan import HideConfig
 
 from noisenerf.cli.bench.context import BenchContext, Measured, resized
@@ -91,7 +91,7 @@ def sweep(context: BenchContext, secrets: dict[str, np.ndarray], views: range, s
             started = time.perf_counter()
             report = context.hide(secret, "coverage", HideConfig(view=view, seed=context.config.seed))
             seconds = time.perf_counter() - started
-            revealed = reveal(load_bundle(context.work / "coverage.bundle"), context.model.render_config,
+            revealed = reveal_tiles(load_bundle(context.work / "coverage.bundle"), context.model.render_config,
                               context.model.fields())
             exact = int((revealed.pixels == secret).all(-1).sum())
             rows.append(vars(CoverageRow(

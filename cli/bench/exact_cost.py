@@ -15,7 +15,7 @@ from noisenerf.runtime.bundle import load_bundle
 from noisenerf.runtime.metrics import psnr
 from noisenerf.runtime.networks import render_network
 from noisenerf.runtime.render import render_view
-from noisenerf.runtime.reveal import reveal
+from noisenerf.runtime.reveal import reveal_tiles
 from noisenerf.runtime.session import OnnxField, read_model_file
 from noisenerf.train.hide.settings import recipe
 from noisenerf.train.hide.plan import HideConfig
@@ -54,7 +54,7 @@ def measure_cost(context: BenchContext) -> Cost:
     model, secret = context.model, context.secret
     report = context.hide(secret, "full", HideConfig(view=context.config.view))
     bundle = load_bundle(context.work / "full.bundle")
-    revealed, reveal_seconds = timed(reveal, bundle, model.render_config, model.fields())
+    revealed, reveal_seconds = timed(reveal_tiles, bundle, model.render_config, model.fields())
     _, render_seconds = timed(render_view, bundle.tiles[0].camera, model.render_config, model.field, None,
                               early_stop=0.0)
     hide_seconds = report["seconds"]
@@ -109,7 +109,7 @@ def measure_throughput(context: BenchContext) -> Measured:
             torch.set_num_threads(threads)
             field_fn(points[:1024], viewdirs[:1024], noise[:1024])  # warm-up
             _, field_seconds = timed(field_fn, points, viewdirs, noise)
-            revealed, reveal_seconds = timed(reveal, bundle, scene.config.render,
+            revealed, reveal_seconds = timed(reveal_tiles, bundle, scene.config.render,
                                              {render_network(scene.fields()): field_fn})
             samples_per_second = len(points) / field_seconds
             rows.append({"backend": name, "threads": threads, "reveal_rays_per_second": bundle.width * bundle.height

@@ -31,7 +31,7 @@ from noisenerf.runtime.field_callbacks import plain
 from noisenerf.runtime.model import Model, load_model
 from noisenerf.runtime.rays import RayBatch
 from noisenerf.runtime.render import render_rays
-from noisenerf.runtime.reveal import reveal
+from noisenerf.runtime.reveal import reveal_tiles
 from noisenerf.runtime.sampling import LAST_DELTA, SamplingConfig
 from noisenerf.train.hide.settings import PaperSettings
 from noisenerf.train.hide.plan import HideConfig
@@ -163,7 +163,7 @@ def tiny_and_many_tile_secrets_hide_and_reveal_exactly(stressed: Stressed, heigh
         require(report["exact"], "the hide is not exact")
         bundle = load_bundle(path)
         all_finite(*(t.noise.loaded().rows(0, t.rect[2] * t.rect[3]) for t in bundle.tiles))
-        revealed = reveal(bundle, model.render_config, model.fields())
+        revealed = reveal_tiles(bundle, model.render_config, model.fields())
         require(revealed.exact and np.array_equal(revealed.pixels, secret), "the reveal is not the secret")
 
 

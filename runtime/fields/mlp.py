@@ -5,7 +5,7 @@ Graph, per distinct encoding (shared by coarse and fine networks when their freq
 (paper eq. 4, nerf-pytorch's order); noise is added to [γ(x) ‖ γ(d)] and split again (eq. 4–5); the
 network is nn.Linear's layers as Gemm(transB=1) with ReLU and its skip Concat, then sigmoid colour and
 ReLU density (σ squeezed to (n,)). Noise segments: position γ(x) (3 + 6·xyz_freqs), direction γ(d)
-(3 + 6·dir_freqs, absent without view directions). Torch twin: train.scene.field.NeRFField.
+(3 + 6·dir_freqs, absent without view directions). Torch twin: train.scene.field.MlpField.
 """
 
 from __future__ import annotations
@@ -55,7 +55,7 @@ class MlpKind(FieldKind):
     opset = 17
 
     def checked(self, config, what: str) -> dict:
-        """train.scene.field.FieldConfig's fields, exactly, within the caps."""
+        """train.scene.field.MlpConfig's fields, exactly, within the caps."""
         if not isinstance(config, dict) or set(config) != KEYS:
             raise UserError(f"the {what} network's architecture must have exactly depth, width, skips, xyz_freqs, "
                             "dir_freqs and use_viewdirs", code="field.keys", network=what, kind=self.name)
@@ -78,7 +78,7 @@ class MlpKind(FieldKind):
             else (position,)
 
     def build(self, builder: GraphBuilder, prefix: str, config: dict, rgb: str, sigma: str) -> None:
-        """One NeRF MLP (train.scene.field.NeRFField, layer for layer)."""
+        """One NeRF MLP (train.scene.field.MlpField, layer for layer)."""
         xyz, dirs = noisy_inputs(builder, config)
         xyz_dims, width = encoding_dims(config["xyz_freqs"]), config["width"]
         h, fan_in = xyz, xyz_dims

@@ -31,7 +31,7 @@ from noisenerf.runtime.progress import Counter, ProgressFn
 from noisenerf.train.hide.executors import EXECUTORS, open_executor
 from noisenerf.train.hide.jobs import PREPARE, FieldWeights, Job
 from noisenerf.train.hide.plan import HideConfig, plan, run_key
-from noisenerf.train.hide.progress import Progress
+from noisenerf.train.hide.resume import ResumeStore
 from noisenerf.train.hide.settings import pass_samples_for
 from noisenerf.train.hide.solvers import SOLVERS
 from noisenerf.train.hide.tiling import part_rows
@@ -85,7 +85,7 @@ def hide(scene: Scene, secret: np.ndarray, output: Path, config: HideConfig, dev
         raise UserError(PAYLOAD_IS_EXACT)
     workers = (available_cores() if workers is None else workers) if device.type == "cpu" and solver.method.spreads else 1
     weights = FieldWeights.of(scene, hide_plan.tiles[0].network)
-    with Progress(output, run_key(scene, secret, config)) as resume, \
+    with ResumeStore(output, run_key(scene, secret, config)) as resume, \
             open_executor(executor, weights, workers, device, ray_address, verbose) as jobs:
         started = time.perf_counter()
         driver = Driver(secret, config, device, weights, solver, noise_dims, resume, jobs, allow_inexact,
@@ -120,7 +120,7 @@ class Driver:
     deleted and solved again: a saved part is never trusted over a fresh solve."""
 
     def __init__(self, secret: np.ndarray, config: HideConfig, device: torch.device, weights: FieldWeights,
-                 solver, noise_dims: int, resume: Progress, jobs, allow_inexact: bool, pixels_done: Counter,
+                 solver, noise_dims: int, resume: ResumeStore, jobs, allow_inexact: bool, pixels_done: Counter,
                  planned: tuple[Tile, ...]):
         self.secret, self.config, self.device, self.weights = secret, config, device, weights
         self.solver, self.noise_dims, self.resume, self.jobs = solver, noise_dims, resume, jobs

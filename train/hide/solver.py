@@ -77,7 +77,7 @@ class Solver:
 
     def part_layout(self, config: HideConfig, rows: int, dims: int, prepared: object) -> tuple[dict, Callable]:
         """What a saved part of `rows` rays must hold, (shape, dtype) by name, and the check of its values
-        beyond that (Progress.load)."""
+        beyond that (ResumeStore.load)."""
         raise NotImplementedError
 
     def assemble(self, secret_view: SecretView, pixels: torch.Tensor, shape: tuple[int, int], config: HideConfig,

@@ -18,7 +18,7 @@ from noisenerf.runtime.encoding import encoding_dims
 
 
 @dataclass(frozen=True)
-class FieldConfig:
+class MlpConfig:
     """Architecture of one NeRF MLP (nerf-pytorch's netdepth, netwidth, multires, multires_views), the
     `mlp` field kind (runtime.fields.mlp), whose architecture names no kind."""
 
@@ -60,13 +60,13 @@ class FieldConfig:
     def to_dict(self) -> dict:
         return dataclasses.asdict(self)
 
-    def in_box(self, aabb) -> "FieldConfig":
+    def in_box(self, aabb) -> "MlpConfig":
         """The config for a scene in this box: unchanged (γ(x) spans all space)."""
         return self
 
     @staticmethod
-    def from_dict(data: dict) -> "FieldConfig":
-        return FieldConfig(**{**data, "skips": tuple(data.get("skips", (4,)))})
+    def from_dict(data: dict) -> "MlpConfig":
+        return MlpConfig(**{**data, "skips": tuple(data.get("skips", (4,)))})
 
 
 def positional_encoding(x: torch.Tensor, n_freqs: int) -> torch.Tensor:
@@ -88,10 +88,10 @@ def noisy_forward(field, points: torch.Tensor, viewdirs: torch.Tensor, noise: to
     return torch.sigmoid(raw_rgb), field.density_of(raw_density)
 
 
-class NeRFField(nn.Module):
+class MlpField(nn.Module):
     """F(γ(x) + δ_x, γ(d) + δ_d) -> (rgb, σ) with sigmoid colour and ReLU density."""
 
-    def __init__(self, config: FieldConfig):
+    def __init__(self, config: MlpConfig):
         super().__init__()
         self.config = config
         width, xyz = config.width, config.xyz_dims

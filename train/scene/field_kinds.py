@@ -1,7 +1,7 @@
 """The field kinds in torch: which module implements each kind, and the protocol the rest of the code uses.
 
 A field kind (runtime.fields) is registered here with its config dataclass and its nn.Module: `mlp`
-(train.scene.field: FieldConfig, NeRFField), `hashgrid` (train.scene.hashgrid: HashGridConfig,
+(train.scene.field: MlpConfig, MlpField), `hashgrid` (train.scene.hashgrid: HashGridConfig,
 HashGridField) and `nerfacto` (train.scene.nerfacto: NerfactoConfig, NerfactoField, imported only). Fitting, the render pipeline, the occupancy grid, the secret view and the solvers reach a
 field only through `Field`; nothing else branches on a kind.
 """
@@ -14,12 +14,12 @@ import torch
 
 from noisenerf.runtime.errors import UserError
 from noisenerf.runtime.fields import DEFAULT_KIND
-from noisenerf.train.scene.field import FieldConfig, NeRFField
+from noisenerf.train.scene.field import MlpConfig, MlpField
 from noisenerf.train.scene.hashgrid import HashGridConfig, HashGridField
 from noisenerf.train.scene.nerfacto import NerfactoConfig, NerfactoField
 
-FieldConfigs = FieldConfig | HashGridConfig | NerfactoConfig
-CLASSES = {"mlp": (FieldConfig, NeRFField), "hashgrid": (HashGridConfig, HashGridField),
+FieldConfigs = MlpConfig | HashGridConfig | NerfactoConfig
+CLASSES = {"mlp": (MlpConfig, MlpField), "hashgrid": (HashGridConfig, HashGridField),
            "nerfacto": (NerfactoConfig, NerfactoField)}
 
 

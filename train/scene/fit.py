@@ -42,7 +42,7 @@ from noisenerf.runtime.rays import field_space_rays
 from noisenerf.runtime.render import RenderConfig, render_view
 from noisenerf.runtime.sampling import SamplingConfig, jitter_positions, sample_positions
 from noisenerf.train.scene.datasets import view_rays
-from noisenerf.train.scene.field import FieldConfig
+from noisenerf.train.scene.field import MlpConfig
 from noisenerf.train.scene.field_kinds import FieldConfigs
 from noisenerf.train.scene.hashgrid import HashGridConfig
 from noisenerf.train.scene.occupancy import OccupancyConfig, OccupancyTracker, build_occupancy_grid, carve, cell_points
@@ -64,7 +64,7 @@ class FitConfig:
 
     preset: str
     field: FieldConfigs  # a hash grid's box is the dataset's (in_box)
-    fine: FieldConfig | None
+    fine: MlpConfig | None
     n_samples: int  # uniform samples per ray for skipping-based fitting (jittered)
     n_coarse: int  # hierarchical fitting only (paper preset)
     n_importance: int
@@ -94,10 +94,10 @@ class FitConfig:
 
 
 PRESETS = {
-    "small": FitConfig(preset="small", field=FieldConfig(depth=6, width=128), fine=None, n_samples=128,
+    "small": FitConfig(preset="small", field=MlpConfig(depth=6, width=128), fine=None, n_samples=128,
                        n_coarse=0, n_importance=0, batch_rays=1024, lr=2e-3, lr_final=1e-4,
                        occupancy=OccupancyConfig(warmup_steps=300)),
-    "paper": FitConfig(preset="paper", field=FieldConfig(), fine=FieldConfig(), n_samples=192, n_coarse=64,
+    "paper": FitConfig(preset="paper", field=MlpConfig(), fine=MlpConfig(), n_samples=192, n_coarse=64,
                        n_importance=128, batch_rays=1024, lr=5e-4, lr_final=5e-5, skipping=False),
     "hashgrid": FitConfig(preset="hashgrid", field=HashGridConfig(), fine=None, n_samples=128, n_coarse=0,
                           n_importance=0, batch_rays=1024, lr=1e-2, lr_final=1e-3, render_samples=256,

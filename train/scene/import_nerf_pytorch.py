@@ -2,7 +2,7 @@
 
 The checkpoint is read with `torch.load(weights_only=True)`: tensors and plain containers only, so a
 file carrying arbitrary Python objects is refused without running any of it. Module names equal
-nerf-pytorch's, so its state dicts map onto NeRFField one to one; the only exception is a net without
+nerf-pytorch's, so its state dicts map onto MlpField one to one; the only exception is a net without
 view directions, where nerf-pytorch also stores a never-used `views_linears` layer and, with a fine
 net, a fifth `output_linear` channel that nothing reads: both are dropped.
 
@@ -35,7 +35,7 @@ from noisenerf.runtime.errors import UserError
 from noisenerf.runtime.render import RenderConfig
 from noisenerf.runtime.sampling import SamplingConfig
 from noisenerf.train.scene.datasets import LLFF_BD_FACTOR, load_dataset, read_poses_bounds
-from noisenerf.train.scene.field import FieldConfig, NeRFField
+from noisenerf.train.scene.field import MlpConfig, MlpField
 from noisenerf.train.scene.occupancy import build_occupancy_grid
 from noisenerf.train.scene.scene import Scene, SceneConfig, check_scene_output, render_field
 
@@ -192,10 +192,10 @@ def check_supported(config: NerfPytorchConfig, source: str) -> None:
         raise UserError(f"{source}: N_samples = {config.n_samples} is too small (at least {minimum})")
 
 
-def field_configs(config: NerfPytorchConfig) -> tuple[FieldConfig, FieldConfig | None]:
+def field_configs(config: NerfPytorchConfig) -> tuple[MlpConfig, MlpConfig | None]:
     """nerf-pytorch's create_nerf architectures: skip at 4, the fine net only with N_importance > 0."""
-    def field(depth: int, width: int) -> FieldConfig:
-        return FieldConfig(depth=depth, width=width, skips=(4,), xyz_freqs=config.multires,
+    def field(depth: int, width: int) -> MlpConfig:
+        return MlpConfig(depth=depth, width=width, skips=(4,), xyz_freqs=config.multires,
                            dir_freqs=config.multires_views, use_viewdirs=config.use_viewdirs)
 
     fine = field(config.netdepth_fine, config.netwidth_fine) if config.n_importance > 0 else None
@@ -229,7 +229,7 @@ def is_torch_file(path: Path) -> bool:
     return head == LEGACY_TORCH_MAGIC or zipfile.is_zipfile(path)
 
 
-def checkpoint_shapes(field: NeRFField, output_channels: int) -> dict[str, tuple[int, ...]]:
+def checkpoint_shapes(field: MlpField, output_channels: int) -> dict[str, tuple[int, ...]]:
     """Parameter shapes nerf-pytorch's NeRF has for this field's architecture, in its state-dict order."""
     shapes = {name: tuple(value.shape) for name, value in field.state_dict().items()}
     if field.config.use_viewdirs:
@@ -240,7 +240,7 @@ def checkpoint_shapes(field: NeRFField, output_channels: int) -> dict[str, tuple
             "output_linear.weight": (output_channels, width), "output_linear.bias": (output_channels,)}
 
 
-def checked_state_dict(state: object, field: NeRFField, output_channels: int, label: str) -> dict[str, torch.Tensor]:
+def checked_state_dict(state: object, field: MlpField, output_channels: int, label: str) -> dict[str, torch.Tensor]:
     """A checkpoint state dict checked against the field's architecture -> the field's float32 state dict.
 
     label names the state dict in messages; the first missing, unexpected or misshapen parameter is refused.
@@ -268,7 +268,7 @@ def checked_state_dict(state: object, field: NeRFField, output_channels: int, la
             else state[name].to(torch.float32) for name in field.state_dict()}
 
 
-def load_fields(checkpoint: dict, config: NerfPytorchConfig, path: Path) -> tuple[NeRFField, NeRFField | None]:
+def load_fields(checkpoint: dict, config: NerfPytorchConfig, path: Path) -> tuple[MlpField, MlpField | None]:
     """The coarse (and fine) field with the checkpoint's weights, frozen, in eval mode."""
     fine_state = checkpoint.get(CHECKPOINT_FIELDS["fine"])
     if config.n_importance > 0 and fine_state is None:
@@ -282,7 +282,7 @@ def load_fields(checkpoint: dict, config: NerfPytorchConfig, path: Path) -> tupl
         if field_config is None:
             fields.append(None)
             continue
-        field = NeRFField(field_config)
+        field = MlpField(field_config)
         label = f"{path}: {CHECKPOINT_FIELDS[role]}"
         field.load_state_dict(checked_state_dict(checkpoint[CHECKPOINT_FIELDS[role]], field, output_channels, label))
         fields.append(field.eval().requires_grad_(False))

@@ -11,7 +11,7 @@ from noisenerf.runtime.camera import Camera, NDCSpace
 from noisenerf.runtime.occupancy import OccupancyGrid
 from noisenerf.runtime.render import RenderConfig
 from noisenerf.runtime.sampling import SamplingConfig
-from noisenerf.train.scene.field import FieldConfig
+from noisenerf.train.scene.field import MlpConfig
 from noisenerf.train.scene.hashgrid import HashGridConfig
 from noisenerf.train.scene.procedural import look_at_origin
 from noisenerf.train.scene.scene import Scene, SceneConfig, build_fields
@@ -29,7 +29,7 @@ def ring_scene_config(ndc: bool = False, fine: bool = False, width: int = 32, de
     SMALL_HASHGRID, 24 samples in [2, 6], or for `ndc` a forward-facing scene's 16 samples in NDC [0, 1]."""
     cameras = tuple(Camera.from_fov(look_at_origin(np.array([4 * np.sin(angle), -4 * np.cos(angle), 1.0])), 16, 12, 0.7)
                     for angle in np.linspace(0, 2 * np.pi, 6, endpoint=False))
-    field = SMALL_HASHGRID if kind == "hashgrid" else FieldConfig(depth=depth, width=width, skips=(1,))
+    field = SMALL_HASHGRID if kind == "hashgrid" else MlpConfig(depth=depth, width=width, skips=(1,))
     sampling = SamplingConfig(0.0, 1.0, 16) if ndc else SamplingConfig(2.0, 6.0, 24)
     render = RenderConfig(sampling=sampling, background=(1.0, 1.0, 1.0),
                           ndc=NDCSpace(0.4, 0.3) if ndc else None, pixel_center=0.5)

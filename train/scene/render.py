@@ -177,7 +177,7 @@ def numpy_field(field: Field) -> NoisyFieldFn:
 
 
 def numpy_fields(fields: dict[str, Field]) -> dict[str, NoisyFieldFn]:
-    """numpy_field of each network of a scene (Scene.fields()), as runtime.reveal.reveal takes them."""
+    """numpy_field of each network of a scene (Scene.fields()), as runtime.reveal.reveal_tiles takes them."""
     return {name: numpy_field(field) for name, field in fields.items()}
 
 

@@ -1,7 +1,7 @@
 // Mirrors runtime/reveal.py (render_tile, tile_field, reveal), with runtime/render.py's chunking (rays_per_chunk,
 // render_in_chunks), runtime/marching.py's front-to-back march (16 samples at a time, early_stop 0: only rays
 // whose transmittance is exactly 0 stop), runtime/networks.py's render network, and runtime/session.py's points
-// per onnxruntime run (DEFAULT_CHUNK) and its sessions: one per network, of the graph pruned to that network's
+// per onnxruntime run (DEFAULT_BATCH) and its sessions: one per network, of the graph pruned to that network's
 // outputs (onnxruntime-web runs every node of a graph whatever is fetched: a fine network's model would run its
 // coarse network too, a nerfacto model its proposal networks). A chunk of rays holds its own noise only: memory is
 // bounded by the chunk.
@@ -20,7 +20,7 @@ import { chunkNoise, chunkRows } from "./bundle.js";
 const f32 = Math.fround;
 export const CHUNK_SAMPLES = 1 << 17;
 export const CHUNK_RAYS = 4096;
-export const DEFAULT_CHUNK = 16384;
+export const DEFAULT_BATCH = 16384;
 const MARCH_SAMPLES = 16;
 
 export const renderNetwork = (names) => (names.includes("fine") ? "fine" : "coarse");
@@ -68,12 +68,12 @@ export class OnnxField {
     if (session === undefined) throw new Error(`no session answers for the ${network} network`);
     return session;
   }
-  /** points (m·3), viewdirs (m·3), noise (m·dims) -> {rgb (m·3), sigma (m)}, DEFAULT_CHUNK points per run. */
+  /** points (m·3), viewdirs (m·3), noise (m·dims) -> {rgb (m·3), sigma (m)}, DEFAULT_BATCH points per run. */
   async evaluate(network, points, viewdirs, noise, m, dims) {
     const [rgbName, sigmaName] = networkOutputs(this.networks, network);
     const rgb = new Float32Array(m * 3), sigma = new Float32Array(m);
-    for (let start = 0; start < m; start += DEFAULT_CHUNK) {
-      const n = Math.min(DEFAULT_CHUNK, m - start);
+    for (let start = 0; start < m; start += DEFAULT_BATCH) {
+      const n = Math.min(DEFAULT_BATCH, m - start);
       const feeds = {
         [INPUT_NAMES[0]]: new ort.Tensor("float32", points.subarray(start * 3, (start + n) * 3), [n, 3]),
         [INPUT_NAMES[1]]: new ort.Tensor("float32", viewdirs.subarray(start * 3, (start + n) * 3), [n, 3]),

@@ -17,7 +17,7 @@ from noisenerf.runtime.errors import UserError
 from noisenerf.runtime.files import existing_kind, write_bytes
 
 
-class Progress:
+class ResumeStore:
     """Finished parts of noise in OUT.partial/, for one run at a time.
 
     A run holds an exclusive lock on OUT.partial/lock for its whole life, so a second hide writing to the
@@ -118,7 +118,7 @@ class Progress:
         """Remove the folder once the bundle is written (the lock is released on leaving the run)."""
         shutil.rmtree(self.directory, ignore_errors=True)
 
-    def __enter__(self) -> "Progress":
+    def __enter__(self) -> "ResumeStore":
         return self
 
     def __exit__(self, *exc) -> None:
