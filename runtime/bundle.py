@@ -136,13 +136,16 @@ class Bundle:
             **({"payload": self.payload} if self.payload is not None else {}),
         }
 
-    def save(self, path: str | Path, replace: bool = False) -> None:
-        """Validate, then write atomically (replace: whether an existing file may be replaced, --force)."""
+    def to_bytes(self) -> bytes:
+        """Validated, the safetensors file's bytes."""
         validate(self)
         tensors = {name: value for i, tile in enumerate(self.tiles)
                    for name, value in tile.noise.tensors(f"tile_{i:04d}").items()}
-        write_bytes(path, save(tensors, metadata={METADATA_KEY: json.dumps(self.metadata(), sort_keys=True)}),
-                    replace=replace)
+        return save(tensors, metadata={METADATA_KEY: json.dumps(self.metadata(), sort_keys=True)})
+
+    def save(self, path: str | Path, replace: bool = False) -> None:
+        """Validate, then write atomically (replace: whether an existing file may be replaced, --force)."""
+        write_bytes(path, self.to_bytes(), replace=replace)
 
 
 def expected_noise_shape(tile: Tile, bundle: "Bundle") -> tuple[int, ...]:

@@ -36,7 +36,7 @@ from cryptography.hazmat.primitives.ciphers.aead import ChaCha20Poly1305
 from cryptography.hazmat.primitives.kdf.scrypt import Scrypt
 
 from noisenerf.runtime.errors import UserError
-from noisenerf.runtime.files import parse_json, write_bytes
+from noisenerf.runtime.files import parse_json
 from noisenerf.runtime.limits import checked_int
 
 CIPHER = "chacha20-poly1305"
@@ -193,13 +193,14 @@ def bundle_tag(header: dict, body: bytes, keys: Keys) -> str:
     return mac.hexdigest()
 
 
-def add_bundle_tag(path: Path, keys: Keys) -> None:
-    """Write the bundle's tag into its safetensors metadata (atomically; the tensor data is unchanged)."""
-    header, body = split_safetensors(path.read_bytes(), path)
+def tagged(data: bytes, keys: Keys) -> bytes:
+    """A bundle's bytes with its tag in the safetensors metadata (the tensor data unchanged), before they are
+    written: a sealed bundle is written once, whole."""
+    header, body = split_safetensors(data, "the bundle")
     header["__metadata__"] = {**header.get("__metadata__", {}), MAC_KEY: bundle_tag(header, body, keys)}
     text = json.dumps(header, separators=(",", ":")).encode()
     text += b" " * (-len(text) % 8)  # safetensors keeps the data 8-byte aligned
-    write_bytes(path, len(text).to_bytes(8, "little") + text + body, replace=True)  # the bundle just written
+    return len(text).to_bytes(8, "little") + text + body
 
 
 def check_bundle_tag(data: bytes, keys: Keys) -> None:

@@ -253,3 +253,23 @@ def test_hide_refuses_bad_payload_requests(tmp_path, capsys, monkeypatch):
         err = capsys.readouterr().err
         assert len(err.splitlines()) == 1 and message in err, err
     assert not (tmp_path / "o").exists()
+
+
+def test_a_sealed_bundle_is_written_once_whole(demo, tmp_path, monkeypatch):
+    """The tag is computed over the bundle's bytes before they are written: one publication of the output, and
+    the file published is the sealed one (it opens under the passphrase)."""
+    from noisenerf.runtime import files
+
+    scene, model = demo
+    published, atomic_output = [], files.atomic_output
+
+    def counted(path, **options):
+        published.append(Path(path))
+        return atomic_output(path, **options)
+    monkeypatch.setattr(files, "atomic_output", counted)
+    out = tmp_path / "once.bundle"
+    hide_payload(scene, Record("file", b"written once\n", b"once.txt"), out, CONFIG, CPU, passphrase=PASSPHRASE,
+                 seal=fixed_seal())
+    assert published.count(out) == 1
+    result = run_reveal(model, out, "-o", tmp_path / "once.txt", passphrase=PASSPHRASE)
+    assert result.returncode == 0 and (tmp_path / "once.txt").read_bytes() == b"written once\n"

@@ -18,7 +18,7 @@ from noisenerf.runtime.errors import UserError
 from noisenerf.runtime.files import check_output_path
 from noisenerf.runtime.payload import Record, payload_secret
 from noisenerf.runtime.progress import ProgressFn
-from noisenerf.runtime.sealing import Seal, add_bundle_tag, derive_keys, new_seal
+from noisenerf.runtime.sealing import Seal, derive_keys, new_seal
 from noisenerf.train.hide.plan import HideConfig
 from noisenerf.train.hide.run import hide
 from noisenerf.train.scene.scene import Scene
@@ -58,12 +58,7 @@ def hide_payload(scene: Scene, record: Record, output: Path, config: HideConfig,
     if announce is not None:
         announce(room)
     report = hide(scene, secret, output, config, device, force=force, progress=progress, payload=payload,
-                  workers=workers, executor=executor, ray_address=ray_address, verbose=verbose)
-    if sealing is not None:
-        try:
-            add_bundle_tag(output, sealing[1])
-        except BaseException:
-            output.unlink(missing_ok=True)
-            raise
+                  workers=workers, executor=executor, ray_address=ray_address, verbose=verbose,
+                  seal_keys=None if sealing is None else sealing[1])
     return {**report, "bundle_bytes": output.stat().st_size, "payload": record.report(),
             "sealed": sealing is not None, "capacity": room}

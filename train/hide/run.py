@@ -23,11 +23,12 @@ import noisenerf
 from noisenerf.runtime.bundle import Bundle, Tile, secret_digest
 from noisenerf.runtime.cores import available_cores
 from noisenerf.runtime.errors import InexactResult, UserError
-from noisenerf.runtime.files import check_output_path
+from noisenerf.runtime.files import check_output_path, write_bytes
 from noisenerf.runtime.layouts import LAYOUTS
 from noisenerf.runtime.limits import checked_image_size
 from noisenerf.runtime.metrics import tile_quality
 from noisenerf.runtime.progress import Counter, ProgressFn
+from noisenerf.runtime.sealing import Keys, tagged
 from noisenerf.train.hide.executors import EXECUTORS, open_executor
 from noisenerf.train.hide.jobs import PREPARE, FieldWeights, Job
 from noisenerf.train.hide.plan import HideConfig, plan, run_key
@@ -59,9 +60,10 @@ class TileWork:
 def hide(scene: Scene, secret: np.ndarray, output: Path, config: HideConfig, device: torch.device,
          force: bool = False, progress: ProgressFn | None = None, payload: dict | None = None,
          workers: int | None = None, allow_inexact: bool = False, executor: str = "local",
-         ray_address: str | None = None, verbose: bool = False) -> dict:
+         ray_address: str | None = None, verbose: bool = False, seal_keys: Keys | None = None) -> dict:
     """Hide `secret` (H, W, 3) uint8 in the scene; write the bundle to `output`; return the report.
-    payload: the bundle's payload object when the secret carries one (train.payload), else None.
+    payload: the bundle's payload object when the secret carries one (train.payload), else None; seal_keys: a
+    sealed payload's keys, under which the bundle is tagged before it is written.
     progress: told of the pixels solved (runtime.progress; parts solved again are taken back).
     A method that promises exactness (Method.exact) and leaves a tile's pixels off raises InexactResult at
     that tile, writing no bundle and keeping the solved parts for a resume, unless allow_inexact (never for
@@ -98,7 +100,8 @@ def hide(scene: Scene, secret: np.ndarray, output: Path, config: HideConfig, dev
                         extra={"method": config.method, "noisenerf": noisenerf.__version__,
                                "config": config.to_dict()}, payload=payload,
                         coefficients=noise_layout.coefficients_of(tiles[0].noise))
-        bundle.save(output, replace=force)
+        data = bundle.to_bytes()
+        write_bytes(output, data if seal_keys is None else tagged(data, seal_keys), replace=force)
         resume.clear()
     n_pixels = secret.shape[0] * secret.shape[1]
     exact_pixels = sum(r["exact_fraction"] * r["rect"][2] * r["rect"][3] for r in reports)
