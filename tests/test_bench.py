@@ -48,7 +48,7 @@ def inputs(tmp_path_factory):
                          twok_size=32, twok_tile=16, twok_rows=1, threads=(1,), payload_bytes=200, view_width=12,
                          contention_width=12, browser_size=32, browser_repeats=3, big_secret=(40, 24),
                          data=str(data), fields_minutes=0.2, fields_resolution=16, fields_curve_seconds=2.0,
-                         coverage_size=8, nerfstudio_run=str(run), nerfstudio_data=str(run_data),
+                         coverage_size=8, nerfstudio_run=str(run), nerfstudio_data=str(run_data), junk_bytes=8 << 20,
                          nerfstudio_golden=str(NERFSTUDIO_GOLDENS), nerfstudio_width=12,
                          experiments=tuple(name for name in EXPERIMENTS if name != "cluster"))  # Ray: test_cluster.py
     return folder, config
@@ -145,13 +145,16 @@ def test_exact_curve_ends_exact_and_photos_reveal_exactly(report):
 def test_every_reliability_case_is_refused_cleanly(report):
     _, sections = report
     rows = sections["reliability"].rows
-    assert {row["class"] for row in rows} == {"decompression bomb", "downgrade", "race", "full disk", "sender's outputs",
-                                              "image formats", "defaults from the environment", "API argument kinds",
+    assert {row["class"] for row in rows} == {"decompression bomb", "framing", "files of junk", "downgrade", "race",
+                                              "full disk", "sender's outputs", "image formats",
+                                              "defaults from the environment", "API argument kinds",
                                               "imports that cannot render"}
     accepted = {"accepted, exact", "accepted, replaced whole"}
-    skipped = {"skipped (needs root)", "skipped (needs the cluster extra)"}
+    skipped = {"skipped (needs root)", "skipped (needs the cluster extra)", f"skipped ({browser_missing()})"}
     assert {row["verdict"] for row in rows} <= {"refused", *accepted, *skipped}, rows
-    assert {row["where"] for row in rows} == {"cli", "api"}
+    assert {row["where"] for row in rows} == {"cli", "api", "page"}
+    junk = [row for row in rows if row["class"] == "files of junk"]
+    assert len(junk) == 8 and all(row["case"].startswith("8 MiB of ") for row in junk), junk
     refused = sum(row["verdict"] == "refused" for row in rows)
     assert sum(row["verdict"] in accepted for row in rows) == 7 and refused >= 25
     assert sections["reliability"].lines[0].startswith(f"{len(rows)} cases: {refused} refused cleanly")

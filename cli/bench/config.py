@@ -36,6 +36,7 @@ class BenchConfig:
     browser_repeats: int = 5  # most runs of each reveal, both sides (median; a 2048² one runs once)
     threads: tuple[int, ...] = (1, 2)
     payload_bytes: int = 1 << 20  # the file the payload experiment hides, plain and sealed (random bytes)
+    junk_bytes: int = 1 << 30  # the reliability experiment's files of junk (zeros, random) given as a model, a bundle
     views: int = 8  # views spread around the scene for the per-view hide times
     view_photos: int = 5  # photos (the first of `photos`) hidden at each of those views
     view_width: int | None = 128  # their width there (None: native; 8 × 5 native photos take ~15 min on 2 cores)

@@ -2,8 +2,12 @@
 accepted with the right result, or not.
 
 Where: `cli` runs a command in a process of its own (refused cleanly: exit 2, one stderr line, no traceback,
-the output as it was, a folder file for file); `api` calls the library in this process (a UserError with a
-code and a one-line message, the output as it was). Classes: compressed bombs, a stripped seal, two reveals
+the output as it was, a folder file for file; peak MiB: its resident high-water mark); `api` calls the library in
+this process (a UserError with a code and a one-line message, the output as it was); `page` calls the site build's
+window.noisenerf.reveal in Chromium on the same files (refused cleanly: the library's code and params, one line;
+peak MiB: Chromium's resident growth during the call, over what it held with the files' bytes loaded, as a page
+holds a file its user picks). Classes: compressed bombs, streams framed otherwise, files of junk as a model or a
+bundle (a constant time and memory whatever their size), a stripped seal, two reveals
 racing to one output and a full file system (a 64 KiB tmpfs; root only, else skipped); the sender's outputs
 (nothing replaced without --force, a scene folder replaced whole); image formats (every one hides as its pixels
 or is refused); defaults from the environment (checked as their flags); the API's argument kinds; imports of
@@ -23,6 +27,7 @@ import sys
 import time
 import zlib
 from pathlib import Path
+from dataclasses import dataclass
 from typing import Callable
 
 import numpy as np
@@ -31,7 +36,9 @@ from safetensors.numpy import load_file, save_file
 from noisenerf.runtime.bundle import METADATA_KEY
 from noisenerf.train.hide.plan import HideConfig
 
-from noisenerf.cli.bench.context import BenchContext, Measured
+from noisenerf.cli.bench.big_secret import high_water_mib
+from noisenerf.cli.bench.browser import CHROMIUM, WEB_DIST, browser_missing, chromium_rss, served
+from noisenerf.cli.bench.context import BenchContext, Measured, peak_sampled
 
 PASSPHRASE = "noisenerf bench"
 
@@ -81,10 +88,19 @@ def reveal_process(*args, env: dict | None = None) -> subprocess.Popen:
 
 
 def command_process(module: str, *args, env: dict | None = None) -> subprocess.Popen:
-    """`python -m MODULE ARGS` (noisenerf-reveal, or noisenerf's own commands), stdin closed."""
-    return subprocess.Popen([sys.executable, "-m", module, *map(str, args)], stdout=subprocess.PIPE,
+    """`python -m MODULE ARGS` (noisenerf-reveal, or noisenerf's own commands), stdin closed, stdout dropped."""
+    return subprocess.Popen([sys.executable, "-m", module, *map(str, args)], stdout=subprocess.DEVNULL,
                             stderr=subprocess.PIPE, text=True, env={**os.environ, **(env or {})},
                             stdin=subprocess.DEVNULL)
+
+
+def finished(process: subprocess.Popen) -> tuple[str, float, float]:
+    """Wait for a command_process: its stderr, its seconds from here, its peak resident MiB as last sampled (VmHWM:
+    the exec'd program's own, where wait4's count would include the forked bench's pages)."""
+    started = time.monotonic()
+    with peak_sampled(lambda: high_water_mib(process.pid) or 0.0, 0.01) as peak:
+        _, stderr = process.communicate(timeout=600)
+    return stderr, time.monotonic() - started, peak[0]
 
 
 def noisenerf_process(*args, env: dict | None = None) -> subprocess.Popen:
@@ -98,17 +114,15 @@ def snapshot(path: Path):
     return path.read_bytes() if path.exists() else None
 
 
-def verdict(process: subprocess.Popen, output: Path, before=None) -> tuple[str, float]:
+def verdict(process: subprocess.Popen, output: Path, before=None) -> tuple[str, float, float]:
     """'refused' (exit 2, one stderr line, no traceback, the output as it was: `before` is its snapshot) or what
-    went wrong; seconds."""
-    started = time.monotonic()
-    _, stderr = process.communicate(timeout=600)
-    seconds = time.monotonic() - started
+    went wrong; seconds; peak MiB."""
+    stderr, seconds, peak = finished(process)
     kept = snapshot(output) == before
     lines = stderr.splitlines()
     if process.returncode == 2 and len(lines) == 1 and "Traceback" not in stderr and kept:
-        return "refused", seconds
-    return f"exit {process.returncode}, {len(lines)} stderr lines, output {'kept' if kept else 'changed'}", seconds
+        return "refused", seconds, peak
+    return f"exit {process.returncode}, {len(lines)} stderr lines, output {'kept' if kept else 'changed'}", seconds, peak
 
 
 def api_verdict(call: Callable[[], object], output: Path | None = None) -> tuple[str, float]:
@@ -164,15 +178,90 @@ def full_file_system(folder: Path):
         subprocess.run(["umount", "-l", str(mount)], check=False)
 
 
+@dataclass(frozen=True)
+class PageCase:
+    """A reveal the page is given too: its files (served to the page, read by the library) and passphrase."""
+
+    group: str
+    name: str
+    model: Path
+    bundle: Path
+    passphrase: str | None = None
+
+
+FETCH_IN_PAGE = """async ([modelUrl, bundleUrl]) => {
+  const fetched = async url => new Uint8Array(await (await fetch(url)).arrayBuffer());
+  window.reliabilityCase = {model: await fetched(modelUrl), bundle: await fetched(bundleUrl)};
+}"""
+REVEAL_IN_PAGE = """async (passphrase) => {
+  const {model, bundle} = window.reliabilityCase;
+  delete window.reliabilityCase;
+  const started = performance.now();
+  try {
+    const revealed = await window.noisenerf.reveal({model, bundle, passphrase: passphrase ?? undefined});
+    return {seconds: (performance.now() - started) / 1000, exact: revealed.exact};
+  } catch (error) {
+    return {seconds: (performance.now() - started) / 1000, code: error.code ?? null, params: error.params ?? null,
+            message: String(error.message)};
+  }
+}"""
+
+
+def page_cases(cases: Cases, context: BenchContext, work: Path, in_page: list[PageCase]) -> None:
+    """Each case given to the page (the site build, window.noisenerf.reveal on the fetched files) and to the library:
+    'refused' where both refuse with the same code and params in one line. Skipped where no browser runs."""
+    from noisenerf.runtime.api import reveal
+    from noisenerf.runtime.errors import UserError
+
+    missing = browser_missing()
+    if missing is not None:
+        for case in in_page:
+            cases.add(case.group, case.name, "page", f"skipped ({missing})")
+        return
+    from playwright.sync_api import sync_playwright
+
+    site = work / "site"
+    shutil.copytree(WEB_DIST / "site", site)
+    files = {path: f"file{k}{path.suffix}" for k, path in enumerate(
+        dict.fromkeys(path for case in in_page for path in (case.model, case.bundle)))}
+    for path, name in files.items():
+        os.link(path, site / name)  # the same file system: no copy of a GiB
+    with sync_playwright() as playwright, served(site) as base:
+        browser = playwright.chromium.launch(executable_path=str(CHROMIUM), args=["--no-sandbox"])
+        try:
+            page = browser.new_page()
+            page.goto(f"{base}/index.html")
+            page.wait_for_function("window.noisenerf !== undefined")
+            for case in in_page:
+                try:
+                    reveal(case.model, case.bundle, case.passphrase)
+                    library = None
+                except UserError as error:
+                    library = {"code": error.code, "params": error.params}
+                page.evaluate(FETCH_IN_PAGE, [f"{base}/{files[case.model]}", f"{base}/{files[case.bundle]}"])
+                holding = chromium_rss()  # the files' bytes, which a page holds once the user picks them
+                with peak_sampled(chromium_rss) as peak:
+                    got = page.evaluate(REVEAL_IN_PAGE, case.passphrase)
+                same = library is not None and "code" in got and got["code"] == library["code"] and \
+                    got["params"] == library["params"] and "\n" not in got["message"]
+                result = "refused" if same else f"page {got.get('code', 'revealed')} {got.get('params', '')}, library " \
+                                                f"{library}"
+                cases.add(case.group, case.name, "page", result, got["seconds"], max(0, peak[0] - holding) / 2 ** 20)
+        finally:
+            browser.close()
+
+
 class Cases:
     """The rows a reliability run counts: class, case, where (cli, api, page), verdict, seconds."""
 
     def __init__(self):
         self.rows: list[dict] = []
 
-    def add(self, group: str, name: str, where: str, result: str, seconds: float | None = None) -> None:
+    def add(self, group: str, name: str, where: str, result: str, seconds: float | None = None,
+            peak_mib: float | None = None) -> None:
         self.rows.append({"class": group, "case": name, "where": where, "verdict": result,
-                          "seconds": None if seconds is None else round(seconds, 2)})
+                          "seconds": None if seconds is None else round(seconds, 2),
+                          "peak_mib": None if peak_mib is None else round(peak_mib)})
 
     def cli(self, group: str, name: str, process: subprocess.Popen, output: Path, before=None) -> None:
         self.add(group, name, "cli", *verdict(process, output, before))
@@ -186,23 +275,33 @@ def measure_reliability(context: BenchContext) -> Measured:
     work.mkdir(exist_ok=True)
     context.hide(context.secret[:64, :64], "reliability/compact", HideConfig(view=context.config.view))
     cases = Cases()
-    sealed = reveal_cases(cases, context, work, work / "compact.bundle")
+    compact = work / "compact.bundle"
+    sealed, in_page = reveal_cases(cases, context, work, compact)
+    in_page += framing_cases(cases, context, work, compact)
+    junk = junk_files(work, context.config.junk_bytes)
+    in_page += junk_cases(cases, context, junk, compact)
+    page_cases(cases, context, work, in_page)
+    for path in junk:
+        path.unlink()
     output_cases(cases, context, work / "outputs")
     image_cases(cases, context, work / "images")
     environment_cases(cases, context, work, sealed)
-    argument_cases(cases, context, work / "arguments", work / "compact.bundle")
+    argument_cases(cases, context, work / "arguments", compact)
     import_cases(cases, context, work / "imports")
     return Measured(cases.rows)
 
 
-def reveal_cases(cases: Cases, context: BenchContext, work: Path, compact: Path) -> Path:
-    """Bombs, a stripped seal, racing reveals, a full disk. -> the sealed bundle it hid (PASSPHRASE)."""
-    model, out = context.model_path, work / "out.png"
-    for name, edit in (("stated 8192x8192", stated(8192, 8192)), ("stated 4096x4096", stated(4096, 4096)),
-                       ("stream of 256 MiB of zeros", streamed(256 << 20)), ("stream of 4 MiB of zeros", streamed(4 << 20)),
-                       ("2048x2048 of zeros as stated", zeros_as_stated(2048, 2048))):
-        cases.cli("decompression bomb", name, reveal_process(model, rewritten(compact, work / "bomb.bundle", edit), "-o",
-                                                             out), out)
+def reveal_cases(cases: Cases, context: BenchContext, work: Path, compact: Path) -> tuple[Path, list[PageCase]]:
+    """Bombs, a stripped seal, racing reveals, a full disk. -> the sealed bundle it hid (PASSPHRASE), and the cases
+    the page is given too."""
+    model, out, in_page = context.model_path, work / "out.png", []
+    for k, (name, edit) in enumerate((
+            ("stated 8192x8192", stated(8192, 8192)), ("stated 4096x4096", stated(4096, 4096)),
+            ("stream of 256 MiB of zeros", streamed(256 << 20)), ("stream of 4 MiB of zeros", streamed(4 << 20)),
+            ("2048x2048 of zeros as stated", zeros_as_stated(2048, 2048)))):
+        bomb = rewritten(compact, work / f"bomb{k}.bundle", edit)
+        cases.cli("decompression bomb", name, reveal_process(model, bomb, "-o", out), out)
+        in_page.append(PageCase("decompression bomb", name, model, bomb))
     payload = work / "note.txt"
     payload.write_bytes(b"a sealed note")
     sealed = work / "sealed.bundle"
@@ -212,6 +311,7 @@ def reveal_cases(cases: Cases, context: BenchContext, work: Path, compact: Path)
     stripped = rewritten(sealed, work / "stripped.bundle", lambda meta, tensors: meta.pop("payload"))
     cases.cli("downgrade", "seal stripped, passphrase given",
               reveal_process(model, stripped, "-o", out, env={"NOISENERF_PASSPHRASE": PASSPHRASE}), out)
+    in_page.append(PageCase("downgrade", "seal stripped, passphrase given", model, stripped, PASSPHRASE))
     raced = work / "raced.png"
     raced.unlink(missing_ok=True)
     racers = [reveal_process(model, compact, "-o", raced) for _ in range(2)]
@@ -225,7 +325,48 @@ def reveal_cases(cases: Cases, context: BenchContext, work: Path, compact: Path)
             target = full / ("old.png" if force else "new.png")
             cases.cli("full disk", name, reveal_process(model, compact, "-o", target, *(["--force"] if force else [])),
                       target, snapshot(target))
-    return sealed
+    return sealed, in_page
+
+
+def framing_cases(cases: Cases, context: BenchContext, work: Path, compact: Path) -> list[PageCase]:
+    """A compact tile's compressed stream framed otherwise than the writer frames it: refused, with the same code
+    and params in the library and the page."""
+    def framed(frame):
+        def edit(meta, tensors):
+            tensors["tile_0000"] = np.frombuffer(frame(tensors["tile_0000"].tobytes()), np.uint8)
+        return edit
+    in_page = []
+    for k, (name, frame) in enumerate((
+            ("padding after the stream", lambda stream: stream + bytes(16)),
+            ("a second stream after the first", lambda stream: stream + stream),
+            ("the stream cut short", lambda stream: stream[:-16]),
+            ("junk after the stream", lambda stream: stream + b"noisenerf"))):
+        bundle = rewritten(compact, work / f"framed{k}.bundle", framed(frame))
+        cases.cli("framing", name, reveal_process(context.model_path, bundle, "-o", work / "out.png"), work / "out.png")
+        in_page.append(PageCase("framing", name, context.model_path, bundle))
+    return in_page
+
+
+def junk_files(work: Path, size: int) -> list[Path]:
+    """Two files of `size` bytes: zeros (sparse) and random bytes."""
+    zeros, noise = work / "zeros.junk", work / "random.junk"
+    with open(zeros, "wb") as handle:
+        handle.truncate(size)
+    with open(noise, "wb") as handle:
+        for start in range(0, size, 1 << 24):
+            handle.write(os.urandom(min(1 << 24, size - start)))
+    return [zeros, noise]
+
+
+def junk_cases(cases: Cases, context: BenchContext, junk: list[Path], compact: Path) -> list[PageCase]:
+    """Files of junk given as the model and as the bundle: refused in a time and memory their size does not set."""
+    in_page, out = [], compact.parent / "out.png"
+    for path in junk:
+        what = f"{path.stat().st_size / 2 ** 20:,.0f} MiB of {path.stem}"
+        for role, model, bundle in (("model", path, compact), ("bundle", context.model_path, path)):
+            cases.cli("files of junk", f"{what} as the {role}", reveal_process(model, bundle, "-o", out), out)
+            in_page.append(PageCase("files of junk", f"{what} as the {role}", model, bundle))
+    return in_page
 
 
 def output_cases(cases: Cases, context: BenchContext, work: Path) -> None:
@@ -303,9 +444,7 @@ def image_cases(cases: Cases, context: BenchContext, work: Path) -> None:
         bundle = work / "secret.bundle"
         process = noisenerf_process("hide", context.config.scene, path, "-o", bundle, "--force", "--quiet",
                                     "--view", context.config.view)
-        started = time.monotonic()
-        _, stderr = process.communicate(timeout=600)
-        seconds = time.monotonic() - started
+        stderr, seconds, _ = finished(process)
         if process.returncode != 0:
             cases.add("image formats", name, "cli", f"exit {process.returncode}: {stderr.strip()[-80:]}", seconds)
             continue
@@ -391,7 +530,9 @@ def describe_reliability(context: BenchContext, measured: Measured) -> list[str]
     lines = [f"{len(rows)} cases: {refused} refused cleanly (exit 2, one line, nothing written, earlier output "
              f"intact; in the library a coded UserError), {accepted} accepted with the right result, {skipped} "
              f"skipped, {len(rows) - refused - accepted - skipped} otherwise.", "",
-             "| class | case | where | verdict | seconds |", "|---|---|---|---|---|"]
-    lines += [f"| {row['class']} | {row['case']} | {row['where']} | {row['verdict']} | "
-              f"{row['seconds'] if row['seconds'] is not None else ''} |" for row in rows]
+             "| class | case | where | verdict | seconds | peak MiB |", "|---|---|---|---|---|---|"]
+    def blank(value) -> str:
+        return "" if value is None else str(value)
+    lines += [f"| {row['class']} | {row['case']} | {row['where']} | {row['verdict']} | {blank(row['seconds'])} | "
+              f"{blank(row['peak_mib'])} |" for row in rows]
     return lines
