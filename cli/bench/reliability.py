@@ -41,6 +41,7 @@ from noisenerf.cli.bench.browser import CHROMIUM, WEB_DIST, browser_missing, chr
 from noisenerf.cli.bench.context import BenchContext, Measured, peak_sampled
 
 PASSPHRASE = "noisenerf bench"
+CASE_SECONDS = 300  # a case still running after this is killed and counted as not refused
 
 
 def rewritten(source: Path, target: Path, edit) -> Path:
@@ -99,7 +100,12 @@ def finished(process: subprocess.Popen) -> tuple[str, float, float]:
     the exec'd program's own, where wait4's count would include the forked bench's pages)."""
     started = time.monotonic()
     with peak_sampled(lambda: high_water_mib(process.pid) or 0.0, 0.01) as peak:
-        _, stderr = process.communicate(timeout=600)
+        try:
+            _, stderr = process.communicate(timeout=CASE_SECONDS)
+        except subprocess.TimeoutExpired:  # a case that hangs is a finding, not the end of the run
+            process.kill()
+            _, stderr = process.communicate()
+            stderr = f"killed after {CASE_SECONDS} s\n{stderr}"
     return stderr, time.monotonic() - started, peak[0]
 
 
