@@ -195,6 +195,23 @@ def test_refusals_read_as_the_clis(page, demo, tmp_path, case):
     assert not (tmp_path / "out.txt").exists()
 
 
+@pytest.mark.parametrize("bundle_kind", ["the demo's bundle", "a bundle of junk"])
+def test_a_model_of_junk_is_refused_before_it_reaches_a_worker_in_the_librarys_order(page, demo, tmp_path,
+                                                                                     bundle_kind):
+    """The page checks a model's framing itself and sends the worker that refusal, not a copy of the file (one of
+    1 GiB cannot be cloned to a worker); the bundle's checks still come first, as in the library."""
+    (tmp_path / "junk.onnx").write_bytes(bytes(4096))
+    bundle = demo / "secret.bundle"
+    if bundle_kind == "a bundle of junk":
+        bundle = tmp_path / "junk.bundle"
+        bundle.write_bytes(b"\x08" + bytes(100))
+    got = browser_reveal(page, tmp_path / "junk.onnx", bundle)
+    with pytest.raises(UserError) as caught:
+        library.reveal(tmp_path / "junk.onnx", bundle)
+    assert (got["code"], got["params"]) == (caught.value.code, caught.value.params), (got, str(caught.value))
+    assert got["code"] == {"a bundle of junk": "bundle.not_safetensors"}.get(bundle_kind, "onnx.malformed")
+
+
 def test_the_page_saves_a_payload_under_a_chosen_name_and_the_secret_as_png(page, demo, tmp_path):
     page.set_input_files("#model", str(demo / "model.onnx"))
     page.set_input_files("#bundle", str(demo / "note.bundle"))

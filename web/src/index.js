@@ -24,6 +24,18 @@ export async function inspectBundle(bundle) {
     width: secret.width, height: secret.height, tiles: secret.tiles.length };
 }
 
+/** The reveal's first steps, on the bundle alone: read and checked, a sealed one's tag checked under the passphrase
+ * (a passphrase for an unsealed one refused). -> {secret: the loaded bundle, keys: a sealed one's, else null}. */
+export async function openBundle(bundle, passphrase = null, onProgress = null) {
+  const secret = await loadBundle(bundle, "secret.bundle");
+  const seal = secret.payload === null ? null : sealOf(secret.payload);
+  const phrase = passphraseBytes(passphrase);
+  if (seal === null && phrase !== null) throw new UserError(NOT_SEALED, { code: "seal.not_sealed" });
+  if (seal === null) return { secret, keys: null };
+  if (phrase === null) throw new UserError(NO_PASSPHRASE, { code: "seal.no_passphrase" });
+  return { secret, keys: await unsealKeys(bundle, seal, phrase, onProgress && ((done) => onProgress({ stage: "kdf", done, total: 1 }))) };
+}
+
 /**
  * model, bundle: Uint8Array; passphrase: string or Uint8Array (sealed bundles only: given for an unsealed one, it is
  *   refused, as a sealed bundle stripped of its seal would be revealed as its ciphertext).
@@ -38,15 +50,7 @@ export async function inspectBundle(bundle) {
  */
 export async function reveal({ model, bundle, passphrase = null, onProgress = null, openRenderer = LocalRenderer.open }) {
   if (!(model instanceof Uint8Array) || !(bundle instanceof Uint8Array)) throw new TypeError("model and bundle must be Uint8Arrays");
-  const secret = await loadBundle(bundle, "secret.bundle");
-  const seal = secret.payload === null ? null : sealOf(secret.payload);
-  let keys = null;
-  const phrase = passphraseBytes(passphrase);
-  if (seal === null && phrase !== null) throw new UserError(NOT_SEALED, { code: "seal.not_sealed" });
-  if (seal !== null) {
-    if (phrase === null) throw new UserError(NO_PASSPHRASE, { code: "seal.no_passphrase" });
-    keys = await unsealKeys(bundle, seal, phrase, onProgress && ((done) => onProgress({ stage: "kdf", done, total: 1 })));
-  }
+  const { secret, keys } = await openBundle(bundle, passphrase, onProgress);
   const checked = checkModel(model, "model.onnx");
   checkBundle(checked, secret);
   const total = secret.tiles.reduce((n, tile) => n + tile.rect[2] * tile.rect[3], 0);

@@ -102,7 +102,7 @@ export function* fields(data, budget = null) {
 
 /** framing: check 1, the model's top-level fields by their keys and lengths alone, every payload skipped unread (as
  * `fields` walks them, without making a value of any). Refuses with onnx.malformed. */
-function framing(data, source) {
+export function framing(data, source) {
   const budget = new FieldBudget();
   let position = 0;
   try {

@@ -11,7 +11,8 @@
 
 import { workerCode, wasmBase64 } from "noisenerf-embedded";
 import { FIELD_WORKER, REVEAL_WORKER } from "./roles.js";
-import { receivedError } from "../errors.js";
+import { UserError, postedError, receivedError } from "../errors.js";
+import { framing } from "../onnx.js";
 
 const MOST_WORKERS = 16; // beyond the cores there are, more workers only hold more memory
 let worker = null, ready = null, nextId = 0, workerUrl = null;
@@ -99,6 +100,18 @@ function call(type, data, onProgress = null, transfer = []) {
   });
 }
 
+/** What the worker is sent of the model: the model, or, where its framing (check 1, a few bytes of a file of junk)
+ * refuses it, that refusal instead of a copy of the file (a file of 1 GiB cannot be cloned to a worker). */
+function modelOrRefusal(model) {
+  try {
+    framing(model, "model.onnx");
+    return { model };
+  } catch (error) {
+    if (!(error instanceof UserError)) throw error;
+    return { model: null, modelRefusal: postedError(error) };
+  }
+}
+
 /** The library's reveal, run in the worker: same arguments (Uint8Arrays), same result (and `workers`, how many
  * rendered), same refusals. workers: the pool's size, by default one per core. */
 export async function reveal({ model, bundle, passphrase = null, onProgress = null,
@@ -110,7 +123,7 @@ export async function reveal({ model, bundle, passphrase = null, onProgress = nu
   const turn = revealing.then(async () => {
     await startWorker();
     await usePool(workers);
-    return { ...(await call("reveal", { model, bundle, passphrase }, onProgress)), workers };
+    return { ...(await call("reveal", { ...modelOrRefusal(model), bundle, passphrase }, onProgress)), workers };
   });
   revealing = turn.catch(() => {});
   return turn;

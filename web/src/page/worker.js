@@ -7,8 +7,8 @@
 // refusal} (src/errors.js postedError: a UserError's code and params travel as data, page.js rebuilds it). A field
 // worker's one message in: {port}.
 
-import { reveal, inspectBundle } from "../index.js";
-import { postedError } from "../errors.js";
+import { reveal, inspectBundle, openBundle } from "../index.js";
+import { postedError, receivedError } from "../errors.js";
 import { FieldPool, fieldWorker } from "../pool.js";
 import { FIELD_WORKER } from "./roles.js";
 
@@ -39,6 +39,11 @@ async function handle({ id, type, ...data }) {
       failed[data.index]?.(data.message);
     } else if (type === "inspect") {
       self.postMessage({ id, type: "done", result: await inspectBundle(data.bundle) });
+    } else if (type === "reveal" && data.modelRefusal) {
+      // the page refused the model's framing before sending it (a file of junk is not copied here): the library
+      // refuses a bad bundle first, so the bundle's checks run, then the model's refusal stands
+      await openBundle(data.bundle, data.passphrase, (progress) => self.postMessage({ id, type: "progress", progress }));
+      throw receivedError(data.modelRefusal);
     } else if (type === "reveal") {
       const result = await reveal({ model: data.model, bundle: data.bundle, passphrase: data.passphrase,
         onProgress: (progress) => self.postMessage({ id, type: "progress", progress }),
