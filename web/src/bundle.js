@@ -34,6 +34,7 @@ import {
 import { cameraFromDict } from "./camera.js";
 import { samplingFromDict } from "./sampling.js";
 import { checkedPayload } from "./payload.js";
+import { splitSafetensors } from "./sealing.js";
 
 export const NOISENERF_VERSION = "0.1.0"; // noisenerf.__version__ of the Python runtime this port mirrors
 export const METADATA_KEY = "noisenerf_bundle";
@@ -60,20 +61,13 @@ function decodeTensor(dtype, shape, bytes) {
 const notSafetensors = (source, why = null) => new UserError(
   `not a readable safetensors bundle: ${source}${why === null ? "" : ` (${why})`}`, { code: "bundle.not_safetensors" });
 
-/** Checks 2 and 3: the header length from the first 8 bytes and the size alone, then the header, parsed as Python's
- * parse_json reads it (split_safetensors). -> the header object. */
+/** Checks 2 and 3: the header length from the first 8 bytes and the size alone (checked_framing), then the header,
+ * parsed as Python's parse_json reads it (src/sealing.js splitSafetensors, as Python's split_safetensors). -> the
+ * header object. */
 function safetensorsHeader(data, source) {
   const size = data.length >= 8 ? new DataView(data.buffer, data.byteOffset, 8).getBigUint64(0, true) : 0n;
   if (!(size > 0n && size <= BigInt(Math.min(data.length - 8, MAX_HEADER_BYTES)))) throw notSafetensors(source);
-  let header;
-  try {
-    header = parseJson(data.subarray(8, 8 + Number(size)), "bundle header", source);
-  } catch (error) {
-    if (!(error instanceof UserError)) throw error;
-    throw notSafetensors(source, error.message.split(": ")[0]);
-  }
-  if (!isObject(header) || (Object.hasOwn(header, "__metadata__") && !isObject(header.__metadata__))) throw notSafetensors(source);
-  return header;
+  return splitSafetensors(data, source).header;
 }
 
 const LONE_SURROGATE = /\p{Cs}/u; // a surrogate code unit not in a pair

@@ -85,18 +85,21 @@ export async function deriveKeys(passphrase, seal, onProgress = null) {
   return { cipher: material.slice(0, 32), bundle: material.slice(32) };
 }
 
-/** split_safetensors: the parsed header (Python's JSON: ints apart from floats) and the tensor data. */
-function splitSafetensors(data, source) {
+/** split_safetensors, the one reader of a safetensors header (the bundle's check 3 and the seal's tag both read it
+ * here): the parsed header (Python's JSON: ints apart from floats) and the tensor data. */
+export function splitSafetensors(data, source) {
   const size = data.length >= 8 ? Number(new DataView(data.buffer, data.byteOffset, 8).getBigUint64(0, true)) : -1;
-  if (!(size > 0 && size <= data.length - 8)) throw new UserError(`not a readable safetensors bundle: ${source}`, { code: "bundle.not_safetensors" });
+  const refused = (why = null) => new UserError(`not a readable safetensors bundle: ${source}${why === null ? "" : ` (${why})`}`,
+    { code: "bundle.not_safetensors" });
+  if (!(size > 0 && size <= data.length - 8)) throw refused();
   let header;
   try {
     header = parseJson(data.subarray(8, 8 + size), "bundle header", source);
   } catch (error) {
     if (!(error instanceof UserError)) throw error;
-    throw new UserError(`not a readable safetensors bundle: ${source} (${error.message})`, { code: "bundle.not_safetensors" });
+    throw refused(error.message.split(": ")[0]);
   }
-  if (!isObject(header) || !isObject(header.__metadata__ ?? {})) throw new UserError(`not a readable safetensors bundle: ${source}`, { code: "bundle.not_safetensors" });
+  if (!isObject(header) || (Object.hasOwn(header, "__metadata__") && !isObject(header.__metadata__))) throw refused();
   return { header, body: data.subarray(8 + size) };
 }
 
