@@ -18,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
-from noisenerf.runtime.errors import UserError
+from noisenerf.runtime.errors import UserError, one_line
 
 
 class OneLineParser(argparse.ArgumentParser):
@@ -27,11 +27,6 @@ class OneLineParser(argparse.ArgumentParser):
     def error(self, message: str):
         print(f"{self.prog}: error: {one_line(message)} (see --help)", file=sys.stderr)
         sys.exit(2)
-
-
-def one_line(text: str) -> str:
-    """Any message on a single line."""
-    return " ".join(str(text).split())
 
 
 @contextlib.contextmanager

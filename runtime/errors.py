@@ -41,3 +41,8 @@ class InexactResult(UserError):
     script can tell it from bad input and, say, try another view."""
 
     exit_code = 3
+
+
+def one_line(text) -> str:
+    """Any message on a single line (a library's own error text may span several)."""
+    return " ".join(str(text).split())

@@ -17,7 +17,7 @@ from typing import NamedTuple
 import numpy as np
 import OpenImageIO as oiio
 
-from noisenerf.runtime.errors import UserError
+from noisenerf.runtime.errors import UserError, one_line
 from noisenerf.runtime.files import atomic_output
 from noisenerf.runtime.limits import checked_image_size
 
@@ -51,11 +51,6 @@ def c_stderr_silenced():
         os.dup2(saved, 2)
         os.close(saved)
         os.close(devnull)
-
-
-def one_line(message: str) -> str:
-    """A library's error text as part of one line: OpenImageIO's may span several."""
-    return " ".join(message.split())
 
 
 def _open(path: str | os.PathLike) -> oiio.ImageInput:
