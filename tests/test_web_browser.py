@@ -205,7 +205,16 @@ def test_a_model_of_junk_is_refused_before_it_reaches_a_worker_in_the_librarys_o
     if bundle_kind == "a bundle of junk":
         bundle = tmp_path / "junk.bundle"
         bundle.write_bytes(b"\x08" + bytes(100))
+    page.evaluate("""() => {  // what the page posts to its reveal worker, from here on
+      window.postedModels = [];
+      const post = Worker.prototype.postMessage;
+      Worker.prototype.postMessage = function (message, ...rest) {
+        if (message?.type === "reveal") window.postedModels.push(message.model === null ? null : message.model.length);
+        return post.call(this, message, ...rest);
+      };
+    }""")
     got = browser_reveal(page, tmp_path / "junk.onnx", bundle)
+    assert page.evaluate("window.postedModels") == [None]  # the refusal went to the worker, not the file
     with pytest.raises(UserError) as caught:
         library.reveal(tmp_path / "junk.onnx", bundle)
     assert (got["code"], got["params"]) == (caught.value.code, caught.value.params), (got, str(caught.value))
