@@ -48,7 +48,7 @@ class ReadBundle:
 
     @property
     def sealed(self) -> bool:
-        return self.bundle.payload is not None and seal_of(self.bundle.payload) is not None
+        return self.bundle.payload_marker is not None and seal_of(self.bundle.payload_marker) is not None
 
 
 def read_bundle(bundle: Source | ReadBundle) -> ReadBundle:
@@ -153,7 +153,7 @@ def unseal(read: ReadBundle, passphrase: bytes | None) -> Keys | None:
         return None
     if passphrase is None:
         raise UserError(NO_PASSPHRASE, code="seal.no_passphrase")
-    return unseal_keys(read.data, seal_of(read.bundle.payload), passphrase)
+    return unseal_keys(read.data, seal_of(read.bundle.payload_marker), passphrase)
 
 
 def open_model(model: Source | Model, device: str, threads: int | None) -> Model:
@@ -184,12 +184,12 @@ def reveal(model: Source | Model, bundle: Source | ReadBundle, passphrase: str |
               "rays": bundle.width * bundle.height,
               "samples": sum(t.rect[2] * t.rect[3] * t.sampling.n_samples for t in bundle.tiles),
               "timings": {"load": loaded - start, "render": time.perf_counter() - loaded}}
-    if bundle.payload is None:
+    if bundle.payload_marker is None:
         return RevealResult("image", revealed.exact, secret_digest(revealed.pixels), bundle.width, bundle.height,
                             pixels=revealed.pixels, **counts)
     if not revealed.exact:
         raise UserError(INEXACT, code="payload.inexact")
-    record = open_payload(revealed.pixels, bundle.payload, model.fingerprint, keys)
+    record = open_payload(revealed.pixels, bundle.payload_marker, model.fingerprint, keys)
     common = {"exact": True, "sha256": record.sha256, "name": record.name.decode("utf-8", "replace") or None,
               "sealed": keys is not None, "payload": True, **counts}
     if record.kind == "image":
@@ -210,11 +210,9 @@ def render(model: Source | Model, view: int, *, skip: bool = True, device: str =
     model = open_model(model, device, threads)
     camera = model.camera(view)
     loaded = time.perf_counter()
-    grid = model.grid if skip else model.grid.box_only()
-    image, stats = render_view(camera, model.render_config, model.field, grid, early_stop=None if skip else 0.0,
-                               progress=Counter(progress, "render", camera.width * camera.height, "ray"),
-                               coarse=model.coarse, proposals=model.proposals)
-    hierarchical = model.coarse is not None or model.proposals is not None
-    return RenderResult(view, image, skip and not hierarchical, hierarchical, stats.n_rays,
+    sampler = model.sampler(skip)
+    image, stats = render_view(camera, model.render_config, model.field, sampler,
+                               progress=Counter(progress, "render", camera.width * camera.height, "ray"))
+    return RenderResult(view, image, sampler.skips, sampler.hierarchical, stats.n_rays,
                         stats.n_samples_evaluated, stats.n_samples_dense,
                         {"load": loaded - start, "render": time.perf_counter() - loaded})

@@ -10,7 +10,7 @@
               camera, sampling and network ("coarse" or "fine": the network the noise was trained
               through; a tile without it, as bundles made before the field existed, means the scene's
               render network, the fine one where there is one), and for a payload (a file, or a sealed
-              secret) the optional "payload" object that runtime.payload defines and validates.
+              secret) the optional "payload" object, the payload marker that runtime.payload defines and validates.
 
 Versions: noisenerf writes format 4 and reads formats 1 to 4. Format 1 (every bundle written before the
 compact layout) holds only the ray and sample layouts, which formats 2 to 4 keep unchanged, so it reveals
@@ -71,7 +71,7 @@ from noisenerf.runtime.layouts import DTYPES, LAYOUTS, TileNoise, layout_named
 from noisenerf.runtime.limits import (MAX_CAMERAS, MAX_HEADER_BYTES, MAX_IMAGE_SIDE, MAX_NOISE_DIMS, MAX_TILES,
                                       checked_image_size, checked_int, checked_list, is_finite)
 from noisenerf.runtime.networks import NETWORKS
-from noisenerf.runtime.payload import checked_payload
+from noisenerf.runtime.payload import checked_marker
 from noisenerf.runtime.sealing import split_safetensors
 from noisenerf.runtime.sampling import SamplingConfig
 
@@ -119,7 +119,7 @@ class Bundle:
     dtype: str
     tiles: tuple[Tile, ...]
     extra: dict  # how it was made (method, seed, versions): informative only
-    payload: dict | None = None  # runtime.payload's object for a file or sealed payload; None: an image
+    payload_marker: dict | None = None  # runtime.payload's marker of a file or sealed payload; None: an image
     coefficients: int | None = None  # compact layout: k per pixel
 
     def metadata(self) -> dict:
@@ -133,7 +133,7 @@ class Bundle:
             "tiles": [{**tile.metadata(f"tile_{i:04d}"), **layout.tile_metadata(tile.noise)}
                       for i, tile in enumerate(self.tiles)],
             "extra": self.extra,
-            **({"payload": self.payload} if self.payload is not None else {}),
+            **({"payload": self.payload_marker} if self.payload_marker is not None else {}),
         }
 
     def to_bytes(self) -> bytes:
@@ -329,7 +329,7 @@ def parse_bundle(meta, tensors: dict[str, np.ndarray], path: Path) -> Bundle:
                               enumerate(zip(tiles, layout.kept_unpacked(areas, header["coefficients"],
                                                                         header["dtype"])))),
                   extra=extra if isinstance(extra, dict) else {}, coefficients=header["coefficients"],
-                  payload=None if meta.get("payload") is None else checked_payload(meta["payload"]))
+                  payload_marker=None if meta.get("payload") is None else checked_marker(meta["payload"]))
 
 
 def checked_rect(i: int, data) -> tuple[int, int, int, int]:

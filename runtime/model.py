@@ -47,8 +47,8 @@ from noisenerf.runtime.limits import (
 from noisenerf.runtime.occupancy import OccupancyGrid
 from noisenerf.runtime.onnx_file import check_model_file
 from noisenerf.runtime.pdf import Hierarchy
-from noisenerf.runtime.proposal import ProposalNetworks, ProposalSampling
-from noisenerf.runtime.render import CoarseNetwork, RenderConfig
+from noisenerf.runtime.proposal import ProposalSampler, ProposalSampling
+from noisenerf.runtime.render import HierarchicalSampler, MarchingSampler, RenderConfig, Sampler
 from noisenerf.runtime.session import OnnxField, read_model_file
 
 MODEL_FORMAT_VERSION = 2
@@ -182,21 +182,18 @@ class Model:
         """Network name ("coarse", and "fine" where the scene has one) -> its field."""
         return {name: self.field.network(name) for name in self.field.networks}
 
-    @property
-    def coarse(self) -> CoarseNetwork | None:
-        """What an ordinary render needs besides the render field: the coarse pass, for scenes with a fine network."""
-        hierarchy = self.metadata.hierarchy
-        return CoarseNetwork(self.field.network("coarse"), hierarchy) if hierarchy is not None else None
-
-    @property
-    def proposals(self) -> ProposalNetworks | None:
-        """What an ordinary render needs besides the render field for a nerfacto scene: its proposal sampler
-        and networks (runtime.proposal)."""
-        sampler = proposal_sampler(self.metadata.architecture)
-        if sampler is None:
-            return None
-        return ProposalNetworks(ProposalSampling.from_architecture(sampler),
-                                tuple(self.field.proposal_density(i) for i in range(len(sampler["proposal_samples"]))))
+    def sampler(self, skip: bool = True) -> Sampler:
+        """How an ordinary render places its samples: nerfacto's proposal sampler where the render network's
+        kind has one, nerf-pytorch's hierarchy beside a fine network, else uniform samples through the grid
+        (skipping empty space when `skip`)."""
+        proposals = proposal_sampler(self.metadata.architecture)
+        if proposals is not None:
+            return ProposalSampler(ProposalSampling.from_architecture(proposals),
+                                   tuple(self.field.proposal_density(i)
+                                         for i in range(len(proposals["proposal_samples"]))))
+        if self.metadata.hierarchy is not None:
+            return HierarchicalSampler(self.render_config, self.field.network("coarse"), self.metadata.hierarchy)
+        return MarchingSampler(self.render_config, self.grid, skip)
 
     def camera(self, view: int) -> Camera:
         """The dataset camera of a view index, refusing one out of range."""

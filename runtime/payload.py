@@ -14,7 +14,7 @@ An unsealed record fills a near-square secret. A sealed one (runtime.sealing) is
 size bucket and encrypted, so the secret's size says only which bucket the payload fell in: a square of
 16, 32, 64, ... px up to one tile, then whole tiles (see `sealed_shape`). The name travels inside.
 
-The bundle's metadata marks a payload with one optional object, validated by `checked_payload`:
+The bundle's metadata marks a payload with one optional object, the payload marker, validated by `checked_marker`:
 
     "payload": {"version": 1, "sealed": null | {"cipher", "kdf", "salt", "nonce"}}
 
@@ -164,13 +164,13 @@ def to_pixels(data: bytes, width: int, height: int) -> np.ndarray:
     return pixels.reshape(height, width, 3)
 
 
-def payload_metadata(seal: Seal | None) -> dict:
-    """The bundle metadata's payload object."""
+def payload_marker(seal: Seal | None) -> dict:
+    """The bundle metadata's payload marker."""
     return {"version": PAYLOAD_VERSION, "sealed": None if seal is None else seal.to_dict()}
 
 
-def checked_payload(data) -> dict:
-    """A bundle's payload object, refused unless it is exactly one payload_metadata writes."""
+def checked_marker(data) -> dict:
+    """A bundle's payload marker, refused unless it is exactly one payload_marker writes."""
     if not isinstance(data, dict) or data.get("version") != PAYLOAD_VERSION or set(data) != {"version", "sealed"}:
         raise UserError(f"bundle: payload must be an object with version {PAYLOAD_VERSION} and sealed",
                         code="payload.malformed", version=PAYLOAD_VERSION)
@@ -178,31 +178,31 @@ def checked_payload(data) -> dict:
     return data
 
 
-def seal_of(payload: dict) -> Seal | None:
-    """The seal of a payload object, None when it is not sealed."""
-    return None if payload["sealed"] is None else Seal.from_dict(payload["sealed"])
+def seal_of(marker: dict) -> Seal | None:
+    """The seal of a payload marker, None when it is not sealed."""
+    return None if marker["sealed"] is None else Seal.from_dict(marker["sealed"])
 
 
 def payload_secret(record: Record, tile_size: int, model_fingerprint: str,
                    sealing: tuple[Seal, Keys] | None = None) -> tuple[np.ndarray, dict]:
-    """The (h, w, 3) uint8 secret a record is hidden as, and the bundle's payload object. Sealed: the
+    """The (h, w, 3) uint8 secret a record is hidden as, and the bundle's payload marker. Sealed: the
     record zero-padded to fill its size bucket, encrypted with the bundle's fixed fields as associated data."""
     packed = record.pack()
     if sealing is None:
-        return to_pixels(packed, *secret_shape(len(packed), tile_size, sealed=False)), payload_metadata(None)
+        return to_pixels(packed, *secret_shape(len(packed), tile_size, sealed=False)), payload_marker(None)
     seal, keys = sealing
     width, height = secret_shape(len(packed) + TAG_BYTES, tile_size, sealed=True)
-    payload = payload_metadata(seal)
+    marker = payload_marker(seal)
     plaintext = packed + bytes(width * height * 3 - TAG_BYTES - len(packed))
-    ciphertext = encrypt(plaintext, keys, seal, associated_data(model_fingerprint, width, height, payload))
-    return to_pixels(ciphertext, width, height), payload
+    ciphertext = encrypt(plaintext, keys, seal, associated_data(model_fingerprint, width, height, marker))
+    return to_pixels(ciphertext, width, height), marker
 
 
-def open_payload(pixels: np.ndarray, payload: dict, model_fingerprint: str, keys: Keys | None) -> Record:
+def open_payload(pixels: np.ndarray, marker: dict, model_fingerprint: str, keys: Keys | None) -> Record:
     """The record in revealed pixels (h, w, 3) uint8; a sealed one is decrypted with `keys` first."""
     data = np.ascontiguousarray(pixels, np.uint8).tobytes()
-    seal = seal_of(payload)
+    seal = seal_of(marker)
     if seal is not None:
         height, width = pixels.shape[:2]
-        data = decrypt(data, keys, seal, associated_data(model_fingerprint, width, height, payload))
+        data = decrypt(data, keys, seal, associated_data(model_fingerprint, width, height, marker))
     return unpack_record(data)

@@ -15,7 +15,7 @@ Secret views do not use this sampler: a tile is rendered with the uniform sampli
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Callable, Sequence
+from typing import Callable, ClassVar, Sequence
 
 import numpy as np
 
@@ -23,6 +23,7 @@ from noisenerf.runtime.compositing import composite, render_weights
 from noisenerf.runtime.field_callbacks import FieldFn
 from noisenerf.runtime.pdf import bracketing
 from noisenerf.runtime.rays import RayBatch
+from noisenerf.runtime.render import RenderStats
 
 DensityFn = Callable[[np.ndarray], np.ndarray]  # points (n, 3) -> σ (n,)
 WEIGHT_FLOOR = 1e-5  # nerfstudio's PDFSampler eps: rays with less total weight are padded to it
@@ -52,12 +53,22 @@ class ProposalSampling:
 
 
 @dataclass(frozen=True)
-class ProposalNetworks:
-    """What an ordinary render of a nerfacto scene needs besides its field: the sampler and one density
-    function per proposal network."""
+class ProposalSampler:
+    """nerfacto's ordinary render (a runtime.render.Sampler): the sampling and one density function per
+    proposal network. Never skips: the proposal networks already put the samples where the surface is."""
 
     sampling: ProposalSampling
     densities: Sequence[DensityFn]
+    hierarchical: ClassVar[bool] = True
+    skips: ClassVar[bool] = False
+
+    @property
+    def samples_per_ray(self) -> int:
+        return self.sampling.most_samples
+
+    def render(self, rays: RayBatch, field: FieldFn) -> tuple[np.ndarray, RenderStats]:
+        colours, evaluated = render_proposal_rays(rays, field, self)
+        return colours, RenderStats(len(rays), evaluated, evaluated)
 
 
 def spacing(t: np.ndarray) -> np.ndarray:
@@ -110,7 +121,7 @@ def midpoints(rays: RayBatch, edges: np.ndarray) -> tuple[np.ndarray, np.ndarray
     return points.astype(np.float32), (ends - starts).astype(np.float32)
 
 
-def proposal_edges(rays: RayBatch, networks: ProposalNetworks) -> np.ndarray:
+def proposal_edges(rays: RayBatch, networks: ProposalSampler) -> np.ndarray:
     """The field's bin edges (r, samples + 1) in distance: each proposal stage's densities placing the next."""
     sampling = networks.sampling
     bins = uniform_bins(len(rays), sampling.proposal_samples[0])
@@ -122,7 +133,7 @@ def proposal_edges(rays: RayBatch, networks: ProposalNetworks) -> np.ndarray:
     return euclidean_bins(bins, sampling.near, sampling.far)
 
 
-def render_proposal_rays(rays: RayBatch, field: FieldFn, networks: ProposalNetworks) -> tuple[np.ndarray, int]:
+def render_proposal_rays(rays: RayBatch, field: FieldFn, networks: ProposalSampler) -> tuple[np.ndarray, int]:
     """Colours (r, 3) of an ordinary nerfacto render, and the field samples evaluated."""
     points, deltas = midpoints(rays, proposal_edges(rays, networks))
     viewdirs = np.broadcast_to(rays.viewdirs[:, None, :], points.shape).reshape(-1, 3)

@@ -1,18 +1,19 @@
 """The numpy render pipeline, for any field backend (onnxruntime, or torch behind a numpy callback).
 
-One pipeline: sampler (uniform, coarse → sample_pdf for scenes with a fine network, or nerfacto's proposal
-sampler with its own compositor: runtime.proposal) → field callback
-(runtime.field_callbacks, evaluated by runtime.marching.march_rays) → compositor (runtime.compositing);
-and one loop over a camera's pixels in chunks, `render_in_chunks`, which ordinary renders (render_view)
-and reveals (runtime.reveal.render_tile) both run, so two backends rendering the same view differ only by
-their field evaluation.
+One pipeline: sampler → field callback (runtime.field_callbacks, evaluated by runtime.marching.march_rays)
+→ compositor (runtime.compositing). An ordinary render's sampler is an object the model (or scene) owns, a
+`Sampler`: `MarchingSampler` (uniform samples through the occupancy grid), `HierarchicalSampler` (coarse →
+sample_pdf, for scenes with a fine network), or nerfacto's `runtime.proposal.ProposalSampler` with its own
+compositor. One loop over a camera's pixels in chunks, `render_in_chunks`, which ordinary renders
+(render_view) and reveals (runtime.reveal.render_tile) both run, so two backends rendering the same view
+differ only by their field evaluation.
 """
 
 from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass
-from typing import Callable
+from typing import Callable, ClassVar, Protocol
 
 import numpy as np
 
@@ -24,7 +25,6 @@ from noisenerf.runtime.limits import checked_float, checked_list
 from noisenerf.runtime.marching import march_rays
 from noisenerf.runtime.occupancy import OccupancyGrid
 from noisenerf.runtime.pdf import Hierarchy, sample_pdf
-from noisenerf.runtime.proposal import ProposalNetworks, render_proposal_rays
 from noisenerf.runtime.rays import RayBatch, pixel_range_rays
 from noisenerf.runtime.sampling import SamplingConfig, sample_along, sample_positions
 
@@ -81,14 +81,6 @@ class RenderStats:
         return RenderStats(*(a + b for a, b in zip(dataclasses.astuple(self), dataclasses.astuple(other))))
 
 
-@dataclass(frozen=True)
-class CoarseNetwork:
-    """The coarse network of a scene with a fine one, and how nerf-pytorch samples it."""
-
-    field: FieldFn
-    hierarchy: Hierarchy
-
-
 def render_samples(rays: RayBatch, t_vals: np.ndarray, field: SampleFieldFn, grid: OccupancyGrid | None,
                    early_stop: float) -> tuple[np.ndarray, np.ndarray, RenderStats]:
     """Weights (n_rays, n_samples) and colours (n_rays, n_samples, 3) of samples at t_vals ((n_samples,) or
@@ -98,39 +90,93 @@ def render_samples(rays: RayBatch, t_vals: np.ndarray, field: SampleFieldFn, gri
     return render_weights(march.sigmas, deltas), march.rgbs, RenderStats(len(rays), deltas.size, march.n_evaluated)
 
 
-def importance_positions(config: RenderConfig, rays: RayBatch, coarse: CoarseNetwork
+def importance_positions(config: RenderConfig, rays: RayBatch, coarse: FieldFn, hierarchy: Hierarchy
                          ) -> tuple[np.ndarray, RenderStats]:
-    """nerf-pytorch's fine-pass positions: the coarse network's weights at n_coarse uniform samples place
+    """nerf-pytorch's fine-pass positions: the `coarse` network's weights at n_coarse uniform samples place
     n_importance more (sample_pdf over the midpoints, end weights dropped); both sets, sorted.
     -> t_vals (n_rays, n_coarse + n_importance), the coarse pass's counts."""
-    t_vals = sample_positions(coarse.hierarchy.coarse(config.sampling))
-    weights, _, stats = render_samples(rays, t_vals, plain(coarse.field), None, 0.0)
+    t_vals = sample_positions(hierarchy.coarse(config.sampling))
+    weights, _, stats = render_samples(rays, t_vals, plain(coarse), None, 0.0)
     mids = np.broadcast_to(0.5 * (t_vals[1:] + t_vals[:-1]), (len(rays), t_vals.shape[0] - 1))
-    fine = sample_pdf(mids, weights[:, 1:-1], coarse.hierarchy.n_importance)
+    fine = sample_pdf(mids, weights[:, 1:-1], hierarchy.n_importance)
     both = np.concatenate([np.broadcast_to(t_vals, (len(rays), t_vals.shape[0])), fine], axis=-1)
     return np.sort(both, axis=-1), stats
 
 
 def render_rays(config: RenderConfig, rays: RayBatch, field: SampleFieldFn, grid: OccupancyGrid | None,
-                early_stop: float | None = None, coarse: CoarseNetwork | None = None
-                ) -> tuple[np.ndarray, RenderStats]:
-    """Colours of rays (n_rays, 3).
+                early_stop: float | None = None) -> tuple[np.ndarray, RenderStats]:
+    """Colours of rays (n_rays, 3): uniform samples (config.sampling) through the callback `field`, with
+    empty-space skipping (grid) and early ray termination past `early_stop` (the config's when None)."""
+    early_stop = config.early_stop if early_stop is None else early_stop
+    weights, rgbs, stats = render_samples(rays, sample_positions(config.sampling), field, grid, early_stop)
+    return composite(weights, rgbs, np.asarray(config.background)), stats
 
-    Uniform samples (config.sampling) through the callback `field`, with empty-space skipping (grid) and
-    early ray termination; or, given the `coarse` network, nerf-pytorch's hierarchical render with `field` as the
-    fine network. Hierarchical renders never skip (grid and early_stop are ignored): every coarse weight
-    moves the fine samples, so a skipped coarse sample would move them, and nerf-pytorch evaluates all.
-    Only rays whose transmittance is exactly 0 in float32 stop, where nothing behind counts anyway.
-    """
-    if coarse is None:
-        t_vals, before = sample_positions(config.sampling), RenderStats(len(rays), 0, 0)
-        early_stop = config.early_stop if early_stop is None else early_stop
-    else:
-        (t_vals, before), grid, early_stop = importance_positions(config, rays, coarse), None, 0.0
-    weights, rgbs, stats = render_samples(rays, t_vals, field, grid, early_stop)
-    return composite(weights, rgbs, np.asarray(config.background)), RenderStats(
-        len(rays), before.n_samples_dense + stats.n_samples_dense,
-        before.n_samples_evaluated + stats.n_samples_evaluated)
+
+class Sampler(Protocol):
+    """An ordinary (noise-free) render's strategy, owned by a model (runtime.model.Model.sampler) or a scene
+    (train.scene.render.numpy_sampler): where a ray's samples go, which are evaluated, how they composite."""
+
+    hierarchical: ClassVar[bool]  # samples placed by another network's pass (never skipping)
+
+    @property
+    def samples_per_ray(self) -> int:
+        """The most samples one ray holds at once (what sets rays per chunk)."""
+
+    @property
+    def skips(self) -> bool:
+        """Whether empty space is skipped and rays terminate early."""
+
+    def render(self, rays: RayBatch, field: FieldFn) -> tuple[np.ndarray, RenderStats]:
+        """Colours (n_rays, 3) float32 of the render network `field` along `rays`, and the counts."""
+
+
+@dataclass(frozen=True)
+class MarchingSampler:
+    """Uniform samples (config.sampling) marched through the occupancy `grid` with early termination; with
+    `skip` off, every sample in the grid's box is evaluated (None: every sample)."""
+
+    config: RenderConfig
+    grid: OccupancyGrid | None
+    skip: bool = True
+    hierarchical: ClassVar[bool] = False
+
+    @property
+    def samples_per_ray(self) -> int:
+        return self.config.sampling.n_samples
+
+    @property
+    def skips(self) -> bool:
+        return self.skip
+
+    def render(self, rays: RayBatch, field: FieldFn) -> tuple[np.ndarray, RenderStats]:
+        if self.skip:
+            return render_rays(self.config, rays, plain(field), self.grid)
+        return render_rays(self.config, rays, plain(field), None if self.grid is None else self.grid.box_only(), 0.0)
+
+
+@dataclass(frozen=True)
+class HierarchicalSampler:
+    """nerf-pytorch's render of a scene with a fine network: the `coarse` network's weights at n_coarse uniform
+    samples place n_importance more, and the fine network renders both sets. Never skips: every coarse weight
+    moves the fine samples, and nerf-pytorch evaluates all; only rays whose transmittance is exactly 0 in
+    float32 stop, where nothing behind counts anyway."""
+
+    config: RenderConfig
+    coarse: FieldFn
+    hierarchy: Hierarchy
+    hierarchical: ClassVar[bool] = True
+    skips: ClassVar[bool] = False
+
+    @property
+    def samples_per_ray(self) -> int:
+        return self.hierarchy.samples_per_ray
+
+    def render(self, rays: RayBatch, field: FieldFn) -> tuple[np.ndarray, RenderStats]:
+        t_vals, before = importance_positions(self.config, rays, self.coarse, self.hierarchy)
+        weights, rgbs, stats = render_samples(rays, t_vals, plain(field), None, 0.0)
+        return composite(weights, rgbs, np.asarray(self.config.background)), RenderStats(
+            len(rays), before.n_samples_dense + stats.n_samples_dense,
+            before.n_samples_evaluated + stats.n_samples_evaluated)
 
 
 def rays_per_chunk(n_samples: int, most_rays: int = CHUNK_RAYS) -> int:
@@ -157,22 +203,13 @@ def render_in_chunks(n_rays: int, chunk_rays: int, render_chunk: ChunkRenderer,
     return colors, stats
 
 
-def render_view(camera: Camera, config: RenderConfig, field: FieldFn, grid: OccupancyGrid | None,
-                chunk_rays: int = CHUNK_RAYS, early_stop: float | None = None, progress=None,
-                coarse: CoarseNetwork | None = None, proposals: ProposalNetworks | None = None
-                ) -> tuple[np.ndarray, RenderStats]:
-    """An ordinary (noise-free) render of a camera: image (height, width, 3) float32 and counts. With the
-    `coarse` network, hierarchical (see render_rays); with `proposals`, nerfacto's (runtime.proposal)."""
-    if proposals is not None:
-        def render_chunk(start: int, stop: int) -> tuple[np.ndarray, RenderStats]:
-            colours, evaluated = render_proposal_rays(pixel_range_rays(camera, config, start, stop), field, proposals)
-            return colours, RenderStats(stop - start, evaluated, evaluated)
-        per_ray = proposals.sampling.most_samples
-    else:
-        def render_chunk(start: int, stop: int) -> tuple[np.ndarray, RenderStats]:
-            return render_rays(config, pixel_range_rays(camera, config, start, stop), plain(field), grid, early_stop,
-                               coarse)
-        per_ray = config.sampling.n_samples if coarse is None else coarse.hierarchy.samples_per_ray
-    colors, stats = render_in_chunks(camera.width * camera.height, rays_per_chunk(per_ray, chunk_rays), render_chunk,
-                                     progress)
+def render_view(camera: Camera, config: RenderConfig, field: FieldFn, sampler: Sampler, chunk_rays: int = CHUNK_RAYS,
+                progress=None) -> tuple[np.ndarray, RenderStats]:
+    """An ordinary (noise-free) render of a camera by the scene's `sampler`: image (height, width, 3) float32
+    and counts."""
+    def render_chunk(start: int, stop: int) -> tuple[np.ndarray, RenderStats]:
+        return sampler.render(pixel_range_rays(camera, config, start, stop), field)
+
+    colors, stats = render_in_chunks(camera.width * camera.height, rays_per_chunk(sampler.samples_per_ray, chunk_rays),
+                                     render_chunk, progress)
     return colors.reshape(camera.height, camera.width, 3), stats

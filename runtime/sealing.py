@@ -150,10 +150,10 @@ def canonical_json(data) -> bytes:
     return json.dumps(data, sort_keys=True, separators=(",", ":"), ensure_ascii=True, allow_nan=False).encode()
 
 
-def associated_data(model_fingerprint: str, width: int, height: int, payload: dict) -> bytes:
-    """The AEAD's associated data: what the bundle fixes before its noise is solved. payload: the bundle
-    metadata's payload object (this seal included)."""
-    return canonical_json({"model_fingerprint": model_fingerprint, "secret": [width, height], "payload": payload})
+def associated_data(model_fingerprint: str, width: int, height: int, marker: dict) -> bytes:
+    """The AEAD's associated data: what the bundle fixes before its noise is solved. marker: the bundle
+    metadata's payload marker (runtime.payload; this seal included)."""
+    return canonical_json({"model_fingerprint": model_fingerprint, "secret": [width, height], "payload": marker})
 
 
 def encrypt(plaintext: bytes, keys: Keys, seal: Seal, associated: bytes) -> bytes:

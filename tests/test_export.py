@@ -17,7 +17,7 @@ from noisenerf.runtime.fields import field_graph
 from noisenerf.runtime.images import to_uint8
 from noisenerf.runtime.model import grid_from_dict, grid_to_dict, load_model
 from noisenerf.runtime.occupancy import OccupancyGrid
-from noisenerf.runtime.render import render_view
+from noisenerf.runtime.render import MarchingSampler, render_view
 from noisenerf.runtime.reveal import render_tile
 from noisenerf.runtime.session import OnnxField, read_model_file
 from noisenerf.train.scene.render import numpy_field
@@ -91,7 +91,7 @@ def test_metadata_round_trips(exported):
     assert model.noise_dims == scene.render_field.config.noise_dims
     assert json.dumps(model.metadata.architecture, sort_keys=True) == json.dumps(scene.config.architecture(),
                                                                                  sort_keys=True)
-    assert (model.coarse is None) == (scene.fine is None) and list(model.fields()) == list(scene.fields())
+    assert model.sampler().hierarchical == (scene.fine is not None) and list(model.fields()) == list(scene.fields())
     np.testing.assert_array_equal(model.grid.occupied, scene.grid.occupied)
     np.testing.assert_array_equal(model.grid.aabb, scene.grid.aabb)
 
@@ -135,8 +135,8 @@ def test_skipping_render_evaluates_the_same_samples(exported):
     model = load_model(path, threads=1)
     camera = scene.config.cameras[2]
     reference, reference_stats = render_view(camera, scene.config.render, numpy_field(scene.render_field),
-                                             scene.grid)
-    image, stats = render_view(camera, model.render_config, model.field, model.grid)
+                                             MarchingSampler(scene.config.render, scene.grid))
+    image, stats = render_view(camera, model.render_config, model.field, MarchingSampler(model.render_config, model.grid))
     assert stats == reference_stats and stats.n_samples_evaluated < stats.n_samples_dense
     assert np.abs(image - reference).max() <= 1e-5
 

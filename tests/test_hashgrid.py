@@ -207,7 +207,7 @@ def test_tiles_a_sealed_payload_and_ordinary_renders_work_on_a_hash_grid(hashgri
 
     rendered = run_reveal(folder / "model.onnx", "--view", "1", "-o", tmp_path / "view.png")
     assert rendered.returncode == 0, rendered.stderr
-    image, _ = render_view(scene.config.cameras[1], scene.config.render, numpy_field(scene.render_field), scene.grid)
+    image, _ = render_view(scene.config.cameras[1], scene.config.render, numpy_field(scene.render_field), scene.sampler())
     ours = read_native(tmp_path / "view.png")[..., :3].astype(int)
     assert np.abs(ours - to_uint8(image).astype(int)).max() <= 1  # torch and onnxruntime agree to float32 rounding
 

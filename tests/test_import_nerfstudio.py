@@ -207,11 +207,8 @@ def test_ordinary_render_follows_the_proposal_sampler(imported):
     _, _, _, folder = imported
     model = load_model(folder / "model.onnx")
     scene = load_scene(folder / "scene")
-    onnx_image, stats = render_view(model.cameras[2], model.render_config, model.field, None, proposals=model.proposals)
-    field = scene.render_field
-    networks = type(model.proposals)(model.proposals.sampling, [
-        lambda p, net=net: net(torch.from_numpy(p)).detach().numpy() for net in field.proposals])
-    torch_image, _ = render_view(model.cameras[2], model.render_config, numpy_field(field), None, proposals=networks)
+    onnx_image, stats = render_view(model.cameras[2], model.render_config, model.field, model.sampler())
+    torch_image, _ = render_view(model.cameras[2], model.render_config, numpy_field(scene.render_field), scene.sampler())
     assert stats.n_samples_evaluated == 12 * 10 * 48
     assert np.abs(onnx_image - torch_image).max() < 1e-5
     assert np.isfinite(onnx_image).all() and onnx_image.min() >= 0 and onnx_image.max() <= 1
@@ -359,12 +356,13 @@ def test_proposal_sampler_is_nerfstudios(nerfstudio_trained):
     model, golden, _, _ = nerfstudio_trained
     rays = RayBatch(golden["rays_origins"], golden["rays_directions"], golden["rays_directions"])
     starts, ends = golden["final_starts"].reshape(8, -1), golden["final_ends"].reshape(8, -1)
-    edges = proposal_edges(rays, model.proposals)
+    sampler = model.sampler()
+    edges = proposal_edges(rays, sampler)
     assert np.allclose(edges[:, :-1], starts, rtol=2e-4, atol=1e-6) and np.allclose(edges[:, 1:], ends, rtol=2e-4)
     theirs, _ = midpoints(rays, np.concatenate([starts, ends[:, -1:]], 1))
     _, sigma = model.field(theirs.reshape(-1, 3), np.repeat(golden["rays_directions"], starts.shape[1], 0))
     assert np.allclose(sigma.reshape(8, -1), golden["final_density"].reshape(8, -1), rtol=1e-4, atol=1e-9)
-    colours, _ = render_proposal_rays(rays, model.field, model.proposals)
+    colours, _ = render_proposal_rays(rays, model.field, sampler)
     assert np.abs(colours - golden["rays_rgb"]).max() < 1e-4
 
 

@@ -26,7 +26,7 @@ from noisenerf.runtime.onnx_file import parse_model
 from noisenerf.runtime.render import render_view
 from noisenerf.runtime.reveal import render_tile, reveal_tiles
 from noisenerf.train.hide.plan import HideConfig, plan
-from noisenerf.train.scene.render import numpy_coarse, numpy_field, numpy_fields
+from noisenerf.train.scene.render import numpy_field, numpy_fields
 
 
 @pytest.fixture(scope="module")
@@ -152,9 +152,8 @@ def test_hierarchical_view_renders_agree_between_torch_and_onnxruntime(fine_mode
     scene, model, _ = fine_model
     loaded = load_model(model, threads=1)
     camera = scene.config.cameras[2]
-    ours, stats = render_view(camera, loaded.render_config, loaded.field, loaded.grid, coarse=loaded.coarse)
-    theirs, _ = render_view(camera, scene.config.render, numpy_field(scene.fine), scene.grid,
-                            coarse=numpy_coarse(scene.coarse, scene.hierarchy))
+    ours, stats = render_view(camera, loaded.render_config, loaded.field, loaded.sampler())
+    theirs, _ = render_view(camera, scene.config.render, numpy_field(scene.fine), scene.sampler())
     n_coarse, n_importance = scene.config.n_coarse, scene.config.n_importance
     assert stats.n_samples_evaluated == stats.n_samples_dense == stats.n_rays * (2 * n_coarse + n_importance)
     assert np.abs(ours - theirs).max() <= 1e-3 and np.abs(ours - theirs).mean() <= 1e-5

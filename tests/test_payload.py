@@ -23,7 +23,7 @@ from noisenerf.runtime.layouts import CompactNoise
 from noisenerf.runtime.errors import UserError
 from noisenerf.runtime.images import read_native, write_image
 from noisenerf.runtime.payload import (
-    INEXACT, MIN_BUCKET, Record, checked_payload, image_record, near_square, sealed_shape, unpack_record,
+    INEXACT, MIN_BUCKET, Record, checked_marker, image_record, near_square, sealed_shape, unpack_record,
 )
 from noisenerf.runtime.sealing import WRONG, ScryptParams, Seal, new_seal
 from noisenerf.train.hide.payload import hide_payload
@@ -75,16 +75,16 @@ def test_secret_shapes_near_square_and_size_buckets():
     assert sealed_shape(300, 20) == (20, 20) and sealed_shape(401, 20) == (40, 20)  # a tile, then whole tiles
 
 
-def test_payload_metadata_is_checked_and_kdf_capped():
+def test_payload_marker_is_checked_and_kdf_capped():
     seal = fixed_seal().to_dict()
-    assert checked_payload({"version": 1, "sealed": seal})["sealed"] == seal
+    assert checked_marker({"version": 1, "sealed": seal})["sealed"] == seal
     for bad in ({"version": 2, "sealed": None}, {"version": 1, "sealed": None, "x": 1},
                 {"version": 1, "sealed": {**seal, "salt": "AAAA"}},
                 {"version": 1, "sealed": {**seal, "kdf": {"name": "scrypt", "log2_n": 20, "r": 8, "p": 1}}},
                 {"version": 1, "sealed": {**seal, "kdf": {"name": "scrypt", "log2_n": 17, "r": 8, "p": 64}}},
                 {"version": 1, "sealed": {**seal, "cipher": "rot13"}}):
         with pytest.raises(UserError, match="bundle: "):
-            checked_payload(bad)
+            checked_marker(bad)
 
 
 @pytest.mark.parametrize("content", ["empty", "one byte", "random", "text"])
@@ -154,7 +154,7 @@ def test_sealed_metadata_hides_length_and_name(demo, sealed, tmp_path):
         bundle = load_bundle(path)
         assert (bundle.width, bundle.height) == (16, 16)
         assert b"note.txt" not in path.read_bytes() and b".pdf" not in path.read_bytes()
-    assert set(load_bundle(sealed).payload) == {"version", "sealed"}
+    assert set(load_bundle(sealed).payload_marker) == {"version", "sealed"}
 
 
 def test_sealed_bundle_is_deterministic_only_with_a_fixed_seal(demo, sealed, tmp_path):

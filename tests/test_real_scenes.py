@@ -52,8 +52,8 @@ def test_field_parity_on_fitted_lego(lego):
 def test_ordinary_render_parity_on_fitted_lego(lego):
     scene, model, _ = lego
     camera = scene.config.cameras[110]
-    ours, ours_stats = render_view(camera, scene.config.render, numpy_field(scene.render_field), scene.grid)
-    theirs, theirs_stats = render_view(camera, model.render_config, model.field, model.grid)
+    ours, ours_stats = render_view(camera, scene.config.render, numpy_field(scene.render_field), scene.sampler())
+    theirs, theirs_stats = render_view(camera, model.render_config, model.field, model.sampler())
     assert np.abs(ours - theirs).max() <= 1e-5
     assert (to_uint8(ours) == to_uint8(theirs)).all()
     assert ours_stats.n_samples_evaluated == theirs_stats.n_samples_evaluated

@@ -14,7 +14,7 @@ import torch
 from noisenerf.runtime.bundle import load_bundle
 from noisenerf.runtime.metrics import psnr
 from noisenerf.runtime.networks import render_network
-from noisenerf.runtime.render import render_view
+from noisenerf.runtime.render import MarchingSampler, render_view
 from noisenerf.runtime.reveal import reveal_tiles
 from noisenerf.runtime.session import OnnxField, read_model_file
 from noisenerf.train.hide.settings import recipe
@@ -55,8 +55,8 @@ def measure_cost(context: BenchContext) -> Cost:
     report = context.hide(secret, "full", HideConfig(view=context.config.view))
     bundle = load_bundle(context.work / "full.bundle")
     revealed, reveal_seconds = timed(reveal_tiles, bundle, model.render_config, model.fields())
-    _, render_seconds = timed(render_view, bundle.tiles[0].camera, model.render_config, model.field, None,
-                              early_stop=0.0)
+    _, render_seconds = timed(render_view, bundle.tiles[0].camera, model.render_config, model.field,
+                              MarchingSampler(model.render_config, None, skip=False))
     hide_seconds = report["seconds"]
     return Cost([{"secret": Path(context.config.secret).name, "width": secret.shape[1], "height": secret.shape[0],
                       "hide_seconds": hide_seconds, "reveal_seconds": reveal_seconds,
@@ -157,11 +157,11 @@ def measure_skipping(context: BenchContext) -> Skipping:
         dataset = load_dataset(Path(config.data), resolution=scene.config.cameras[0].width)
         field_fn = numpy_field(scene.render_field)
         views = list(dataset.splits.get("test") or dataset.splits["train"])
-        for name, grid, early_stop in (("dense", scene.grid.box_only(), 0.0), ("skipping", scene.grid, None)):
+        for name, skip in (("dense", False), ("skipping", True)):
             started, evaluated, dense, scores = time.perf_counter(), 0, 0, []
             for index in views:
-                image, stats = render_view(dataset.cameras[index], scene.config.render, field_fn, grid,
-                                           early_stop=early_stop)
+                image, stats = render_view(dataset.cameras[index], scene.config.render, field_fn,
+                                           MarchingSampler(scene.config.render, scene.grid, skip))
                 scores.append(psnr(image, dataset.images[index]))
                 evaluated, dense = evaluated + stats.n_samples_evaluated, dense + stats.n_samples_dense
             rows.append({"experiment": "ordinary render", "variant": name, "work": evaluated, "dense_work": dense,

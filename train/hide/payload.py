@@ -53,11 +53,11 @@ def hide_payload(scene: Scene, record: Record, output: Path, config: HideConfig,
     if passphrase is not None:
         seal = seal or new_seal()
         sealing = (seal, derive_keys(passphrase, seal))
-    secret, payload = payload_secret(record, config.tile_size, scene.fingerprint(), sealing)
+    secret, marker = payload_secret(record, config.tile_size, scene.fingerprint(), sealing)
     room = {**capacity(secret, config.tile_size), "kind": record.kind, "bytes": len(record.body)}
     if announce is not None:
         announce(room)
-    report = hide(scene, secret, output, config, device, force=force, progress=progress, payload=payload,
+    report = hide(scene, secret, output, config, device, force=force, progress=progress, payload_marker=marker,
                   workers=workers, executor=executor, ray_address=ray_address, verbose=verbose,
                   seal_keys=None if sealing is None else sealing[1])
     return {**report, "bundle_bytes": output.stat().st_size, "payload": record.report(),

@@ -119,6 +119,6 @@ def plan(scene: Scene, secret: np.ndarray, config: HideConfig) -> HidePlan:
 def run_key(scene: Scene, secret: np.ndarray, config: HideConfig) -> str:
     """What a resumable partial result belongs to: scene, secret, every setting and the noisenerf version
     (saved parts are only valid in the compact basis the version that solved them computes)."""
-    payload = json.dumps({"scene": scene.fingerprint(), "secret": secret_digest(secret), "shape": secret.shape,
+    identity = json.dumps({"scene": scene.fingerprint(), "secret": secret_digest(secret), "shape": secret.shape,
                           "config": config.to_dict(), "noisenerf": __version__}, sort_keys=True)
-    return hashlib.sha256(payload.encode()).hexdigest()
+    return hashlib.sha256(identity.encode()).hexdigest()

@@ -58,11 +58,11 @@ class TileWork:
 
 
 def hide(scene: Scene, secret: np.ndarray, output: Path, config: HideConfig, device: torch.device,
-         force: bool = False, progress: ProgressFn | None = None, payload: dict | None = None,
+         force: bool = False, progress: ProgressFn | None = None, payload_marker: dict | None = None,
          workers: int | None = None, allow_inexact: bool = False, executor: str = "local",
          ray_address: str | None = None, verbose: bool = False, seal_keys: Keys | None = None) -> dict:
     """Hide `secret` (H, W, 3) uint8 in the scene; write the bundle to `output`; return the report.
-    payload: the bundle's payload object when the secret carries one (train.payload), else None; seal_keys: a
+    payload_marker: the bundle's payload marker when the secret carries a payload (train.hide.payload), else None; seal_keys: a
     sealed payload's keys, under which the bundle is tagged before it is written.
     progress: told of the pixels solved (runtime.progress; parts solved again are taken back).
     A method that promises exactness (Method.exact) and leaves a tile's pixels off raises InexactResult at
@@ -83,7 +83,7 @@ def hide(scene: Scene, secret: np.ndarray, output: Path, config: HideConfig, dev
                         f"not {config.n_samples}")
     noise_dims = scene.render_field.config.noise_dims
     solver = SOLVERS[config.method]
-    if allow_inexact and payload is not None:
+    if allow_inexact and payload_marker is not None:
         raise UserError(PAYLOAD_IS_EXACT)
     workers = (available_cores() if workers is None else workers) if device.type == "cpu" and solver.method.spreads else 1
     weights = FieldWeights.of(scene, hide_plan.tiles[0].network)
@@ -98,7 +98,7 @@ def hide(scene: Scene, secret: np.ndarray, output: Path, config: HideConfig, dev
                         secret_sha256=secret_digest(secret), layout=config.layout,
                         noise_dims=noise_dims, dtype=config.dtype, tiles=tuple(tiles),
                         extra={"method": config.method, "noisenerf": noisenerf.__version__,
-                               "config": config.to_dict()}, payload=payload,
+                               "config": config.to_dict()}, payload_marker=payload_marker,
                         coefficients=noise_layout.coefficients_of(tiles[0].noise))
         data = bundle.to_bytes()
         write_bytes(output, data if seal_keys is None else tagged(data, seal_keys), replace=force)

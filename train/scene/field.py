@@ -15,6 +15,7 @@ import torch
 from torch import nn
 
 from noisenerf.runtime.encoding import encoding_dims
+from noisenerf.train.scene.field_module import FieldModule
 
 
 @dataclass(frozen=True)
@@ -77,18 +78,7 @@ def positional_encoding(x: torch.Tensor, n_freqs: int) -> torch.Tensor:
     return torch.cat([x, bands.flatten(-3)], dim=-1)
 
 
-def noisy_forward(field, points: torch.Tensor, viewdirs: torch.Tensor, noise: torch.Tensor | None
-                  ) -> tuple[torch.Tensor, torch.Tensor]:
-    """Every field kind's forward (eq. 4–5): its encodings plus the optional noise (n, noise_dims), its raw
-    outputs, sigmoid colour (n, 3) and its density activation (n,). points, viewdirs: (n, 3)."""
-    encoded = field.encode(points, viewdirs)
-    if noise is not None:
-        encoded = encoded + noise
-    raw_rgb, raw_density = field.raw_outputs(encoded)
-    return torch.sigmoid(raw_rgb), field.density_of(raw_density)
-
-
-class MlpField(nn.Module):
+class MlpField(FieldModule):
     """F(γ(x) + δ_x, γ(d) + δ_d) -> (rgb, σ) with sigmoid colour and ReLU density."""
 
     def __init__(self, config: MlpConfig):
@@ -197,11 +187,7 @@ class MlpField(nn.Module):
         """The layers a density alone runs through (the bench's cost model): the trunk and the density layer."""
         return [*self.pts_linears, self.alpha_linear if self.config.use_viewdirs else self.output_linear]
 
-    def parameter_groups(self) -> list[dict]:
-        """The optimizer's groups: one, nerf-pytorch's plain Adam."""
-        return [{"params": list(self.parameters())}]
 
-    adam: ClassVar[dict] = {}  # torch's Adam defaults, as nerf-pytorch
 
     @staticmethod
     def density_of(raw: torch.Tensor) -> torch.Tensor:
@@ -218,16 +204,7 @@ class MlpField(nn.Module):
         """Samples whose σ cannot move with their raw density: ReLU's off side."""
         return raw <= 0
 
-    def negligible(self, raw: torch.Tensor, deltas: torch.Tensor) -> torch.Tensor:
-        """Samples of rays (m, n_samples) whose colour and noise the paper's method may leave out: the dead
-        ones (zero_slope), whose weight in eq. 2 and gradient are exactly zero. deltas: the intervals."""
-        return self.zero_slope(raw)
 
-    def forward(self, points: torch.Tensor, viewdirs: torch.Tensor, noise: torch.Tensor | None = None
-                ) -> tuple[torch.Tensor, torch.Tensor]:
-        """rgb (n, 3) in [0, 1] and σ (n,) ≥ 0 at points (n, 3) seen along viewdirs (n, 3), with optional
-        noise (n, noise_dims) added to the encoded input."""
-        return noisy_forward(self, points, viewdirs, noise)
 
     def raw_density(self, encoded_xyz: torch.Tensor) -> torch.Tensor:
         """Pre-activation density alone, without the view branch. encoded_xyz: (n, xyz_dims) -> (n,)."""

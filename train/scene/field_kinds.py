@@ -2,8 +2,9 @@
 
 A field kind (runtime.fields) is registered here with its config dataclass and its nn.Module: `mlp`
 (train.scene.field: MlpConfig, MlpField), `hashgrid` (train.scene.hashgrid: HashGridConfig,
-HashGridField) and `nerfacto` (train.scene.nerfacto: NerfactoConfig, NerfactoField, imported only). Fitting, the render pipeline, the occupancy grid, the secret view and the solvers reach a
-field only through `Field`; nothing else branches on a kind.
+HashGridField) and `nerfacto` (train.scene.nerfacto: NerfactoConfig, NerfactoField, imported only), each module
+a train.scene.field_module.FieldModule (the protocol's defaults). Fitting, the render pipeline, the occupancy grid,
+the secret view and the solvers reach a field only through `Field`; nothing else branches on a kind.
 """
 
 from __future__ import annotations

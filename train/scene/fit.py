@@ -33,11 +33,9 @@ from safetensors.torch import load_file, save
 
 from noisenerf.runtime import render as numpy_render
 from noisenerf.runtime.errors import UserError
-from noisenerf.runtime.field_callbacks import plain
 from noisenerf.runtime.files import check_output_directory, read_json, write_bytes, write_json
 from noisenerf.runtime.progress import Counter, ProgressFn
 from noisenerf.runtime.metrics import psnr, ssim
-from noisenerf.runtime.occupancy import OccupancyGrid
 from noisenerf.runtime.rays import field_space_rays
 from noisenerf.runtime.render import RenderConfig, render_view
 from noisenerf.runtime.sampling import SamplingConfig, jitter_positions, sample_positions
@@ -46,8 +44,7 @@ from noisenerf.train.scene.field import MlpConfig
 from noisenerf.train.scene.field_kinds import FieldConfigs
 from noisenerf.train.scene.hashgrid import HashGridConfig
 from noisenerf.train.scene.occupancy import OccupancyConfig, OccupancyTracker, build_occupancy_grid, carve, cell_points
-from noisenerf.train.scene.render import (TorchRays, numpy_coarse, numpy_field, render_hierarchical, render_rays,
-                                          skip_mask)
+from noisenerf.train.scene.render import TorchRays, numpy_field, render_hierarchical, render_rays, skip_mask
 from noisenerf.train.scene.scene import (Scene, SceneConfig, build_fields, field_weights, named_fields, render_field,
                                          weights_of)
 
@@ -302,16 +299,13 @@ class Fitter:
 def held_out_quality(scene: Scene, dataset: Dataset, views: list[int], skipping: bool = True) -> dict:
     """Mean PSNR / SSIM over views rendered the way recipients render them (runtime + skipping, or
     hierarchical for scenes with a fine network)."""
-    field, coarse = numpy_field(scene.render_field), numpy_coarse(scene.coarse, scene.hierarchy)
+    field, sampler = numpy_field(scene.render_field), scene.sampler(skipping)
     scores, dense, evaluated = [], 0, 0
     for index in views:
-        grid = scene.grid if skipping else scene.grid.box_only()
-        early_stop = None if skipping else 0.0
         if dataset.distortion is None:
-            image, stats = render_view(dataset.cameras[index], scene.config.render, field, grid, early_stop=early_stop,
-                                       coarse=coarse)
+            image, stats = render_view(dataset.cameras[index], scene.config.render, field, sampler)
         else:  # the photo saw its lens's rays, not the pinhole camera's: render those
-            image, stats = lens_view(scene, dataset, index, field, grid, early_stop, coarse)
+            image, stats = lens_view(scene, dataset, index, field, sampler)
         target = dataset.images[index]
         scores.append((psnr(image, target), ssim(image, target)))
         dense += stats.n_samples_dense
@@ -320,16 +314,15 @@ def held_out_quality(scene: Scene, dataset: Dataset, views: list[int], skipping:
             "views": len(views), "samples_dense": dense, "samples_evaluated": evaluated}
 
 
-def lens_view(scene: Scene, dataset: Dataset, index: int, field, grid: OccupancyGrid, early_stop: float | None,
-              coarse) -> tuple[np.ndarray, numpy_render.RenderStats]:
+def lens_view(scene: Scene, dataset: Dataset, index: int, field, sampler: numpy_render.Sampler
+              ) -> tuple[np.ndarray, numpy_render.RenderStats]:
     """View `index` rendered along the rays its photo saw (datasets.view_rays, through the lens's distortion),
     a chunk at a time as render_view renders: image (height, width, 3) float32 and counts."""
     camera, config = dataset.cameras[index], scene.config.render
     rays = field_space_rays(config, *view_rays(dataset, index, config.pixel_center))
-    per_ray = config.sampling.n_samples if coarse is None else coarse.hierarchy.samples_per_ray
     colors, stats = numpy_render.render_in_chunks(
-        len(rays), numpy_render.rays_per_chunk(per_ray),
-        lambda start, stop: numpy_render.render_rays(config, rays.rows(start, stop), plain(field), grid, early_stop, coarse))
+        len(rays), numpy_render.rays_per_chunk(sampler.samples_per_ray),
+        lambda start, stop: sampler.render(rays.rows(start, stop), field))
     return colors.reshape(camera.height, camera.width, 3), stats
 
 
@@ -337,14 +330,14 @@ def curve_psnr(scene: Scene, dataset: Dataset, views: list[int], rays_per_view: 
     """PSNR over a seeded random subset of the views' pixels, rendered like `held_out_quality` renders them: an
     unbiased estimate of the views' PSNR at a fraction of the cost (a full LLFF render is minutes here)."""
     field, rng, errors = numpy_field(scene.render_field), np.random.default_rng(seed), []
-    coarse = numpy_coarse(scene.coarse, scene.hierarchy)
+    sampler = scene.sampler()
     for index in views:
         camera = dataset.cameras[index]
         chosen = rng.choice(camera.width * camera.height, min(rays_per_view, camera.width * camera.height),
                             replace=False)
         rays_o, rays_d = view_rays(dataset, index, scene.config.render.pixel_center)
         rays = field_space_rays(scene.config.render, rays_o[chosen], rays_d[chosen])
-        colors, _ = numpy_render.render_rays(scene.config.render, rays, plain(field), scene.grid, coarse=coarse)
+        colors, _ = sampler.render(rays, field)
         errors.append((colors - dataset.images[index].reshape(-1, 3)[chosen]) ** 2)
     return float(-10 * np.log10(max(np.mean(np.concatenate(errors)), 1e-10)))
 

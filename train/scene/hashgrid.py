@@ -26,7 +26,7 @@ from torch.nn import functional
 from noisenerf.runtime.fields.hashgrid import (
     DEGREE2, DEGREE3, DENSITY_EXPONENT_CAP, HASHGRID, PRIMES, GridLevels, config_levels, corner_offsets, sh_matrix,
 )
-from noisenerf.train.scene.field import noisy_forward
+from noisenerf.train.scene.field_module import FieldModule
 
 TABLE_INIT = 1e-4  # tables start uniform in ±this (Instant-NGP's)
 NEGLIGIBLE_OPACITY = 0.5 / 255  # Σ σΔ a ray's left-out samples may hold (negligible): half an 8-bit step
@@ -164,7 +164,7 @@ class GridEncoding(nn.Module):
         return gathered.reshape(n, self.levels * self.features)
 
 
-class HashGridField(nn.Module):
+class HashGridField(FieldModule):
     """F(enc(x) + δ_x, SH(d) + δ_d) -> (rgb, σ) with sigmoid colour and σ = exp(min(raw, cap))."""
 
     def __init__(self, config: HashGridConfig):
@@ -247,11 +247,6 @@ class HashGridField(nn.Module):
         """∂raw colour/∂SH (n, 3, sh_degree²)."""
         return self.head_jacobian(masks)[:, :, :self.config.direction_dims]
 
-    def raw_outputs(self, encoded: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """Pre-activation colour (n, 3) and density (n,) of noisy encodings (n, noise_dims)."""
-        density, feature = self.trunk_outputs(encoded[:, :self.config.position_dims])
-        return self.view_branch(feature, encoded[:, self.config.position_dims:])[0], density
-
     def outputs_and_jacobian(self, encoded: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """[raw colour ‖ raw density] (n, 4) and its exact Jacobian ∂/∂encoded (n, 4, noise_dims): both MLPs
         are ReLU nets, so each layer's backward is its weight times the forward's mask."""
@@ -292,15 +287,6 @@ class HashGridField(nn.Module):
         order = opacity.argsort(-1)
         within = opacity.gather(-1, order).cumsum(-1) <= NEGLIGIBLE_OPACITY
         return torch.zeros_like(within).scatter(-1, order, within)
-
-    def forward(self, points: torch.Tensor, viewdirs: torch.Tensor, noise: torch.Tensor | None = None
-                ) -> tuple[torch.Tensor, torch.Tensor]:
-        """rgb (n, 3) and σ (n,) at points (n, 3) seen along viewdirs (n, 3), noise (n, noise_dims) optional."""
-        return noisy_forward(self, points, viewdirs, noise)
-
-    def raw_density(self, encoded_position: torch.Tensor) -> torch.Tensor:
-        """Pre-activation density (n,) of noisy grid features (n, L·F)."""
-        return self.trunk_outputs(encoded_position)[0]
 
     def density(self, points: torch.Tensor) -> torch.Tensor:
         """σ (n,) alone (occupancy-grid updates). points: (n, 3)."""

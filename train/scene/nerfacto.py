@@ -21,7 +21,7 @@ from torch import nn
 
 from noisenerf.runtime.fields.hashgrid import DENSITY_EXPONENT_CAP
 from noisenerf.runtime.fields.nerfacto import NERFACTO, TORCH_SH_SIGNS, cell_offset, grid_layout
-from noisenerf.train.scene.field import noisy_forward
+from noisenerf.train.scene.field_module import noisy_forward
 from noisenerf.train.scene.hashgrid import GridEncoding, GridFieldDims, HashGridField
 
 

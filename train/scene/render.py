@@ -17,9 +17,8 @@ from noisenerf.runtime.compositing import MAX_OPTICAL_DEPTH
 from noisenerf.runtime.field_callbacks import NoisyFieldFn
 from noisenerf.runtime.marching import grid_candidates
 from noisenerf.runtime.occupancy import OccupancyGrid
-from noisenerf.runtime.pdf import Hierarchy
+from noisenerf.runtime.proposal import DensityFn
 from noisenerf.runtime.rays import RayBatch
-from noisenerf.runtime.render import CoarseNetwork
 from noisenerf.runtime.sampling import LAST_DELTA
 from noisenerf.train.scene.field_kinds import Field
 
@@ -181,7 +180,13 @@ def numpy_fields(fields: dict[str, Field]) -> dict[str, NoisyFieldFn]:
     return {name: numpy_field(field) for name, field in fields.items()}
 
 
-def numpy_coarse(coarse: Field, hierarchy: Hierarchy | None) -> CoarseNetwork | None:
-    """The coarse pass of runtime.render's hierarchical render on the torch coarse field (None where the
-    scene has no fine network: its renders are uniform)."""
-    return CoarseNetwork(numpy_field(coarse), hierarchy) if hierarchy is not None else None
+def numpy_density(network: torch.nn.Module) -> DensityFn:
+    """A torch density network (a nerfacto proposal network) behind runtime.proposal's DensityFn, without
+    gradients: points (n, 3) -> σ (n,) in the network's dtype."""
+    parameter = next(network.parameters())
+
+    def evaluate(points: np.ndarray) -> np.ndarray:
+        with torch.no_grad():
+            return network(torch.tensor(points, dtype=parameter.dtype, device=parameter.device)).cpu().numpy()
+
+    return evaluate

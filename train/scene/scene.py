@@ -26,8 +26,11 @@ from noisenerf.runtime.fingerprint import weights_fingerprint
 from noisenerf.runtime.networks import render_network
 from noisenerf.runtime.occupancy import OccupancyGrid
 from noisenerf.runtime.pdf import Hierarchy
-from noisenerf.runtime.render import RenderConfig
+from noisenerf.runtime.fields import proposal_sampler
+from noisenerf.runtime.proposal import ProposalSampler, ProposalSampling
+from noisenerf.runtime.render import HierarchicalSampler, MarchingSampler, RenderConfig, Sampler
 from noisenerf.train.scene.field_kinds import Field, FieldConfigs, build_field, config_from_dict
+from noisenerf.train.scene.render import numpy_density, numpy_field
 
 SCENE_FORMAT_VERSION = 1
 SCENE_FOLDER = {"marker": "scene.json", "what": "scene"}  # how an import's output folder is checked and replaced
@@ -108,6 +111,17 @@ class Scene:
     def hierarchy(self) -> Hierarchy | None:
         """nerf-pytorch's coarse/fine sample counts for ordinary renders, where the scene has a fine network."""
         return Hierarchy(self.config.n_coarse, self.config.n_importance) if self.fine is not None else None
+
+    def sampler(self, skip: bool = True) -> Sampler:
+        """How an ordinary render of the torch fields places its samples, as the exported model's does
+        (runtime.model.Model.sampler): render the `render_field` through numpy_field with it."""
+        proposals = proposal_sampler(self.config.architecture())
+        if proposals is not None:
+            return ProposalSampler(ProposalSampling.from_architecture(proposals),
+                                   tuple(numpy_density(network) for network in self.coarse.proposals))
+        if self.hierarchy is not None:
+            return HierarchicalSampler(self.config.render, numpy_field(self.coarse), self.hierarchy)
+        return MarchingSampler(self.config.render, self.grid, skip)
 
     def fields(self) -> dict[str, Field]:
         return named_fields(self.coarse, self.fine)

@@ -33,7 +33,7 @@ import {
 } from "./limits.js";
 import { cameraFromDict } from "./camera.js";
 import { samplingFromDict } from "./sampling.js";
-import { checkedPayload } from "./payload.js";
+import { checkedMarker } from "./payload.js";
 import { splitSafetensors } from "./sealing.js";
 
 export const NOISENERF_VERSION = "0.1.0"; // noisenerf.__version__ of the Python runtime this port mirrors
@@ -300,7 +300,7 @@ export async function loadBundle(data, source = "secret.bundle") {
   for (let i = 0; i < tileData.length; i++) tiles.push(await parseTile(i, tileData[i], tensors, header));
   const bundle = { modelFingerprint: fingerprint, width, height, secretSha256: sha256, layout: header.layout,
     noiseDims: header.dims, dtype: header.dtype, tiles, coefficients: header.coefficients,
-    payload: meta.payload === undefined || meta.payload === null ? null : checkedPayload(meta.payload) };
+    payloadMarker: meta.payload === undefined || meta.payload === null ? null : checkedMarker(meta.payload) };
   validate(bundle);
   for (const tile of bundle.tiles) layout.loaded(tile.noise);
   return bundle;

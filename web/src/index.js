@@ -19,21 +19,21 @@ export { UserError } from "./errors.js";
 
 /** Whether a bundle's bytes are a sealed payload (the page asks for a passphrase then); throws as reveal would. */
 export async function inspectBundle(bundle) {
-  const secret = await loadBundle(bundle, "secret.bundle");
-  return { payload: secret.payload !== null, sealed: secret.payload !== null && secret.payload.sealed !== null,
-    width: secret.width, height: secret.height, tiles: secret.tiles.length };
+  const loaded = await loadBundle(bundle, "loaded.bundle");
+  return { payload: loaded.payloadMarker !== null, sealed: loaded.payloadMarker !== null && loaded.payloadMarker.sealed !== null,
+    width: loaded.width, height: loaded.height, tiles: loaded.tiles.length };
 }
 
 /** The reveal's first steps, on the bundle alone: read and checked, a sealed one's tag checked under the passphrase
- * (a passphrase for an unsealed one refused). -> {secret: the loaded bundle, keys: a sealed one's, else null}. */
+ * (a passphrase for an unsealed one refused). -> {loaded: the loaded bundle, keys: a sealed one's, else null}. */
 export async function openBundle(bundle, passphrase = null, onProgress = null) {
-  const secret = await loadBundle(bundle, "secret.bundle");
-  const seal = secret.payload === null ? null : sealOf(secret.payload);
+  const loaded = await loadBundle(bundle, "loaded.bundle");
+  const seal = loaded.payloadMarker === null ? null : sealOf(loaded.payloadMarker);
   const phrase = passphraseBytes(passphrase);
   if (seal === null && phrase !== null) throw new UserError(NOT_SEALED, { code: "seal.not_sealed" });
-  if (seal === null) return { secret, keys: null };
+  if (seal === null) return { loaded, keys: null };
   if (phrase === null) throw new UserError(NO_PASSPHRASE, { code: "seal.no_passphrase" });
-  return { secret, keys: await unsealKeys(bundle, seal, phrase, onProgress && ((done) => onProgress({ stage: "kdf", done, total: 1 }))) };
+  return { loaded, keys: await unsealKeys(bundle, seal, phrase, onProgress && ((done) => onProgress({ stage: "kdf", done, total: 1 }))) };
 }
 
 /**
@@ -50,26 +50,26 @@ export async function openBundle(bundle, passphrase = null, onProgress = null) {
  */
 export async function reveal({ model, bundle, passphrase = null, onProgress = null, openRenderer = LocalRenderer.open }) {
   if (!(model instanceof Uint8Array) || !(bundle instanceof Uint8Array)) throw new TypeError("model and bundle must be Uint8Arrays");
-  const { secret, keys } = await openBundle(bundle, passphrase, onProgress);
+  const { loaded, keys } = await openBundle(bundle, passphrase, onProgress);
   const checked = checkModel(model, "model.onnx");
-  checkBundle(checked, secret);
-  const total = secret.tiles.reduce((n, tile) => n + tile.rect[2] * tile.rect[3], 0);
+  checkBundle(checked, loaded);
+  const total = loaded.tiles.reduce((n, tile) => n + tile.rect[2] * tile.rect[3], 0);
   let done = 0;
   const progress = onProgress && ((rays) => onProgress({ stage: "render", done: (done += rays), total }));
-  const renderer = await openRenderer(model, checked.networks, bundleNetworks(secret, checked.networks));
+  const renderer = await openRenderer(model, checked.networks, bundleNetworks(loaded, checked.networks));
   let revealed;
   try {
-    revealed = await revealBundle(secret, checked.metadata.renderConfig, renderer, checked.networks, progress);
+    revealed = await revealBundle(loaded, checked.metadata.renderConfig, renderer, checked.networks, progress);
   } finally {
     await renderer.release();
   }
-  const { width, height } = secret;
-  if (secret.payload === null) {
+  const { width, height } = loaded;
+  if (loaded.payloadMarker === null) {
     return { kind: "image", bytes: encodePng(revealed.pixels, width, height), name: "revealed.png", width, height,
       exact: revealed.exact, sha256: revealed.sha256, pixels: revealed.pixels };
   }
   if (!revealed.exact) throw new UserError(INEXACT, { code: "payload.inexact" });
-  const record = openPayload(revealed.pixels, width, height, secret.payload, checked.metadata.fingerprint, keys);
+  const record = openPayload(revealed.pixels, width, height, loaded.payloadMarker, checked.metadata.fingerprint, keys);
   const name = record.name.length ? new TextDecoder("utf-8").decode(record.name) : null;
   const sha256 = bytesToHex(sha256Of(record.body));
   if (record.kind === "image") {

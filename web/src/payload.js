@@ -1,4 +1,4 @@
-// Mirrors runtime/payload.py: the bundle metadata's "payload" object (checked_payload, seal_of), the record the
+// Mirrors runtime/payload.py: the bundle metadata's "payload" object, the payload marker (checked_marker, seal_of), the record the
 // revealed pixels carry (header struct ">4sBBHQII32s": magic NNPL, version 1, kind, name length, body length,
 // width, height, SHA-256 of the body; then the name, then the body), and open_payload (a sealed record is
 // decrypted first). Any record that does not check is the one refusal INEXACT.
@@ -18,8 +18,8 @@ export const PAYLOAD_VERSION = 1;
 export const INEXACT = "the revealed pixels do not reproduce the payload's SHA-256 (the bundle or model was altered, " +
   "or this machine renders differently); nothing written";
 
-/** checked_payload: a bundle's payload object, refused unless it is exactly one payload_metadata writes. */
-export function checkedPayload(data) {
+/** checked_marker: a bundle's payload marker, refused unless it is exactly one payload_marker writes. */
+export function checkedMarker(data) {
   const keys = isJsonObject(data) ? Object.keys(data).sort() : [];
   if (!isJsonObject(data) || !pyEqual(data.version ?? null, PAYLOAD_VERSION) || keys.length !== 2 || keys[0] !== "sealed" || keys[1] !== "version") {
     throw new UserError(`bundle: payload must be an object with version ${PAYLOAD_VERSION} and sealed`,
@@ -29,9 +29,9 @@ export function checkedPayload(data) {
   return data;
 }
 
-/** seal_of: the seal of a payload object, null when it is not sealed. */
-export function sealOf(payload) {
-  return payload.sealed === null ? null : sealFromDict(payload.sealed);
+/** seal_of: the seal of a payload marker, null when it is not sealed. */
+export function sealOf(marker) {
+  return marker.sealed === null ? null : sealFromDict(marker.sealed);
 }
 
 const equalBytes = (a, b) => a.length === b.length && a.every((v, i) => v === b[i]);
@@ -59,9 +59,9 @@ export function unpackRecord(data) {
 }
 
 /** open_payload: the record in revealed pixels (height·width·3 uint8); a sealed one is decrypted with `keys` first. */
-export function openPayload(pixels, width, height, payload, modelFingerprint, keys) {
+export function openPayload(pixels, width, height, marker, modelFingerprint, keys) {
   let data = pixels;
-  const seal = sealOf(payload);
-  if (seal !== null) data = decrypt(data, keys, seal, associatedData(modelFingerprint, width, height, payload));
+  const seal = sealOf(marker);
+  if (seal !== null) data = decrypt(data, keys, seal, associatedData(modelFingerprint, width, height, marker));
   return unpackRecord(data);
 }

@@ -130,8 +130,8 @@ export async function unsealKeys(data, seal, passphrase, onProgress = null) {
 }
 
 /** associated_data: what the bundle fixes before its noise is solved. */
-export function associatedData(modelFingerprint, width, height, payload) {
-  return canonicalJson({ model_fingerprint: modelFingerprint, secret: [width, height], payload });
+export function associatedData(modelFingerprint, width, height, marker) {
+  return canonicalJson({ model_fingerprint: modelFingerprint, secret: [width, height], payload: marker });
 }
 
 /** decrypt: the plaintext, or the one refusal a wrong passphrase and an altered bundle or model share. */
