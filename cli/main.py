@@ -92,9 +92,10 @@ def cmd_hide(args) -> None:
         off = [f"tile {k}: {t['inexact_pixels']} px off by up to {t['max_error']}"
                for k, t in enumerate(report["tiles"]) if t["inexact_pixels"]]
         print(f"{PROG}: warning: the bundle is not exact (--allow-inexact): {'; '.join(off)}", file=sys.stderr)
+    margin = f" (every value {report['margin_levels']:.3f} levels or more inside its bin)" if report["exact"] else ""
     lines = [f"bundle: {report['bundle']} ({report['bundle_bytes']} bytes, {report['bytes_per_pixel']:.1f} B/px)",
              f"tiles: {len(report['tiles'])}, exact fraction {report['exact_fraction']:.6f}, "
-             f"exact: {str(report['exact']).lower()}", f"seconds: {report['seconds']}"]
+             f"exact: {str(report['exact']).lower()}{margin}", f"seconds: {report['seconds']}"]
     if "payload" in report:
         lines.insert(1, payload_line(report["payload"], report["sealed"]))
     emit(report, args.json, lines)

@@ -87,8 +87,7 @@ def run(args: argparse.Namespace) -> dict:
                   "samples": result.samples, "samples_dense": result.samples_dense}
     else:
         read = api.read_bundle(args.bundle)
-        bundle = read.bundle
-        if bundle.payload_marker is None:  # an image: its format is known now (a sealed image's once decrypted)
+        if read.payload_marker is None:  # an image: its format is known now (a sealed image's once decrypted)
             api.checked_image_output(args.output, args.force)
         else:
             check_output_path(args.output, force=args.force)

@@ -20,13 +20,13 @@ import time
 from dataclasses import dataclass, field
 import numpy as np
 
-from noisenerf.runtime.bundle import Bundle, bundle_bytes, parse_bundle_bytes, secret_digest
+from noisenerf.runtime.bundle import Bundle, BundleFile, bundle_bytes, read_bundle_file, secret_digest
 from noisenerf.runtime.arguments import (checked_callback, checked_int, checked_path, checked_source, checked_text,
                                          optional, wrong)
 from noisenerf.runtime.errors import UserError
 from noisenerf.runtime.files import check_output_path, refuse_lossy, write_bytes
 from noisenerf.runtime.images import to_uint8, write_image, written_format
-from noisenerf.runtime.model import Model, check_bundle, load_model
+from noisenerf.runtime.model import Model, check_bundle, check_fingerprint, load_model
 from noisenerf.runtime.payload import INEXACT, open_payload, seal_of
 from noisenerf.runtime.progress import Counter, ProgressFn
 from noisenerf.runtime.sealing import NOT_SEALED, Keys, unseal_keys
@@ -41,22 +41,38 @@ WRITTEN_AS = {"uint8": "8-bit values", "uint16": "8-bit values scaled exactly to
 
 @dataclass(frozen=True)
 class ReadBundle:
-    """A bundle as read: its checked contents and the bytes a sealed one's tag is checked on."""
+    """A bundle as read: its file (runtime.bundle.BundleFile), the bytes a sealed one's tag is checked on, and an
+    unmasked one's checked contents (a masked one's are checked once its model is open: `opened`)."""
 
-    bundle: Bundle
+    file: BundleFile
     data: bytes
+    checked: Bundle | None
+
+    @property
+    def payload_marker(self) -> dict | None:
+        return self.file.payload_marker
 
     @property
     def sealed(self) -> bool:
-        return self.bundle.payload_marker is not None and seal_of(self.bundle.payload_marker) is not None
+        return self.payload_marker is not None and seal_of(self.payload_marker) is not None
+
+    def opened(self, model: Model) -> Bundle:
+        """The bundle's contents, checked against `model`; a masked bundle's unmasked with it, once the model is
+        the one it names (another's would unmask to junk)."""
+        if self.checked is None:
+            check_fingerprint(model, self.file.model_fingerprint)
+        bundle = self.checked or self.file.bundle(model.mask_secret)
+        check_bundle(model, bundle)
+        return bundle
 
 
 def read_bundle(bundle: Source | ReadBundle) -> ReadBundle:
-    """A bundle (a path, or its bytes) read once and checked (runtime.bundle.load_bundle)."""
+    """A bundle (a path, or its bytes) read once and checked (runtime.bundle), all of it unless it is masked."""
     if isinstance(bundle, ReadBundle):
         return bundle
     data, name = bundle_bytes(checked_source(bundle, "bundle"))
-    return ReadBundle(parse_bundle_bytes(data, name), data)
+    file = read_bundle_file(data, name)
+    return ReadBundle(file, data, None if file.mask_salt is not None else file.bundle())
 
 
 @dataclass(frozen=True)
@@ -153,7 +169,7 @@ def unseal(read: ReadBundle, passphrase: bytes | None) -> Keys | None:
         return None
     if passphrase is None:
         raise UserError(NO_PASSPHRASE, code="seal.no_passphrase")
-    return unseal_keys(read.data, seal_of(read.bundle.payload_marker), passphrase)
+    return unseal_keys(read.data, seal_of(read.payload_marker), passphrase)
 
 
 def open_model(model: Source | Model, device: str, threads: int | None) -> Model:
@@ -173,10 +189,9 @@ def reveal(model: Source | Model, bundle: Source | ReadBundle, passphrase: str |
     start = time.perf_counter()
     progress = optional(checked_callback, progress, "progress")
     read = read_bundle(bundle)
-    bundle = read.bundle
     keys = unseal(read, passphrase_bytes(passphrase))
     model = open_model(model, device, threads)
-    check_bundle(model, bundle)
+    bundle = read.opened(model)
     loaded = time.perf_counter()
     rays = Counter(progress, "render", bundle.width * bundle.height, "ray")
     revealed = reveal_tiles(bundle, model.render_config, model.fields(), progress=rays)

@@ -12,7 +12,9 @@
               render network, the fine one where there is one), and for a payload (a file, or a sealed
               secret) the optional "payload" object, the payload marker that runtime.payload defines and validates.
 
-Versions: noisenerf writes format 4 and reads formats 1 to 4. Format 1 (every bundle written before the
+Versions: noisenerf writes format 5 and reads formats 1 to 5. Format 5 is format 4 with every tensor masked
+with the model (runtime.masking: the metadata's "mask" object; without the model the tensors are random bytes);
+a format 4 bundle is what a format 5 one is unmasked, and reveals as it always did. Format 1 (every bundle written before the
 compact layout) holds only the ray and sample layouts, which formats 2 to 4 keep unchanged, so it reveals
 as it always did; format 3's compact tiles add branch escapes (tile_NNNN_branch_escapes and
 _branch_escape_noise), which a format 2 tile has none of; format 4's store their coefficients as differences
@@ -20,7 +22,8 @@ from an interlaced prediction (codec "xz-interlaced-residuals", runtime/interlac
 store them as they are ("xz-byte-planes"). A format this version does not know (a newer
 writer's) is refused in one line naming it.
 
-The bundle holds noise and metadata only: without the model's exact weights it renders nothing.
+The bundle holds noise and metadata only: without the model's exact weights it renders nothing, and from
+format 5 its noise reads as random bytes.
 
 Checks, in this order (web/src/bundle.js keeps the same, so both refuse any input with the same code and params):
 
@@ -37,7 +40,10 @@ Checks, in this order (web/src/bundle.js keeps the same, so both refuse any inpu
      NaN, Infinity or out-of-range numbers, no lone surrogates, no byte order mark), "__metadata__"'s values
      strings, each tensor's shape and data_offsets whole numbers, the offsets tiling the data exactly, each the size
      its shape states;
-  8. the metadata (parse_bundle): an object, format_version, the secret and noise objects, the secret's size, the
+  7½. where the metadata states a mask (read_bundle_file): the mask object (mask.malformed); then (BundleFile.bundle)
+     the model's mask secret given (bundle.masked: a reveal opens the model first, and refuses a model other than
+     the one the bundle names before unmasking), the tensors unmasked;
+  8. the metadata (parse_bundle): an object, format_version (format 5 masked, earlier ones not: bundle.mask_format), the secret and noise objects, the secret's size, the
      noise header (layout, dims, dtype as text, the layout's own: compact's coefficients and codec, then the dtype
      one of the layout's), tiles a list, every tile's rect,
      the layout's streams against what they state (compact: the areas, then the expansion ratio),
@@ -48,7 +54,8 @@ Checks, in this order (web/src/bundle.js keeps the same, so both refuse any inpu
   9. the whole (validate): empty, tile by tile (network, inside the secret, camera, samples, noise shape and
      dtype, the layout's noise checks), the areas, overlaps.
 
-A sealed bundle's tag is checked after these (runtime/api.py), before the model is read.
+A sealed bundle's tag is checked after these (runtime/api.py), before the model is read; for a masked bundle,
+after check 7½'s mask object and before its model is read and its tensors unmasked.
 """
 
 from __future__ import annotations
@@ -71,16 +78,18 @@ from noisenerf.runtime.layouts import DTYPES, LAYOUTS, TileNoise, layout_named
 from noisenerf.runtime.limits import (MAX_CAMERAS, MAX_HEADER_BYTES, MAX_IMAGE_SIDE, MAX_NOISE_DIMS, MAX_TILES,
                                       checked_image_size, checked_int, checked_list, is_finite)
 from noisenerf.runtime.networks import NETWORKS
+from noisenerf.runtime.masking import checked_mask, mask_key, mask_metadata, xor_masked
 from noisenerf.runtime.payload import checked_marker
 from noisenerf.runtime.sealing import split_safetensors
 from noisenerf.runtime.sampling import SamplingConfig
 
-BUNDLE_FORMAT_VERSION = 4
+BUNDLE_FORMAT_VERSION = 5
+MASKED_FROM = 5  # the format from which every tensor is masked with the model (runtime.masking)
 METADATA_KEY = "noisenerf_bundle"
 # format -> the layouts it may hold (format 3: compact tiles add branch escapes; format 4: their coefficients are
-# stored as interlaced differences; runtime/layouts.py)
+# stored as interlaced differences; runtime/layouts.py; format 5: format 4 masked)
 READABLE_FORMATS = {1: ("ray", "sample"), 2: ("ray", "sample", "compact"), 3: ("ray", "sample", "compact"),
-                    4: ("ray", "sample", "compact")}
+                    4: ("ray", "sample", "compact"), 5: ("ray", "sample", "compact")}
 SAFETENSORS_DTYPES = ("F16", "F32", "U8", "I32")  # float noise, bases and offsets, compressed coefficients, escapes
 def secret_digest(pixels: np.ndarray) -> str:
     """SHA-256 of an 8-bit RGB image's bytes, (height, width, 3) uint8 row-major."""
@@ -121,11 +130,12 @@ class Bundle:
     extra: dict  # how it was made (method, seed, versions): informative only
     payload_marker: dict | None = None  # runtime.payload's marker of a file or sealed payload; None: an image
     coefficients: int | None = None  # compact layout: k per pixel
+    mask_salt: bytes | None = None  # format 5's (runtime.masking); None: written as format 4, unmasked
 
     def metadata(self) -> dict:
         layout = LAYOUTS[self.layout]
         return {
-            "format_version": BUNDLE_FORMAT_VERSION,
+            "format_version": MASKED_FROM - 1 if self.mask_salt is None else BUNDLE_FORMAT_VERSION,
             "model_fingerprint": self.model_fingerprint,
             "secret": {"width": self.width, "height": self.height, "sha256": self.secret_sha256},
             "noise": {"layout": self.layout, "dims": self.noise_dims, "dtype": self.dtype,
@@ -134,18 +144,24 @@ class Bundle:
                       for i, tile in enumerate(self.tiles)],
             "extra": self.extra,
             **({"payload": self.payload_marker} if self.payload_marker is not None else {}),
+            **({"mask": mask_metadata(self.mask_salt)} if self.mask_salt is not None else {}),
         }
 
-    def to_bytes(self) -> bytes:
-        """Validated, the safetensors file's bytes."""
+    def to_bytes(self, mask_secret: bytes | None = None) -> bytes:
+        """Validated, the safetensors file's bytes; a bundle with a mask salt is masked with `mask_secret`, its
+        model's (runtime.fingerprint.weights_digests)."""
         validate(self)
         tensors = {name: value for i, tile in enumerate(self.tiles)
                    for name, value in tile.noise.tensors(f"tile_{i:04d}").items()}
+        if self.mask_salt is not None:
+            if mask_secret is None:
+                raise ValueError("a masked bundle is written with its model's mask secret")
+            tensors = xor_masked(tensors, mask_key(mask_secret, self.mask_salt))
         return save(tensors, metadata={METADATA_KEY: json.dumps(self.metadata(), sort_keys=True)})
 
-    def save(self, path: str | Path, replace: bool = False) -> None:
+    def save(self, path: str | Path, replace: bool = False, mask_secret: bytes | None = None) -> None:
         """Validate, then write atomically (replace: whether an existing file may be replaced, --force)."""
-        write_bytes(path, self.to_bytes(), replace=replace)
+        write_bytes(path, self.to_bytes(mask_secret), replace=replace)
 
 
 def expected_noise_shape(tile: Tile, bundle: "Bundle") -> tuple[int, ...]:
@@ -302,11 +318,15 @@ def noise_header(noise: dict, layouts: tuple[str, ...], version: int) -> dict:
     return {"layout": layout.name, "dims": dims, "dtype": dtype, "coefficients": coefficients}
 
 
-def parse_bundle(meta, tensors: dict[str, np.ndarray], path: Path) -> Bundle:
-    """The metadata as a Bundle; nothing is converted by truncation (16.9 is not a size)."""
+def parse_bundle(meta, tensors: dict[str, np.ndarray], path: Path, mask_salt: bytes | None = None) -> Bundle:
+    """The metadata as a Bundle (its tensors unmasked where it was masked with `mask_salt`); nothing is converted by
+    truncation (16.9 is not a size)."""
     if not isinstance(meta, dict):
         raise UserError(f"bundle metadata must be a JSON object: {path}", code="bundle.metadata_not_object")
     version = checked_format(meta, path)
+    if (version >= MASKED_FROM) != (mask_salt is not None):
+        raise UserError(f"bundle: format {version} bundles are {'' if version >= MASKED_FROM else 'not '}masked",
+                        code="bundle.mask_format", format=version)
     secret, noise = meta.get("secret"), meta.get("noise")
     if not isinstance(secret, dict) or not isinstance(noise, dict):
         raise UserError("bundle: metadata needs 'secret' and 'noise' objects", code="bundle.no_secret_or_noise")
@@ -329,7 +349,12 @@ def parse_bundle(meta, tensors: dict[str, np.ndarray], path: Path) -> Bundle:
                               enumerate(zip(tiles, layout.kept_unpacked(areas, header["coefficients"],
                                                                         header["dtype"])))),
                   extra=extra if isinstance(extra, dict) else {}, coefficients=header["coefficients"],
-                  payload_marker=None if meta.get("payload") is None else checked_marker(meta["payload"]))
+                  payload_marker=payload_marker_of(meta), mask_salt=mask_salt)
+
+
+def payload_marker_of(meta: dict) -> dict | None:
+    """The metadata's payload marker, checked; None for an image."""
+    return None if meta.get("payload") is None else checked_marker(meta["payload"])
 
 
 def checked_rect(i: int, data) -> tuple[int, int, int, int]:
@@ -374,20 +399,58 @@ def bundle_bytes(source: str | Path | bytes) -> tuple[bytes, str]:
         raise os_failure("read bundle", path, error, "bundle.read_failed") from None
 
 
-def load_bundle(source: str | Path | bytes) -> Bundle:
-    """Read and validate a bundle (a path, or its bytes); anything malformed is one UserError."""
-    return parse_bundle_bytes(*bundle_bytes(source))
+@dataclass(frozen=True)
+class BundleFile:
+    """A bundle's file checked up to its tensors and its mask (checks 1 to 7½): what a reveal knows of a masked bundle
+    before its model is open: the fingerprint it names, its payload marker (a sealed one's tag is checked on it)."""
+
+    name: str
+    meta: object  # the parsed metadata, checked from check 8 on by `bundle`
+    tensors: dict[str, np.ndarray]  # as stored: masked where mask_salt is set
+    mask_salt: bytes | None
+
+    @property
+    def model_fingerprint(self) -> str:
+        meta = self.meta if isinstance(self.meta, dict) else {}
+        return checked_text(meta.get("model_fingerprint"), "bundle: model_fingerprint", "bundle.model_fingerprint")
+
+    @property
+    def payload_marker(self) -> dict | None:
+        return payload_marker_of(self.meta) if isinstance(self.meta, dict) else None
+
+    def bundle(self, mask_secret: bytes | None = None) -> Bundle:
+        """Checks 8 and 9, on the tensors unmasked with the model's mask secret where the bundle is masked."""
+        tensors = self.tensors
+        if self.mask_salt is not None:
+            if mask_secret is None:
+                raise UserError(f"{self.name}: this bundle is masked with its model; it reads only with the model",
+                                code="bundle.masked")
+            tensors = xor_masked(tensors, mask_key(mask_secret, self.mask_salt))
+        bundle = parse_bundle(self.meta, tensors, Path(self.name), self.mask_salt)
+        validate(bundle)
+        return bundle
 
 
-def parse_bundle_bytes(data: bytes, name: str) -> Bundle:
-    """A bundle from its bytes, validated in the module docstring's order of checks; refusals name it `name`
-    (its path)."""
+def read_bundle_file(data: bytes, name: str) -> BundleFile:
+    """Checks 1 to 7½ of the module docstring on a bundle's bytes; refusals name it `name` (its path)."""
     checked_framing(data, len(data), name)
     header, _ = split_safetensors(data, name)
     raw = header.get("__metadata__", {}).get(METADATA_KEY)
     if not isinstance(raw, str):
         raise UserError(f"not a noisenerf bundle (no '{METADATA_KEY}' metadata): {name}", code="bundle.not_noisenerf")
     meta = parse_json(raw, "bundle metadata", name)
-    bundle = parse_bundle(meta, read_tensors(header, data, name), Path(name))
-    validate(bundle)
-    return bundle
+    tensors = read_tensors(header, data, name)
+    masked = isinstance(meta, dict) and meta.get("mask") is not None
+    return BundleFile(name, meta, tensors, checked_mask(meta["mask"]) if masked else None)
+
+
+def load_bundle(source: str | Path | bytes, mask_secret: bytes | None = None) -> Bundle:
+    """Read and validate a bundle (a path, or its bytes; a masked one with its model's mask secret); anything
+    malformed is one UserError."""
+    return parse_bundle_bytes(*bundle_bytes(source), mask_secret)
+
+
+def parse_bundle_bytes(data: bytes, name: str, mask_secret: bytes | None = None) -> Bundle:
+    """A bundle from its bytes, validated in the module docstring's order of checks; refusals name it `name`
+    (its path)."""
+    return read_bundle_file(data, name).bundle(mask_secret)

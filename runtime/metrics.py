@@ -71,15 +71,27 @@ def exact_fraction(pixels: np.ndarray, target: np.ndarray) -> float:
     return float(np.mean(np.asarray(pixels) == np.asarray(target)))
 
 
+def rounding_margins(colors: np.ndarray, pixels: np.ndarray) -> np.ndarray:
+    """How far each rendered value lies inside the 8-bit bin of its target, in levels: 255·c against the bin
+    [t − ½, t + ½) that to_uint8 rounds into t (0 and 255 open outward: no boundary there), positive inside, negative
+    outside. A value that rounds right survives any error smaller than its margin. colors: (..., 3) float in
+    [0, 1], pixels: (..., 3) uint8 -> (..., 3) float64 (inf for a value whose bin has no boundary on either side)."""
+    levels, target = np.asarray(colors, np.float64) * 255, pixels.astype(np.float64)
+    below = np.where(pixels > 0, levels - (target - 0.5), np.inf)
+    above = np.where(pixels < 255, (target + 0.5) - levels, np.inf)
+    return np.minimum(below, above)
+
+
 def tile_quality(colors: np.ndarray, pixels: np.ndarray, shape: tuple[int, int]) -> dict:
     """A rendered tile against its 8-bit target: exact fraction (of values), pixels with any value off, max
-    error, PSNR, SSIM (None under 11 px). colors: (n, 3) float in [0, 1], pixels: (n, 3) uint8, shape: the
-    tile's (height, width)."""
+    error, the smallest rounding margin in levels (rounding_margins), PSNR, SSIM (None under 11 px). colors: (n, 3)
+    float in [0, 1], pixels: (n, 3) uint8, shape: the tile's (height, width)."""
     image, target = colors.reshape(*shape, 3), pixels.reshape(*shape, 3)
     got = to_uint8(image)
     return {
         "exact_fraction": exact_fraction(got, target),
         "inexact_pixels": int((got != target).any(-1).sum()),
+        "margin_levels": float(rounding_margins(image, target).min()),
         "max_error": int(np.abs(got.astype(np.int16) - target).max()),
         "psnr": psnr(got / 255.0, target / 255.0),
         "ssim": ssim(got / 255.0, target / 255.0) if min(shape) >= 11 else None,

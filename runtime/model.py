@@ -38,7 +38,7 @@ from noisenerf.runtime.bundle import Bundle
 from noisenerf.runtime.camera import Camera
 from noisenerf.runtime.errors import UserError
 from noisenerf.runtime.files import parse_json
-from noisenerf.runtime.fingerprint import weights_fingerprint
+from noisenerf.runtime.fingerprint import weights_digests
 from noisenerf.runtime.fields import field_graph, proposal_sampler
 from noisenerf.runtime.graph import FieldGraph, check_graph
 from noisenerf.runtime.limits import (
@@ -153,10 +153,12 @@ class ModelMetadata:
 
 @dataclass(frozen=True, eq=False)
 class Model:
-    """A loaded model: its metadata and the onnxruntime field (the render network)."""
+    """A loaded model: its metadata, the onnxruntime field (the render network), and the mask secret its weights give
+    (runtime.fingerprint.weights_digests: what unmasks its bundles)."""
 
     metadata: ModelMetadata
     field: OnnxField
+    mask_secret: bytes
 
     @property
     def fingerprint(self) -> str:
@@ -204,11 +206,14 @@ class Model:
         return self.cameras[view]
 
 
-def check_weights(weights: dict[str, np.ndarray], metadata: ModelMetadata, source: str) -> None:
-    """Refuse a model whose initializers and architecture do not hash to its metadata's fingerprint."""
-    if weights_fingerprint(weights, metadata.architecture) != metadata.fingerprint:
+def check_weights(weights: dict[str, np.ndarray], metadata: ModelMetadata, source: str) -> bytes:
+    """Refuse a model whose initializers and architecture do not hash to its metadata's fingerprint. -> the mask
+    secret they give."""
+    digests = weights_digests(weights, metadata.architecture)
+    if digests.fingerprint != metadata.fingerprint:
         raise UserError(f"{source}: its weights do not match its fingerprint {short_fingerprint(metadata.fingerprint)} "
                         "(the model was changed after export); export the scene again", code="model.weights_changed")
+    return digests.mask_secret
 
 
 def load_model(path: str | os.PathLike, device: str = "cpu", threads: int | None = None) -> Model:
@@ -219,9 +224,10 @@ def load_model(path: str | os.PathLike, device: str = "cpu", threads: int | None
         check_model_file(path)
     file = read_model_file(path)
     metadata = ModelMetadata.from_metadata_props(file.metadata_props, file.source)
-    check_weights(check_graph(file, expected_graph(metadata, file.source), file.source), metadata, file.source)
+    mask_secret = check_weights(check_graph(file, expected_graph(metadata, file.source), file.source), metadata,
+                                file.source)
     # the graph check above has made the ports, and so the noise width and the fine network, the metadata's
-    return Model(metadata, OnnxField(file, device=device, threads=threads))
+    return Model(metadata, OnnxField(file, device=device, threads=threads), mask_secret)
 
 
 def expected_graph(metadata: ModelMetadata, source: str) -> FieldGraph:
@@ -237,12 +243,17 @@ def short_fingerprint(fingerprint: str) -> str:
     return f"{fingerprint[:12]}…"
 
 
+def check_fingerprint(model: Model, fingerprint: str) -> None:
+    """Refuse a bundle hidden in another model: one naming another `fingerprint`."""
+    if fingerprint != model.fingerprint:
+        raise UserError(f"bundle was made for model {short_fingerprint(fingerprint)}, "
+                        f"this model is {short_fingerprint(model.fingerprint)}", code="model.other_model",
+                        bundle=fingerprint[:12], model=model.fingerprint[:12])
+
+
 def check_bundle(model: Model, bundle: Bundle) -> None:
     """Refuse a bundle hidden in another model, or with noise the field cannot take."""
-    if bundle.model_fingerprint != model.fingerprint:
-        raise UserError(f"bundle was made for model {short_fingerprint(bundle.model_fingerprint)}, "
-                        f"this model is {short_fingerprint(model.fingerprint)}", code="model.other_model",
-                        bundle=bundle.model_fingerprint[:12], model=model.fingerprint[:12])
+    check_fingerprint(model, bundle.model_fingerprint)
     if bundle.noise_dims != model.noise_dims:
         raise UserError(f"bundle noise has {bundle.noise_dims} dims, this model takes {model.noise_dims}",
                         code="model.noise_dims", bundle=bundle.noise_dims, model=model.noise_dims)

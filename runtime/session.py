@@ -30,6 +30,9 @@ from noisenerf.runtime.networks import NETWORKS, network_names, render_network
 from noisenerf.runtime.onnx_file import ModelFile, parse_model, pruned_model
 
 DEVICES = {"cpu": "CPUExecutionProvider", "cuda": "CUDAExecutionProvider"}
+# TF32 off: onnxruntime's CUDA provider takes TF32 matmuls by default, which moved a reveal's colours by up to 0.55
+# levels (an H100, docs/bench/gpu); in float32 CUDA differs from the CPU by ~1e-4 levels, within the exact method's margin
+PROVIDER_OPTIONS = {"CUDAExecutionProvider": {"use_tf32": "0"}}
 DEFAULT_BATCH = 16384  # points per onnxruntime run: as fast as larger batches on CPU, ~16 MB per 256-wide activation
 # onnxruntime's log levels: FATAL keeps its own lines, errors included (they raise and are reported once, as
 # our one line), off stderr; --verbose shows its warnings and errors. The level is onnxruntime's process-wide
@@ -43,8 +46,9 @@ def onnxruntime_logging(verbose: bool) -> None:
     ort.set_default_logger_severity(LOG_SEVERITY["verbose" if verbose else "quiet"])
 
 
-def providers_for(device: str) -> list[str]:
-    """onnxruntime execution providers for a device name, refusing one this installation lacks."""
+def providers_for(device: str) -> list[tuple[str, dict]]:
+    """onnxruntime execution providers, with their options, for a device name, refusing one this installation
+    lacks."""
     if device not in DEVICES:
         raise UserError(f"unknown device {device!r} (expected one of {', '.join(DEVICES)})",
                         code="session.unknown_device", device=device[:60])
@@ -54,7 +58,8 @@ def providers_for(device: str) -> list[str]:
         raise UserError(f"device {device!r} needs onnxruntime's {provider}, which this installation lacks "
                         f"(available: {', '.join(available)}); install onnxruntime-gpu for cuda",
                         code="session.no_provider", device=device, provider=provider)
-    return [provider] if device == "cpu" else [provider, DEVICES["cpu"]]
+    chosen = [provider] if device == "cpu" else [provider, DEVICES["cpu"]]
+    return [(name, PROVIDER_OPTIONS.get(name, {})) for name in chosen]
 
 
 def session_options(threads: int | None) -> ort.SessionOptions:

@@ -180,27 +180,75 @@ def write_reveal_inputs(directory: Path) -> tuple[Path, Path]:
 
 # ---- bundle files as an attacker writes them ------------------------------------------------------
 
-def bundle_contents(path: Path) -> tuple[dict, dict[str, np.ndarray]]:
-    """A bundle file's metadata (parsed JSON) and its tensors as stored, without any validation."""
+def mask_secret_of(owner) -> bytes:
+    """The mask secret (runtime.masking) of a Scene, a loaded Model, or a model file's path."""
+    from noisenerf.runtime.model import Model, load_model
+
+    if isinstance(owner, Model):
+        return owner.mask_secret
+    if hasattr(owner, "digests"):
+        return owner.digests().mask_secret
+    return load_model(owner).mask_secret
+
+
+def hidden_bundle(path: Path, owner):
+    """The bundle at `path` hidden in `owner` (mask_secret_of's), read and checked, unmasked with it."""
+    from noisenerf.runtime.bundle import load_bundle
+
+    return load_bundle(path, mask_secret_of(owner))
+
+
+def xor_masked_bytes(data: bytes, owner) -> bytes:
+    """A bundle file's bytes with each tensor's data XORed with its keystream (runtime.masking) under the mask its
+    metadata states and `owner`'s (mask_secret_of's) secret: a masked bundle unmasked, or an unmasked one with a mask
+    stated masked. Bytes whose header or mask does not parse come back as they are."""
+    from noisenerf.runtime.bundle import METADATA_KEY
+    from noisenerf.runtime.errors import UserError
+    from noisenerf.runtime.masking import checked_mask, keystream, mask_key
+
+    try:
+        size = int.from_bytes(data[:8], "little")
+        header = json.loads(data[8:8 + size])
+        salt = checked_mask(json.loads(header["__metadata__"][METADATA_KEY])["mask"])
+    except (ValueError, KeyError, TypeError, UserError):
+        return data
+    key, body = mask_key(mask_secret_of(owner), salt), bytearray(data[8 + size:])
+    for name, info in header.items():
+        if name != "__metadata__":
+            start, stop = info["data_offsets"]
+            body[start:stop] = (np.frombuffer(bytes(body[start:stop]), np.uint8) ^ keystream(key, name, stop - start)).tobytes()
+    return data[:8 + size] + bytes(body)
+
+
+def bundle_contents(path: Path, owner=None) -> tuple[dict, dict[str, np.ndarray]]:
+    """A bundle file's metadata (parsed JSON) and its tensors, without any validation: as stored, or unmasked with
+    `owner` (mask_secret_of's) where the bundle is masked."""
     from safetensors import safe_open
 
     from noisenerf.runtime.bundle import METADATA_KEY
+    from noisenerf.runtime.masking import checked_mask, mask_key, xor_masked
 
     with safe_open(str(path), framework="numpy") as handle:
         meta = json.loads(handle.metadata()[METADATA_KEY])
         tensors = {name: handle.get_tensor(name) for name in handle.keys()}
+    if owner is not None and meta.get("mask") is not None:
+        tensors = xor_masked(tensors, mask_key(mask_secret_of(owner), checked_mask(meta["mask"])))
     return meta, tensors
 
 
-def rewrite_bundle(source: Path, target: Path, edit) -> Path:
-    """`source` written to `target` after edit(meta, tensors) changed its metadata and tensors in place,
-    bypassing validation."""
+def rewrite_bundle(source: Path, target: Path, edit, owner=None) -> Path:
+    """`source` written to `target` after edit(meta, tensors) changed its metadata and tensors in place, bypassing
+    validation. With `owner` (mask_secret_of's), a masked bundle's tensors are edited unmasked, and masked again
+    under the salt its edited metadata states (none: left unmasked)."""
     from safetensors.numpy import save_file
 
     from noisenerf.runtime.bundle import METADATA_KEY
+    from noisenerf.runtime.masking import checked_mask, mask_key, xor_masked
 
-    meta, tensors = bundle_contents(source)
+    meta, tensors = bundle_contents(source, owner)
     edit(meta, tensors)
+    if owner is not None and meta.get("mask") is not None:
+        tensors = xor_masked(tensors, mask_key(mask_secret_of(owner), checked_mask(meta["mask"])))
     save_file(tensors, str(target), metadata={METADATA_KEY: json.dumps(meta)})
     return target
 
@@ -213,6 +261,7 @@ def as_older_compact_format(version: int):
 
     def edit(meta, tensors):
         noise = meta["noise"]
+        meta.pop("mask", None)  # written unmasked, as formats before 5
         for tile in meta["tiles"]:
             name, (_, _, width, height) = tile["tensor"], tile["rect"]
             dtype = DTYPES[noise["dtype"]]

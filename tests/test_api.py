@@ -10,9 +10,8 @@ import numpy as np
 import pytest
 
 import noisenerf
-from helpers import readme_python, run_reveal
+from helpers import hidden_bundle, readme_python, run_reveal
 from noisenerf.cli.main import main as noisenerf_main
-from noisenerf.runtime.bundle import load_bundle
 from noisenerf.runtime.images import read_native, write_image
 from noisenerf.runtime.sealing import NOT_SEALED, WRONG
 
@@ -37,7 +36,7 @@ def test_reveal_from_paths_or_bytes_is_the_cli_reveal(reveal_inputs, tmp_path):
     from_bytes = noisenerf.reveal(model.read_bytes(), bundle.read_bytes())
     assert from_paths.kind == from_bytes.kind == "image" and from_paths.exact and from_bytes.exact
     np.testing.assert_array_equal(from_paths.pixels, from_bytes.pixels)
-    assert from_paths.sha256 == load_bundle(bundle).secret_sha256
+    assert from_paths.sha256 == hidden_bundle(bundle, model).secret_sha256
     rays = from_paths.width * from_paths.height
     assert told[-1] == noisenerf.ProgressEvent("render", rays, rays, "ray") and from_paths.rays == rays
     assert [event.done for event in told] == sorted(event.done for event in told)

@@ -45,7 +45,7 @@ def inputs(tmp_path_factory):
     run, run_data = nerfstudio_run_from_goldens(folder / "nerfstudio")
     config = BenchConfig(scene=str(folder / "scene"), secret=str(folder / "secret.png"),
                          photos=(str(folder / "secret.png"),), small_width=12, paper_samples=3, paper_iters=60, ablation_samples=2,
-                         twok_size=32, twok_tile=16, twok_rows=1, threads=(1,), payload_bytes=200, view_width=12,
+                         twok_size=32, twok_tile=16, twok_rows=1, threads=(1,), payload_bytes=200, view_width=12, masking_width=32, margin_width=12, margin_views=2,
                          contention_width=12, browser_size=32, browser_repeats=3, big_secret=(40, 24),
                          data=str(data), fields_minutes=0.2, fields_resolution=16, fields_curve_seconds=2.0,
                          coverage_size=8, nerfstudio_run=str(run), nerfstudio_data=str(run_data), junk_bytes=8 << 20,
@@ -167,6 +167,27 @@ def test_payload_rows_are_byte_exact_and_sealed_fills_its_bucket(report):
     plain, sealed = sections["payload"].rows
     assert plain["exact"] and sealed["exact"] and not plain["sealed"] and sealed["sealed"]
     assert (plain["secret"], sealed["secret"]) == ("10x9", "16x16") and sealed["kdf_seconds"] > 0
+
+
+def test_masked_bundles_show_nothing_and_cost_nothing(report):
+    """Without the model a masked bundle's stored bytes are noise (its unmasked twin's planes follow the colours);
+    masking changes no key's size beyond its mask object, and both reveal exactly."""
+    _, sections = report
+    rows = sections["masking"].rows
+    assert len(rows) == 2 and all(row["exact"] for row in rows)  # one photo at two views
+    for row in rows:
+        assert row["masked_r2_max"] < row["plain_r2_max"] and row["xz_gain"] < 0.01
+        assert 1 < row["size_ratio"] < 1 + 200 / row["stored_bytes"]  # the mask object's ~100 bytes of metadata
+        assert row["entropy"] > 8 - 255 / (2 * row["stored_bytes"] * np.log(2)) - 0.05
+
+
+def test_margin_rows_keep_the_promise_and_survive_1e_5(report):
+    _, sections = report
+    rows = sections["margins"].rows
+    assert len(rows) == 2 and {row["view"] for row in rows} == {1, 3}  # 2 views of 6, not the bench's 0
+    for row in rows:
+        assert row["exact"] and row["margin_levels"] >= 0.05 - 1e-3 and row["survives_1e-05"]
+        assert row["bare_margin_levels"] < row["hide_margin_levels"] and row["key_growth"] > 0.5
 
 
 def test_paper_speed_runs_each_secret_as_written_and_skipping(report):

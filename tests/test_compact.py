@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import torch
 
-from helpers import as_older_compact_format, assert_refused, rewrite_bundle, run_reveal
+from helpers import as_older_compact_format, assert_refused, hidden_bundle, rewrite_bundle, run_reveal
 from noisenerf.cli.demo import DEMO_VIEW
 from noisenerf.runtime import interlaced
 from noisenerf.runtime.bundle import load_bundle
@@ -41,7 +41,7 @@ def test_compact_bundle_reveals_exactly_through_onnxruntime(demo):
     result = run_reveal(model, folder / "compact.bundle", "-o", folder / "out.png", "--json")
     assert result.returncode == 0, result.stderr
     assert json.loads(result.stdout)["exact"] is True
-    bundle = load_bundle(folder / "compact.bundle")
+    bundle = hidden_bundle(folder / "compact.bundle", model)
     assert bundle.layout == "compact" and bundle.dtype == "int16" and bundle.tiles[0].noise.coefficients().dtype == np.int16
 
 
@@ -51,10 +51,10 @@ def test_tiles_beyond_the_kept_budget_are_unpacked_again_when_rendered_with_the_
     from noisenerf.runtime.reveal import reveal_tiles
 
     folder, secret, _, model = demo
-    kept = load_bundle(folder / "compact.bundle")
+    kept = hidden_bundle(folder / "compact.bundle", model)
     tile_bytes = kept.tiles[0].noise.unpacked.nbytes  # two 24² tiles of k int16 coefficients a pixel
     monkeypatch.setattr(layouts_module, "KEPT_UNPACKED_BYTES", tile_bytes)
-    partly = load_bundle(folder / "compact.bundle")
+    partly = hidden_bundle(folder / "compact.bundle", model)
     assert [t.noise.unpacked is not None for t in kept.tiles] == [True, True]
     assert [t.noise.unpacked is not None for t in partly.tiles] == [True, False]
     loaded = load_model(model)
@@ -66,7 +66,7 @@ def test_tiles_beyond_the_kept_budget_are_unpacked_again_when_rendered_with_the_
 
 def test_a_tampered_coefficient_is_not_exact_and_a_corrupt_stream_is_refused(demo):
     folder, _, _, model = demo
-    bundle = load_bundle(folder / "compact.bundle")
+    bundle = hidden_bundle(folder / "compact.bundle", model)
     tile = bundle.tiles[0]
     coefficients = tile.noise.coefficients()
     coefficients[3, 5, 0] += 300  # one pixel moved ~9 noise units along the first basis direction
@@ -74,7 +74,7 @@ def test_a_tampered_coefficient_is_not_exact_and_a_corrupt_stream_is_refused(dem
     def tamper(meta, tensors):
         tensors["tile_0000"] = pack_coefficients(coefficients)
 
-    rewrite_bundle(folder / "compact.bundle", folder / "tampered.bundle", tamper)
+    rewrite_bundle(folder / "compact.bundle", folder / "tampered.bundle", tamper, model)
     result = run_reveal(model, folder / "tampered.bundle", "-o", folder / "t.png", "--json")
     assert result.returncode == 0 and json.loads(result.stdout)["exact"] is False
 
@@ -83,7 +83,7 @@ def test_a_tampered_coefficient_is_not_exact_and_a_corrupt_stream_is_refused(dem
         packed[len(packed) // 2] ^= 0x10
         tensors["tile_0001"] = packed
 
-    rewrite_bundle(folder / "compact.bundle", folder / "flipped.bundle", flip)
+    rewrite_bundle(folder / "compact.bundle", folder / "flipped.bundle", flip, model)
     result = run_reveal(model, folder / "flipped.bundle", "-o", folder / "f.png")
     assert_refused(result, folder / "f.png", "coefficients")
 
@@ -92,17 +92,21 @@ def test_format_1_ray_bundle_still_reveals_and_newer_formats_are_refused(demo):
     folder, _, _, model = demo
 
     def as_format(version):
-        return lambda meta, tensors: meta.update(format_version=version)
+        def edit(meta, tensors):
+            meta.update(format_version=version)
+            if version < 5:  # written unmasked
+                meta.pop("mask")
+        return edit
 
-    rewrite_bundle(folder / "ray.bundle", folder / "v1.bundle", as_format(1))
+    rewrite_bundle(folder / "ray.bundle", folder / "v1.bundle", as_format(1), model)
     result = run_reveal(model, folder / "v1.bundle", "-o", folder / "v1.png", "--json")
     assert result.returncode == 0 and json.loads(result.stdout)["exact"] is True
-    rewrite_bundle(folder / "compact.bundle", folder / "v1compact.bundle", as_format(1))
+    rewrite_bundle(folder / "compact.bundle", folder / "v1compact.bundle", as_format(1), model)
     with pytest.raises(UserError, match="unknown noise layout 'compact'"):
         load_bundle(folder / "v1compact.bundle")
-    rewrite_bundle(folder / "compact.bundle", folder / "v5.bundle", as_format(5))
-    result = run_reveal(model, folder / "v5.bundle", "-o", folder / "v5.png")
-    assert_refused(result, folder / "v5.png", "bundle format 5")
+    rewrite_bundle(folder / "compact.bundle", folder / "v6.bundle", as_format(6), model)
+    result = run_reveal(model, folder / "v6.bundle", "-o", folder / "v6.png")
+    assert_refused(result, folder / "v6.png", "bundle format 6")
     assert "a newer noisenerf is needed" in result.stderr
 
 
@@ -112,28 +116,29 @@ def test_a_format_2_compact_bundle_reveals_exactly_without_branch_escapes(demo):
     folder, secret, reports, model = demo
     assert all(tile["branch_escaped"] == 0 for tile in reports["compact"]["tiles"])  # as a format 2 writer left it
 
-    rewrite_bundle(folder / "compact.bundle", folder / "v2.bundle", as_older_compact_format(2))
+    rewrite_bundle(folder / "compact.bundle", folder / "v2.bundle", as_older_compact_format(2), model)
     result = run_reveal(model, folder / "v2.bundle", "-o", folder / "v2.png", "--json")
     assert result.returncode == 0 and json.loads(result.stdout)["exact"] is True
     rewrite_bundle(folder / "compact.bundle", folder / "v3_missing.bundle",
-                   lambda meta, tensors: tensors.pop("tile_0000_branch_escapes"))
+                   lambda meta, tensors: tensors.pop("tile_0000_branch_escapes"), model)
     with pytest.raises(UserError, match="tensor 'tile_0000_branch_escapes' is missing"):
-        load_bundle(folder / "v3_missing.bundle")
+        hidden_bundle(folder / "v3_missing.bundle", model)
 
 
 def test_a_format_3_compact_bundle_reveals_the_same_pixels_from_its_plain_planes(demo):
     """Format 3 stored the coefficients themselves (xz-byte-planes); the same coefficients so stored reveal the
     same exact pixels, and either codec stated under the other format is refused."""
     folder, secret, _, model = demo
-    rewrite_bundle(folder / "compact.bundle", folder / "v3.bundle", as_older_compact_format(3))
-    now, before = load_bundle(folder / "compact.bundle"), load_bundle(folder / "v3.bundle")
+    rewrite_bundle(folder / "compact.bundle", folder / "v3.bundle", as_older_compact_format(3), model)
+    now, before = hidden_bundle(folder / "compact.bundle", model), load_bundle(folder / "v3.bundle")
     for tile_now, tile_before in zip(now.tiles, before.tiles):
         assert np.array_equal(tile_now.noise.coefficients(), tile_before.noise.coefficients())
         assert not np.array_equal(tile_now.noise.packed, tile_before.noise.packed)
     result = run_reveal(model, folder / "v3.bundle", "-o", folder / "v3.png", "--json")
     assert result.returncode == 0 and json.loads(result.stdout)["exact"] is True
     for version, source in ((3, "compact.bundle"), (4, "v3.bundle")):
-        rewrite_bundle(folder / source, folder / "mixed.bundle", lambda meta, tensors: meta.update(format_version=version))
+        rewrite_bundle(folder / source, folder / "mixed.bundle",
+                       lambda meta, tensors: meta.update(format_version=version) or meta.pop("mask", None), model)
         with pytest.raises(UserError, match="unknown coefficient codec"):
             load_bundle(folder / "mixed.bundle")
 
@@ -156,7 +161,7 @@ def test_coefficients_chosen_near_their_predictions_make_a_smaller_exact_key(dem
         report = hide(demo_scene, photo, tmp_path / f"{name}.bundle", HideConfig(view=33), torch.device("cpu"))
         result = run_reveal(demo_model, tmp_path / f"{name}.bundle", "-o", tmp_path / f"{name}.png", "--json")
         assert report["exact"] and json.loads(result.stdout)["exact"] is True
-        sizes[name] = sum(len(tile.noise.packed) for tile in load_bundle(tmp_path / f"{name}.bundle").tiles)
+        sizes[name] = sum(len(tile.noise.packed) for tile in hidden_bundle(tmp_path / f"{name}.bundle", demo_scene).tiles)
     assert sizes["chosen"] < 0.92 * sizes["as_solved"], sizes
 
 
@@ -189,7 +194,7 @@ def test_pixels_the_basis_misses_but_the_view_branch_reaches_are_stored_as_branc
     report = hide(demo_scene, secret, tmp_path / "b.bundle", HideConfig(view=20), torch.device("cpu"), workers=1)
     tile = report["tiles"][0]
     assert tile["branch_escaped"] == tile["escaped"] > 0
-    basis = load_bundle(tmp_path / "b.bundle").tiles[0].noise.basis
+    basis = hidden_bundle(tmp_path / "b.bundle", demo_scene).tiles[0].noise.basis
     assert len(basis.escapes) == 0 and basis.branch_escape_noise.shape == (tile["branch_escaped"], 27)
     result = run_reveal(demo_model, tmp_path / "b.bundle", "-o", tmp_path / "b.png", "--json")
     assert result.returncode == 0 and json.loads(result.stdout)["exact"] is True
@@ -278,8 +283,8 @@ HOSTILE = {
 
 @pytest.mark.parametrize("case", list(HOSTILE))
 def test_hostile_compact_bundle_is_one_line(demo, case):
-    folder, _, _, _ = demo
+    folder, _, _, model = demo
     edit, message = HOSTILE[case]
-    rewrite_bundle(folder / "compact.bundle", folder / "bad.bundle", edit)
+    rewrite_bundle(folder / "compact.bundle", folder / "bad.bundle", edit, model)
     with pytest.raises(UserError, match=message):
-        load_bundle(folder / "bad.bundle")
+        hidden_bundle(folder / "bad.bundle", model)

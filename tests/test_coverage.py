@@ -18,11 +18,10 @@ import numpy as np
 import pytest
 import torch
 
-from helpers import fitted_tiny_scene, make_tiny_scene, run_main
+from helpers import fitted_tiny_scene, hidden_bundle, make_tiny_scene, run_main
 from noisenerf.cli.bench.coverage import hard_secrets
 from noisenerf.cli.main import main as noisenerf_main
 from noisenerf.export.onnx_export import export_scene
-from noisenerf.runtime.bundle import load_bundle
 from noisenerf.runtime.images import write_image
 from noisenerf.runtime.model import load_model
 from noisenerf.runtime.reveal import reveal_tiles
@@ -57,7 +56,7 @@ def scene_and_model(request, tmp_path_factory):
 def hide_and_reveal(scene: Scene, model, secret: np.ndarray, view: int, folder) -> np.ndarray:
     """The secret hidden at `view` (an inexact hide raises) and revealed through onnxruntime."""
     hide(scene, secret, folder / "s.bundle", HideConfig(view=view), torch.device("cpu"), force=True, workers=1)
-    return reveal_tiles(load_bundle(folder / "s.bundle"), model.render_config, model.fields()).pixels
+    return reveal_tiles(hidden_bundle(folder / "s.bundle", model), model.render_config, model.fields()).pixels
 
 
 def test_every_hard_secret_is_exact_at_every_camera(scene_and_model):

@@ -7,8 +7,7 @@ import numpy as np
 import pytest
 import torch
 
-from helpers import interrupted_after_saves, make_tiny_scene
-from noisenerf.runtime.bundle import load_bundle
+from helpers import hidden_bundle, interrupted_after_saves, make_tiny_scene
 from noisenerf.runtime.errors import UserError
 from noisenerf.runtime.images import to_uint8
 from noisenerf.runtime.reveal import reveal_tiles
@@ -46,7 +45,7 @@ def test_exact_hide_recovers_every_value_and_leaves_weights_unchanged(scene, tmp
     assert weights_digest(scene) == before
     assert report["exact"] and report["exact_fraction"] == 1.0
     assert [t["rect"] for t in report["tiles"]] == [list(r) for r in tile_rects(30, 20, 16)]
-    bundle = load_bundle(tmp_path / "s.bundle")
+    bundle = hidden_bundle(tmp_path / "s.bundle", scene)
     assert bundle.layout == layout and bundle.dtype == dtype and bundle.tiles[0].noise.shape == (16, 16, stored)
     revealed = reveal_tiles(bundle, scene.config.render, numpy_fields(scene.fields()))
     np.testing.assert_array_equal(revealed.pixels, secret)
@@ -60,7 +59,7 @@ def test_bundle_holds_no_secret_and_other_weights_reveal_nothing(scene, tmp_path
     hide(scene, secret, tmp_path / "s.bundle", HideConfig(), CPU)
     raw = (tmp_path / "s.bundle").read_bytes()
     assert secret.tobytes() not in raw
-    bundle = load_bundle(tmp_path / "s.bundle")
+    bundle = hidden_bundle(tmp_path / "s.bundle", scene)
     other = make_tiny_scene(seed=1, width=64, depth=4)
     assert other.fingerprint() != bundle.model_fingerprint
     wrong = reveal_tiles(bundle, other.config.render, numpy_fields(other.fields()))
@@ -136,7 +135,7 @@ def test_paper_method_runs_with_sample_layout_and_records_table3_points(scene, t
     records = report["tiles"][0]["records"]
     assert [r["iteration"] for r in records] == [2, 6]
     assert records[1]["loss"] < records[0]["loss"]
-    assert load_bundle(tmp_path / "p.bundle").tiles[0].noise.values.shape == (12, 12, 4, 90)
+    assert hidden_bundle(tmp_path / "p.bundle", scene).tiles[0].noise.values.shape == (12, 12, 4, 90)
 
 
 def test_paper_hides_with_and_without_skipping_agree_within_the_ssim_bound(demo_scene, tmp_path, capfd):
@@ -155,7 +154,7 @@ def test_paper_hides_with_and_without_skipping_agree_within_the_ssim_bound(demo_
         result = run_main(main, ["hide", DEMO_SCENE, tmp_path / "s.png", "-o", out, "--method", "paper",
                                  "--samples", 16, "--quiet", "--json", *flags], capfd)
         assert result.code == 0, result.err
-        bundles[label], tiles[label] = load_bundle(out), json.loads(result.out)["tiles"][0]
+        bundles[label], tiles[label] = hidden_bundle(out, demo_scene), json.loads(result.out)["tiles"][0]
     assert abs(tiles["skip"]["ssim"] - tiles["no skip"]["ssim"]) <= 0.002 and tiles["no skip"]["ssim"] > 0.97
     assert tiles["no skip"]["skipping"] == {"skipped_samples": 0.0, "checked_samples": 0.0, "idle_pixels": 0.0}
     assert tiles["skip"]["skipping"]["skipped_samples"] > 0.5 and tiles["skip"]["skipping"]["checked_samples"] == 0.1

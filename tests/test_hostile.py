@@ -28,11 +28,11 @@ from safetensors.numpy import save_file
 from safetensors.torch import load_file as load_torch_file
 from safetensors.torch import save_file as save_torch_file
 
-from helpers import Result, assert_refused, bundle_contents, rewrite_bundle, run_main, turning_llff
+from helpers import Result, assert_refused, bundle_contents, hidden_bundle, rewrite_bundle, run_main, turning_llff
 from noisenerf.cli.bench.reliability import stated, streamed, zeros_as_stated
 from noisenerf.cli.main import main as noisenerf_main
 from noisenerf.cli.reveal import main as reveal_main
-from noisenerf.runtime.bundle import METADATA_KEY, load_bundle
+from noisenerf.runtime.bundle import METADATA_KEY
 from noisenerf.runtime.images import write_image
 from noisenerf.runtime.model import METADATA_KEY as MODEL_KEY
 from noisenerf.train.hide import exact_solver, resume as resume_module
@@ -165,8 +165,8 @@ BUNDLES = {  # case: (edit(meta, tensors), message)
     "no tiles": (setter(("tiles",), []), "empty secret"),
     "tiles an object": (setter(("tiles",), {"a": 1}), "must be a list"),
     "tile a number": (setter(("tiles", 0), 7), "must be a JSON object"),
-    "format version 5": (setter(("format_version",), 5), "a newer noisenerf is needed"),
-    "format version 0": (setter(("format_version",), 0), "reads formats 1 to 4"),
+    "format version 6": (setter(("format_version",), 6), "a newer noisenerf is needed"),
+    "format version 0": (setter(("format_version",), 0), "reads formats 1 to 5"),
     "fingerprint a number": (setter(("model_fingerprint",), 12), "must be a string"),
     "another model": (setter(("model_fingerprint",), "f" * 64), "bundle was made for model"),
     "secret missing": (drop(("secret",)), "'secret' and 'noise'"),
@@ -177,7 +177,7 @@ BUNDLES = {  # case: (edit(meta, tensors), message)
 @pytest.mark.parametrize("case", list(BUNDLES))
 def test_crafted_bundle_is_refused(world, tmp_path, capfd, case):
     edit, message = BUNDLES[case]
-    bad = rewrite_bundle(world.bundle, tmp_path / "bad.bundle", edit)
+    bad = rewrite_bundle(world.bundle, tmp_path / "bad.bundle", edit, world.model)  # edited unmasked, masked again
     out = tmp_path / "out.png"
     assert_refused(run_main(reveal_main, [world.model, bad, "-o", out], capfd), out, message)
 
@@ -506,16 +506,16 @@ def big_header_png(path: Path, width: int, height: int) -> None:
 
 def bundle_case(edit):
     """A reveal of the valid bundle after `edit`."""
-    return lambda world, d: ["noisenerf.cli.reveal", world.model, rewrite_bundle(world.bundle, d / "b.bundle", edit),
-                             "-o", d / "out.png"]
+    return lambda world, d: ["noisenerf.cli.reveal", world.model,
+                             rewrite_bundle(world.bundle, d / "b.bundle", edit, world.model), "-o", d / "out.png"]
 
 
 def compact_case(edit):
     """A reveal of the session's compact bundle (`noisenerf hide`'s) after `edit`."""
     def command(world, d):
         (d / "hidden.bundle").write_bytes(world.hidden)
-        return ["noisenerf.cli.reveal", world.model, rewrite_bundle(d / "hidden.bundle", d / "b.bundle", edit),
-                "-o", d / "out.png"]
+        return ["noisenerf.cli.reveal", world.model,
+                rewrite_bundle(d / "hidden.bundle", d / "b.bundle", edit, world.model), "-o", d / "out.png"]
     return command
 
 
@@ -570,7 +570,7 @@ def test_small_file_cannot_dictate_a_large_allocation(world, tmp_path, case):
 def test_a_large_ray_count_reveals_in_bounded_chunks(world, tmp_path):
     """The cap itself costs time, not memory: a ray-layout tile at 256 samples per ray still reveals
     (inexactly) with the reveal's buffers bounded by render.CHUNK_SAMPLES."""
-    bad = rewrite_bundle(world.bundle, tmp_path / "b.bundle", setter((*SAMPLING, "n_samples"), 256))
+    bad = rewrite_bundle(world.bundle, tmp_path / "b.bundle", setter((*SAMPLING, "n_samples"), 256), world.model)
     result, peak_mb = peak_run(["noisenerf.cli.reveal", world.model, bad, "-o", tmp_path / "out.png"], tmp_path)
     assert result.code == 0 and result.err == "", result
     assert peak_mb < PEAK_MB
@@ -957,4 +957,4 @@ def test_two_concurrent_hides_one_wins_exactly_the_other_refuses_at_once(world, 
     assert json.loads(stdout)["exact"] is True
     from noisenerf.runtime.bundle import secret_digest
     from noisenerf.runtime.images import load_secret
-    assert load_bundle(out).secret_sha256 == secret_digest(load_secret(first)[0])
+    assert hidden_bundle(out, world.model).secret_sha256 == secret_digest(load_secret(first)[0])

@@ -23,6 +23,7 @@ from helpers import run_reveal, write_blender, write_llff
 from noisenerf.export.onnx_export import export_scene
 from noisenerf.runtime.camera import camera_rays
 from noisenerf.runtime.errors import UserError
+from noisenerf.runtime.fingerprint import weights_fingerprint
 from noisenerf.runtime.images import read_image
 from noisenerf.runtime.rays import field_space_rays
 from noisenerf.runtime.sampling import SamplingConfig, sample_positions
@@ -31,7 +32,7 @@ from noisenerf.train.scene.import_nerf_pytorch import (
     scene_geometry,
 )
 from noisenerf.train.scene.render import TorchRays, render_hierarchical
-from noisenerf.train.scene.scene import load_scene, weights_fingerprint
+from noisenerf.train.scene.scene import load_scene
 
 TOLERANCE = 1e-5
 

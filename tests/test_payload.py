@@ -16,9 +16,8 @@ import onnx
 import pytest
 import torch
 
-from helpers import assert_refused, run_reveal
+from helpers import assert_refused, hidden_bundle, mask_secret_of, run_reveal
 from noisenerf.cli.main import main as noisenerf_main
-from noisenerf.runtime.bundle import load_bundle
 from noisenerf.runtime.layouts import CompactNoise
 from noisenerf.runtime.errors import UserError
 from noisenerf.runtime.images import read_native, write_image
@@ -138,7 +137,7 @@ def test_sealed_image_reveals_as_the_image(demo, tmp_path):
     image = np.random.default_rng(5).integers(0, 256, (6, 8, 3), dtype=np.uint8)
     hide_payload(scene, image_record(image), tmp_path / "i.bundle", CONFIG, CPU, passphrase=PASSPHRASE,
                  seal=fixed_seal())
-    assert (load_bundle(tmp_path / "i.bundle").width, load_bundle(tmp_path / "i.bundle").height) == (16, 16)
+    assert (hidden_bundle(tmp_path / "i.bundle", scene).width, hidden_bundle(tmp_path / "i.bundle", scene).height) == (16, 16)
     result = run_reveal(model, tmp_path / "i.bundle", "-o", tmp_path / "out.png", "--json", passphrase=PASSPHRASE)
     assert result.returncode == 0, result.stderr
     np.testing.assert_array_equal(read_native(tmp_path / "out.png"), image)
@@ -151,10 +150,10 @@ def test_sealed_metadata_hides_length_and_name(demo, sealed, tmp_path):
     hide_payload(scene, Record("file", bytes(150), b"a-much-longer-name.pdf"), tmp_path / "other.bundle", CONFIG,
                  CPU, passphrase=PASSPHRASE, seal=fixed_seal())
     for path in (sealed, tmp_path / "other.bundle"):
-        bundle = load_bundle(path)
+        bundle = hidden_bundle(path, scene)
         assert (bundle.width, bundle.height) == (16, 16)
         assert b"note.txt" not in path.read_bytes() and b".pdf" not in path.read_bytes()
-    assert set(load_bundle(sealed).payload_marker) == {"version", "sealed"}
+    assert set(hidden_bundle(sealed, scene).payload_marker) == {"version", "sealed"}
 
 
 def test_sealed_bundle_is_deterministic_only_with_a_fixed_seal(demo, sealed, tmp_path):
@@ -224,11 +223,11 @@ def test_a_changed_model_weight_is_refused(demo, sealed, tmp_path):
 def test_unsealed_payload_whose_pixels_changed_is_refused(demo, tmp_path):
     scene, model = demo
     hide_payload(scene, Record("file", b"exactly these bytes"), tmp_path / "p.bundle", CONFIG, CPU)
-    bundle = load_bundle(tmp_path / "p.bundle")
+    bundle = hidden_bundle(tmp_path / "p.bundle", scene)
     tiles = tuple(dataclasses.replace(tile, noise=CompactNoise.of(np.zeros_like(tile.noise.coefficients()),
                                                                   tile.noise.basis, tile.noise.band_rows))
                   for tile in bundle.tiles)
-    dataclasses.replace(bundle, tiles=tiles).save(tmp_path / "z.bundle")
+    dataclasses.replace(bundle, tiles=tiles).save(tmp_path / "z.bundle", mask_secret=mask_secret_of(scene))
     assert_refused(run_reveal(model, tmp_path / "z.bundle", "-o", tmp_path / "out"), tmp_path / "out", INEXACT,
                    exact=True)
 

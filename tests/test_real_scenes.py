@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 import torch
 
+from helpers import hidden_bundle
 from noisenerf.export.onnx_export import export_scene, probe_parity
-from noisenerf.runtime.bundle import load_bundle
 from noisenerf.runtime.images import load_secret, resize_image
 from noisenerf.runtime.images import to_uint8
 from noisenerf.runtime.model import load_model
@@ -66,7 +66,7 @@ def test_real_photo_hides_exactly_and_reveals_in_onnxruntime(lego, shared_data, 
     report = hide(scene, secret, folder / f"{layout}.bundle", HideConfig(layout=layout, dtype=dtype, view=105),
                   CPU, force=True)
     assert report["exact"], report["tiles"]
-    bundle = load_bundle(folder / f"{layout}.bundle")
+    bundle = hidden_bundle(folder / f"{layout}.bundle", model)
     revealed = reveal_tiles(bundle, model.render_config, model.fields(), keep_float=True)
     assert revealed.exact
     np.testing.assert_array_equal(revealed.pixels, secret)

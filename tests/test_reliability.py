@@ -22,10 +22,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from helpers import assert_refused, rewrite_bundle, run_main, run_reveal, write_raw
+from helpers import assert_refused, hidden_bundle, rewrite_bundle, run_main, run_reveal, write_raw
 from noisenerf.cli.main import main as noisenerf_main
 from noisenerf.cli.reveal import main as reveal_main
-from noisenerf.runtime.bundle import load_bundle, secret_digest
+from noisenerf.runtime.bundle import secret_digest
 from noisenerf.runtime.errors import UserError
 from noisenerf.runtime.images import read_native, write_image
 from noisenerf.runtime.payload import RECORD, Record, unpack_record
@@ -135,7 +135,7 @@ def test_two_reveals_to_one_output_one_wins_the_other_is_refused(reveal_inputs, 
     results = sorted((run.wait(120), run.stderr.read()) for run in runs)
     assert [code for code, _ in results] == [0, 2], results
     assert "output exists (pass --force to overwrite)" in results[1][1]
-    assert secret_digest(read_native(out)) == load_bundle(bundle).secret_sha256  # the winner's, whole
+    assert secret_digest(read_native(out)) == hidden_bundle(bundle, model).secret_sha256  # the winner's, whole
 
 
 # ---- precision ------------------------------------------------------------------------------------

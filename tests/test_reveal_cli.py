@@ -9,7 +9,7 @@ import numpy as np
 import onnx
 import pytest
 
-from helpers import assert_refused, rewrite_bundle, run_reveal, two_tile_bundle
+from helpers import assert_refused, hidden_bundle, mask_secret_of, rewrite_bundle, run_reveal, two_tile_bundle
 from noisenerf.runtime.bundle import load_bundle
 from noisenerf.runtime.images import read_native
 from noisenerf.runtime.model import load_model
@@ -30,7 +30,7 @@ def test_reveal_writes_the_library_reveal_and_reports_exact(reveal_inputs, tmp_p
     assert report["rays"] == 32 * 12 and report["samples"] == 32 * 12 * 24
     assert report["output"] == str(tmp_path / "out.png") and report["seconds"] > 0
     loaded = load_model(model)
-    expected = reveal_tiles(load_bundle(bundle), loaded.render_config, loaded.fields())
+    expected = reveal_tiles(hidden_bundle(bundle, loaded), loaded.render_config, loaded.fields())
     np.testing.assert_array_equal(read_native(tmp_path / "out.png"), expected.pixels)
 
 
@@ -57,7 +57,7 @@ def test_wide_outputs_hold_the_pixels_exact_judged(reveal_inputs, tmp_path, name
     report = json.loads(result.stdout)
     assert report["exact"] is True and report["written"].endswith(written)
     loaded = load_model(model)
-    expected = reveal_tiles(load_bundle(bundle), loaded.render_config, loaded.fields(), keep_float=True)
+    expected = reveal_tiles(hidden_bundle(bundle, loaded), loaded.render_config, loaded.fields(), keep_float=True)
     stored = read_native(tmp_path / name)
     np.testing.assert_array_equal(stored, scaled(expected.pixels))
     assert not np.array_equal(stored, scaled(expected.image * 255).astype(stored.dtype))  # not the float render
@@ -65,7 +65,9 @@ def test_wide_outputs_hold_the_pixels_exact_judged(reveal_inputs, tmp_path, name
 
 def test_another_digest_is_reported_inexact(reveal_inputs, tmp_path):
     _, model, bundle = reveal_inputs
-    dataclasses.replace(load_bundle(bundle), secret_sha256="0" * 64).save(tmp_path / "other.bundle")
+    secret = mask_secret_of(model)
+    dataclasses.replace(load_bundle(bundle, secret), secret_sha256="0" * 64).save(tmp_path / "other.bundle",
+                                                                                  mask_secret=secret)
     result = run_reveal(model, tmp_path / "other.bundle", "-o", tmp_path / "out.png")
     assert result.returncode == 0, result.stderr
     assert result.stdout.splitlines()[0] == "exact: false"

@@ -36,7 +36,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from helpers import as_older_compact_format, flip_first_float32, make_tiny_scene, rewrite_bundle, write_nerfstudio_run
+from helpers import (as_older_compact_format, flip_first_float32, make_tiny_scene, rewrite_bundle, write_nerfstudio_run,
+                     xor_masked_bytes)
 
 REPO = Path(__file__).resolve().parents[1]
 WEB = REPO / "web"
@@ -106,7 +107,8 @@ def golden(folder: Path) -> dict:
     from noisenerf.runtime.rays import camera_ray_batch
     from noisenerf.runtime.reveal import render_tile, reveal_tiles, tile_field
 
-    model, bundle = load_model(folder / "model.onnx", threads=1), load_bundle(folder / "secret.bundle")
+    model = load_model(folder / "model.onnx", threads=1)
+    bundle = load_bundle(folder / "secret.bundle", model.mask_secret)
     check_bundle(model, bundle)
     fields = model.fields()
     tiles = []
@@ -131,7 +133,7 @@ def golden(folder: Path) -> dict:
             "pixels": write_array(folder, "pixels", revealed.pixels)}
 
 
-def with_escape(path: Path) -> None:
+def with_escape(path: Path, mask_secret: bytes) -> None:
     """Rewrite a compact bundle so that tile 0's pixels 5 and 9 escape, and 12 and 14 are branch escapes: their
     coefficients 0, their noise the float16 of what they expanded to (a branch escape's values after the
     basis's leading zero rows, where the offset stands) (the reveal's golden is what Python then reveals, exact
@@ -139,7 +141,7 @@ def with_escape(path: Path) -> None:
     from noisenerf.runtime.bundle import load_bundle
     from noisenerf.runtime.layouts import CompactBasis, CompactNoise
 
-    bundle = load_bundle(path)
+    bundle = load_bundle(path, mask_secret)
     tile = bundle.tiles[0]
     n = tile.rect[2] * tile.rect[3]
     noise = tile.noise.loaded().rows(0, n)[:, 0]
@@ -154,18 +156,23 @@ def with_escape(path: Path) -> None:
     assert isinstance(basis, CompactBasis)
     tiles = (dataclasses.replace(tile, noise=CompactNoise.of(coefficients, basis, tile.noise.band_rows)),) + bundle.tiles[1:]
     path.unlink()
-    dataclasses.replace(bundle, tiles=tiles).save(path)
+    dataclasses.replace(bundle, tiles=tiles).save(path, mask_secret=mask_secret)
 
 
 def tamper(fixtures: Path, source: str, case: str, edit_bundle=None, edit_model=None,
            passphrase: str | None = None) -> dict:
     """A copy of fixture `source` with its bundle or model edited, and how it is refused (revealed with
-    `passphrase`, if any)."""
+    `passphrase`, if any). A masked bundle is edited unmasked (its fixture's model unmasks it) and masked again as its
+    edited metadata states, so that an edit of its noise means what it says."""
     folder = fixtures / "tampered" / case
     folder.mkdir(parents=True)
-    for name, edit in (("model.onnx", edit_model), ("secret.bundle", edit_bundle)):
-        data = (fixtures / source / name).read_bytes()
-        (folder / name).write_bytes(edit(data) if edit else data)
+    model = fixtures / source / "model.onnx"
+    data = model.read_bytes()
+    (folder / "model.onnx").write_bytes(edit_model(data) if edit_model else data)
+    data = (fixtures / source / "secret.bundle").read_bytes()
+    if edit_bundle is not None:
+        data = xor_masked_bytes(edit_bundle(xor_masked_bytes(data, model)), model)
+    (folder / "secret.bundle").write_bytes(data)
     return {"case": case, "source": source, "folder": f"tampered/{case}", "passphrase": passphrase,
             **cli_refusal(folder, passphrase)}
 
@@ -175,8 +182,9 @@ def payload_golden(folder: Path, passphrase: str | None) -> dict:
     code, stderr = run_cli(folder, passphrase, output="payload.out")
     assert code == 0, stderr
     from noisenerf.runtime.bundle import load_bundle
+    from noisenerf.runtime.model import load_model
 
-    bundle = load_bundle(folder / "secret.bundle")
+    bundle = load_bundle(folder / "secret.bundle", load_model(folder / "model.onnx").mask_secret)
     data = (folder / "payload.out").read_bytes()
     return {"file": "payload.out", "passphrase": passphrase, "sealed": passphrase is not None,
             "width": bundle.width, "height": bundle.height, "sha256": hashlib.sha256(data).hexdigest()}
@@ -538,13 +546,20 @@ def write_fixtures(root: Path) -> dict:
             hide(scenes[scene_name], part, folder / "secret.bundle", config, cpu, workers=1,
                  allow_inexact=True)
             if name == "compact_tiles":
-                with_escape(folder / "secret.bundle")
+                with_escape(folder / "secret.bundle", scenes[scene_name].digests().mask_secret)
             manifest["fixtures"][name] = golden(folder)
         older = root / "compact_tiles_format_3"  # the same coefficients as format 3 stored them: plain planes
         older.mkdir()
         shutil.copyfile(root / "compact_tiles" / "model.onnx", older / "model.onnx")
-        rewrite_bundle(root / "compact_tiles" / "secret.bundle", older / "secret.bundle", as_older_compact_format(3))
+        rewrite_bundle(root / "compact_tiles" / "secret.bundle", older / "secret.bundle", as_older_compact_format(3),
+                       scenes["plain"])
         manifest["fixtures"]["compact_tiles_format_3"] = golden(older)
+        unmasked = root / "compact_tiles_format_4"  # the same bundle as format 4 wrote it: unmasked, no mask object
+        unmasked.mkdir()
+        shutil.copyfile(root / "compact_tiles" / "model.onnx", unmasked / "model.onnx")
+        rewrite_bundle(root / "compact_tiles" / "secret.bundle", unmasked / "secret.bundle",
+                       lambda meta, tensors: meta.update(format_version=4) or meta.pop("mask"), scenes["plain"])
+        manifest["fixtures"]["compact_tiles_format_4"] = golden(unmasked)
         from noisenerf.runtime.payload import Record
         from noisenerf.runtime.sealing import ScryptParams, new_seal
         from noisenerf.train.hide.payload import hide_payload
@@ -589,7 +604,15 @@ def write_fixtures(root: Path) -> dict:
             lambda meta: meta.update(model_fingerprint="0" * 64))),
         tamper(root, "ray", "tile_outside", edit_bundle=bundle_metadata_edit(
             lambda meta: meta["tiles"][0]["rect"].__setitem__(0, 3))),
-        tamper(root, "ray", "format_5", edit_bundle=bundle_metadata_edit(lambda meta: meta.update(format_version=5))),
+        tamper(root, "ray", "format_6", edit_bundle=bundle_metadata_edit(lambda meta: meta.update(format_version=6))),
+        # the mask (runtime.masking): stripped (its tensors left unmasked), malformed, stated by a format 4 bundle
+        tamper(root, "ray", "mask_stripped", edit_bundle=bundle_metadata_edit(lambda meta: meta.pop("mask"))),
+        tamper(root, "ray", "mask_salt_short", edit_bundle=bundle_metadata_edit(
+            lambda meta: meta["mask"].update(salt="AAAA"))),
+        tamper(root, "ray", "mask_other_cipher", edit_bundle=bundle_metadata_edit(
+            lambda meta: meta["mask"].update(cipher="aes"))),
+        tamper(root, "compact_tiles", "mask_on_format_4", edit_bundle=bundle_metadata_edit(
+            lambda meta: meta.update(format_version=4))),
         # quoted as repr() quotes it: a no-break space, a line separator and a zero-width space escaped
         tamper(root, "ray", "odd_tensor_name", edit_bundle=bundle_metadata_edit(
             lambda meta: meta["tiles"][0].update(tensor="n\u00a0o\u2028pe\u200b"))),

@@ -22,12 +22,14 @@ import noisenerf
 from noisenerf.cli.bench.context import small_secret
 from noisenerf.runtime.bundle import load_bundle
 from noisenerf.runtime.images import load_secret, write_image
+from noisenerf.runtime.model import load_model
 
 
 def main(scene: str, views: list[int], width: int, photos: list[str]) -> None:
     folder = Path(tempfile.mkdtemp())
     model = folder / "model.onnx"
     noisenerf.export_model(scene, model)
+    masked = getattr(load_model(model), "mask_secret", None)  # format 5's bundles read with it; older versions' without
     rows = []
     for path in photos:
         photo = small_secret(load_secret(path)[0], width)
@@ -42,7 +44,7 @@ def main(scene: str, views: list[int], width: int, photos: list[str]) -> None:
             revealed = noisenerf.reveal(model, folder / "key.bundle")
             reveal_seconds = time.perf_counter() - start
             size = (folder / "key.bundle").stat().st_size
-            bases = [tile.noise.basis for tile in load_bundle(folder / "key.bundle").tiles]
+            bases = [tile.noise.basis for tile in load_bundle(folder / "key.bundle", *([masked] if masked else [])).tiles]
             rows.append({"photo": Path(path).name, "view": view, "bytes_per_pixel": size / pixels,
                          "over_png": size / png,
                          "escapes": sum(len(basis.escapes) for basis in bases),

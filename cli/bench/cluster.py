@@ -62,7 +62,7 @@ def measure_cluster(context: BenchContext) -> Measured:
     photo = resized(context.secret, *config.cluster_photo)
     with ray_cluster(max(config.threads)):
         report = context.hide(photo, "cluster_photo", HideConfig(view=config.view), executor="ray")
-    revealed, reveal_seconds = timed(reveal_tiles, load_bundle(context.work / "cluster_photo.bundle"),
+    revealed, reveal_seconds = timed(reveal_tiles, load_bundle(context.work / "cluster_photo.bundle", context.model.mask_secret),
                                      context.model.render_config, context.model.fields())
     rows.append({"run": f"photo through ray, {max(config.threads)} workers", "pixels": photo[..., 0].size,
                  "tiles": len(report["tiles"]), "hide_seconds": report["seconds"], "exact": revealed.exact,

@@ -36,6 +36,11 @@ class BenchConfig:
     browser_repeats: int = 5  # most runs of each reveal, both sides (median; a 2048² one runs once)
     threads: tuple[int, ...] = (1, 2)
     payload_bytes: int = 1 << 20  # the file the payload experiment hides, plain and sealed (random bytes)
+    masking_photos: int = 3  # photos (the first of `photos`) the masking experiment hides at two views
+    masking_width: int = 128  # their width there
+    margin_photos: int = 4  # photos (the first of `photos`) the margins experiment hides
+    margin_width: int = 64  # their width there
+    margin_views: int = 3  # the views it hides them at, spread over the cameras (never the bench's `view`)
     junk_bytes: int = 1 << 30  # the reliability experiment's files of junk (zeros, random) given as a model, a bundle
     views: int = 8  # views spread around the scene for the per-view hide times
     view_photos: int = 5  # photos (the first of `photos`) hidden at each of those views

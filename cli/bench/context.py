@@ -52,7 +52,7 @@ class BenchContext:
     def hide_and_reveal(self, secret: np.ndarray, name: str, config: HideConfig) -> tuple[dict, Revealed, float]:
         """self.hide, then the bundle revealed with onnxruntime: hide's report, the reveal, its seconds."""
         report = self.hide(secret, name, config)
-        revealed, seconds = timed(reveal_tiles, load_bundle(self.work / f"{name}.bundle"), self.model.render_config,
+        revealed, seconds = timed(reveal_tiles, load_bundle(self.work / f"{name}.bundle", self.model.mask_secret), self.model.render_config,
                                   self.model.fields())
         return report, revealed, seconds
 

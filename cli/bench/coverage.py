@@ -91,7 +91,7 @@ def sweep(context: BenchContext, secrets: dict[str, np.ndarray], views: range, s
             started = time.perf_counter()
             report = context.hide(secret, "coverage", HideConfig(view=view, seed=context.config.seed))
             seconds = time.perf_counter() - started
-            revealed = reveal_tiles(load_bundle(context.work / "coverage.bundle"), context.model.render_config,
+            revealed = reveal_tiles(load_bundle(context.work / "coverage.bundle", context.model.mask_secret), context.model.render_config,
                               context.model.fields())
             exact = int((revealed.pixels == secret).all(-1).sum())
             rows.append(vars(CoverageRow(

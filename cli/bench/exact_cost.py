@@ -53,7 +53,7 @@ def measure_cost(context: BenchContext) -> Cost:
     """Exact hide of the full-size secret against its onnxruntime reveal and an ordinary render."""
     model, secret = context.model, context.secret
     report = context.hide(secret, "full", HideConfig(view=context.config.view))
-    bundle = load_bundle(context.work / "full.bundle")
+    bundle = load_bundle(context.work / "full.bundle", model.mask_secret)
     revealed, reveal_seconds = timed(reveal_tiles, bundle, model.render_config, model.fields())
     _, render_seconds = timed(render_view, bundle.tiles[0].camera, model.render_config, model.field,
                               MarchingSampler(model.render_config, None, skip=False))
@@ -93,7 +93,7 @@ def measure_throughput(context: BenchContext) -> Measured:
     """Reveal rays/s and field samples/s, onnxruntime against torch eager at each thread count; the reveal
     is of cost's bundle."""
     config, scene = context.config, context.scene
-    bundle = load_bundle(context.needed["cost"].bundle)
+    bundle = load_bundle(context.needed["cost"].bundle, context.model.mask_secret)
     flops = field_flops(scene.render_field)
     rng = np.random.default_rng(config.seed)
     points = rng.uniform(-1, 1, (65536, 3)).astype(np.float32)

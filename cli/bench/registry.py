@@ -11,7 +11,7 @@ from typing import Any, Callable, Mapping
 from noisenerf.runtime.errors import UserError
 
 from noisenerf.cli.bench import (big_secret, browser, cluster, coverage, exact_cost, exact_scale, fields, keys,
-                                 nerfstudio, paper, payload, reliability)
+                                 margins, masking, nerfstudio, paper, payload, reliability)
 from noisenerf.cli.bench.context import BenchContext, Measured, Section
 
 
@@ -60,6 +60,9 @@ REGISTRY = (
     Experiment("coverage", "Exact everywhere: hard secrets at every camera", coverage.measure_coverage,
                coverage.describe_coverage),
     Experiment("payload", "File payloads, plain and sealed", payload.measure_payload, payload.describe_payload),
+    Experiment("masking", "What a bundle shows without its model", masking.measure_masking, masking.describe_masking),
+    Experiment("margins", "The rounding margin, and the arithmetic errors bundles survive", margins.measure_margins,
+               margins.describe_margins),
     Experiment("reliability", "Hostile and failing conditions, by verdict", reliability.measure_reliability,
                reliability.describe_reliability),
     Experiment("browser", "Reveal in a browser", browser.measure_browser, browser.describe_browser),

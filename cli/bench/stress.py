@@ -161,7 +161,7 @@ def tiny_and_many_tile_secrets_hide_and_reveal_exactly(stressed: Stressed, heigh
         path = Path(tmp) / "s.bundle"
         report = hide(scene, secret, path, HideConfig(tile_size=tile, layout=layout, dtype=dtype), CPU)
         require(report["exact"], "the hide is not exact")
-        bundle = load_bundle(path)
+        bundle = load_bundle(path, model.mask_secret)
         all_finite(*(t.noise.loaded().rows(0, t.rect[2] * t.rect[3]) for t in bundle.tiles))
         revealed = reveal_tiles(bundle, model.render_config, model.fields())
         require(revealed.exact and np.array_equal(revealed.pixels, secret), "the reveal is not the secret")

@@ -17,6 +17,12 @@ if TYPE_CHECKING:
     from noisenerf.train.hide.plan import HideConfig
 
 
+# An exact method's promise: every value, as the hide renders it, lies at least this many 8-bit levels inside the
+# bin it rounds into (runtime.metrics.rounding_margins), so a reveal whose arithmetic differs by less (another
+# execution provider, another CPU) still rounds it right. The solver keeps ExactSettings.margin_bins (0.1), twice
+# this, in its own model of a pixel; the difference is room for the composite and the float16 escapes.
+EXACT_MARGIN_LEVELS = 0.05
+
 @dataclass(frozen=True)
 class Method:
     """A hiding method: what it records, what it defaults to, and what it promises."""
@@ -30,7 +36,7 @@ class Method:
     add_arguments: Callable[[argparse.ArgumentParser], None] = lambda parser: None  # its own flags
     fixed_samples: bool = False  # whether its secret view takes default_samples per ray and no other
     default_network: str | None = None  # None: the scene's render network
-    exact: bool = False  # whether it promises every 8-bit value: run.hide then refuses to write less
+    exact: bool = False  # whether it promises every 8-bit value, EXACT_MARGIN_LEVELS inside: run.hide refuses less
     spreads: bool = False  # whether the local executor spreads its parts over processes on a CPU
 
     def check(self, config: HideConfig) -> None:

@@ -26,11 +26,13 @@ from noisenerf.runtime.errors import InexactResult, UserError
 from noisenerf.runtime.files import check_output_path, write_bytes
 from noisenerf.runtime.layouts import LAYOUTS
 from noisenerf.runtime.limits import checked_image_size
+from noisenerf.runtime.masking import mask_salt
 from noisenerf.runtime.metrics import tile_quality
 from noisenerf.runtime.progress import Counter, ProgressFn
 from noisenerf.runtime.sealing import Keys, tagged
 from noisenerf.train.hide.executors import EXECUTORS, open_executor
 from noisenerf.train.hide.jobs import PREPARE, FieldWeights, Job
+from noisenerf.train.hide.methods import EXACT_MARGIN_LEVELS
 from noisenerf.train.hide.plan import HideConfig, plan, run_key
 from noisenerf.train.hide.resume import ResumeStore
 from noisenerf.train.hide.settings import pass_samples_for
@@ -87,20 +89,21 @@ def hide(scene: Scene, secret: np.ndarray, output: Path, config: HideConfig, dev
         raise UserError(PAYLOAD_IS_EXACT)
     workers = (available_cores() if workers is None else workers) if device.type == "cpu" and solver.method.spreads else 1
     weights = FieldWeights.of(scene, hide_plan.tiles[0].network)
-    with ResumeStore(output, run_key(scene, secret, config)) as resume, \
+    key, digests = run_key(scene, secret, config), scene.digests()
+    with ResumeStore(output, key) as resume, \
             open_executor(executor, weights, workers, device, ray_address, verbose) as jobs:
         started = time.perf_counter()
         driver = Driver(secret, config, device, weights, solver, noise_dims, resume, jobs, allow_inexact,
                         Counter(progress, "hide", secret.shape[0] * secret.shape[1], "px"), hide_plan.tiles)
         driver.run()
         tiles, reports = driver.tiles, driver.reports
-        bundle = Bundle(model_fingerprint=scene.fingerprint(), width=secret.shape[1], height=secret.shape[0],
+        bundle = Bundle(model_fingerprint=digests.fingerprint, width=secret.shape[1], height=secret.shape[0],
                         secret_sha256=secret_digest(secret), layout=config.layout,
                         noise_dims=noise_dims, dtype=config.dtype, tiles=tuple(tiles),
                         extra={"method": config.method, "noisenerf": noisenerf.__version__,
                                "config": config.to_dict()}, payload_marker=payload_marker,
-                        coefficients=noise_layout.coefficients_of(tiles[0].noise))
-        data = bundle.to_bytes()
+                        coefficients=noise_layout.coefficients_of(tiles[0].noise), mask_salt=mask_salt(key))
+        data = bundle.to_bytes(digests.mask_secret)
         write_bytes(output, data if seal_keys is None else tagged(data, seal_keys), replace=force)
         resume.clear()
     n_pixels = secret.shape[0] * secret.shape[1]
@@ -109,6 +112,7 @@ def hide(scene: Scene, secret: np.ndarray, output: Path, config: HideConfig, dev
         "bundle": str(output), "method": config.method, "layout": config.layout, "dtype": config.dtype,
         "width": secret.shape[1], "height": secret.shape[0], "tiles": reports,
         "exact_fraction": exact_pixels / n_pixels, "exact": all(r["exact_fraction"] == 1.0 for r in reports),
+        "margin_levels": min(r["margin_levels"] for r in reports),
         "bundle_bytes": output.stat().st_size, "bytes_per_pixel": output.stat().st_size / n_pixels,
         "seconds": round(time.perf_counter() - started, 2),
     }
@@ -187,7 +191,8 @@ class Driver:
                                       [work.solved[c] for c in range(len(work.parts))])
         colors = secret_view.render_all(solved.noise, pass_samples_for(self.device.type))
         quality = tile_quality(colors.cpu().numpy(), pixels.cpu().numpy(), (h, w))
-        inexact = self.solver.method.exact and quality["inexact_pixels"]
+        thin = quality["margin_levels"] < EXACT_MARGIN_LEVELS  # some value rounds wrong, or barely right
+        inexact = self.solver.method.exact and thin
         if inexact and work.loaded:
             for c in sorted(work.loaded):
                 self.resume.discard(work.tile_index, c)
@@ -197,9 +202,12 @@ class Driver:
             work.loaded.clear()
             return
         if inexact and not self.allow_inexact:
+            off = (f"{quality['inexact_pixels']} pixels off, by up to {quality['max_error']} levels"
+                   if quality["inexact_pixels"] else
+                   f"a value {quality['margin_levels']:.3f} levels from its rounding boundary (an exact hide keeps "
+                   f"{EXACT_MARGIN_LEVELS})")
             raise InexactResult(
-                f"tile {work.tile_index} (view {work.tile.view}, {w}x{h} px at x={x0}, y={y0}) has "
-                f"{quality['inexact_pixels']} pixels off, by up to {quality['max_error']} levels; no bundle "
+                f"tile {work.tile_index} (view {work.tile.view}, {w}x{h} px at x={x0}, y={y0}) has {off}; no bundle "
                 f"written (solved parts kept in {self.resume.directory} for a resume; --allow-inexact writes the "
                 f"bundle anyway)")
         self.tiles[work.tile_index] = dataclasses.replace(work.tile, noise=solved.stored)

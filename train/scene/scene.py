@@ -22,7 +22,7 @@ from noisenerf.runtime.camera import Camera
 from noisenerf.runtime.errors import UserError
 from noisenerf.runtime.files import (atomic_folder, check_output_directory, check_output_folder, read_json, write_bytes,
                                      write_json)
-from noisenerf.runtime.fingerprint import weights_fingerprint
+from noisenerf.runtime.fingerprint import WeightsDigests, weights_digests
 from noisenerf.runtime.networks import render_network
 from noisenerf.runtime.occupancy import OccupancyGrid
 from noisenerf.runtime.pdf import Hierarchy
@@ -130,7 +130,11 @@ class Scene:
         return {name: value.detach().cpu().numpy() for name, value in field_weights(self.fields()).items()}
 
     def fingerprint(self) -> str:
-        return weights_fingerprint(self.weight_arrays(), self.config.architecture())
+        return self.digests().fingerprint
+
+    def digests(self) -> WeightsDigests:
+        """The fingerprint and the mask secret (runtime.fingerprint) of the weights as they are now."""
+        return weights_digests(self.weight_arrays(), self.config.architecture())
 
     def to(self, device: torch.device | str) -> "Scene":
         for field in self.fields().values():

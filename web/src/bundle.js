@@ -1,5 +1,5 @@
 // Mirrors runtime/bundle.py: the safetensors bundle (header JSON + tensors, dtypes F16/F32/U8/I32 only), its
-// metadata checked with the same messages and caps before anything is allocated (formats 1–4), each tile's noise
+// metadata checked with the same messages and caps before anything is allocated (formats 1–5), each tile's noise
 // read, checked and cut into chunks by its layout (src/layouts.js).
 //
 // The order of checks is runtime/bundle.py's (its docstring numbers them), so that both refuse any input with the
@@ -16,7 +16,9 @@
 //      NaN, Infinity or out-of-range numbers, no lone surrogates, no byte order mark), "__metadata__"'s values
 //      strings, each tensor's shape and data_offsets whole numbers, the offsets tiling the data exactly, each the
 //      size its shape states;
-//   8. the metadata: an object, format, secret and noise, the secret's size, the noise header, tiles a list, every
+//   7½. where the metadata states a mask (readBundleFile): the mask object (mask.malformed); then (bundleOf) the
+//      model's mask secret given (bundle.masked), the tensors unmasked (src/masking.js);
+//   8. the metadata: an object, format (format 5 masked, earlier ones not: bundle.mask_format), secret and noise, the secret's size, the noise header, tiles a list, every
 //      tile's rect, the layout's streams against what they state, fingerprint, digest; then tile by tile: rect,
 //      tensor name, the layout's tensors (compact: [branch escapes,] basis, offset, scale, escapes, escape noise, band
 //      rows, the stream, its decoding: the stream must end exactly where the tensor does), camera, sampling, view,
@@ -33,15 +35,19 @@ import {
 } from "./limits.js";
 import { cameraFromDict } from "./camera.js";
 import { samplingFromDict } from "./sampling.js";
+import { checkedMask, maskKey, xorMasked } from "./masking.js";
 import { checkedMarker } from "./payload.js";
 import { splitSafetensors } from "./sealing.js";
 
 export const NOISENERF_VERSION = "0.1.0"; // noisenerf.__version__ of the Python runtime this port mirrors
 export const METADATA_KEY = "noisenerf_bundle";
 // format -> the layouts it may hold (format 3: compact tiles add branch escapes, src/layouts.js)
+// and format 5 is format 4 masked with the model, src/masking.js)
 const READABLE_FORMATS = {
   1: ["ray", "sample"], 2: ["ray", "sample", "compact"], 3: ["ray", "sample", "compact"], 4: ["ray", "sample", "compact"],
+  5: ["ray", "sample", "compact"],
 };
+const MASKED_FROM = 5;
 const NEWEST_FORMAT = Math.max(...Object.keys(READABLE_FORMATS).map(Number));
 const SAFETENSORS_DTYPES = ["F16", "F32", "U8", "I32"];
 const NUMPY_NAMES = { F16: "float16", F32: "float32", U8: "uint8", I32: "int32" };
@@ -263,8 +269,9 @@ function validate(bundle) {
   }
 }
 
-/** load_bundle: read and validate a bundle's bytes; anything malformed is one UserError. */
-export async function loadBundle(data, source = "secret.bundle") {
+/** read_bundle_file: checks 1 to 7½ on a bundle's bytes -> {source, meta, tensors (name -> {dtype, shape, bytes} as
+ * stored), salt (a masked bundle's, else null)}: what a reveal knows of a masked bundle before its model is open. */
+export function readBundleFile(data, source = "secret.bundle") {
   const file = safetensorsHeader(data, source);
   const metadata = Object.hasOwn(file, "__metadata__") ? file.__metadata__ : {};
   const raw = Object.hasOwn(metadata, METADATA_KEY) ? metadata[METADATA_KEY] : undefined;
@@ -279,10 +286,37 @@ export async function loadBundle(data, source = "secret.bundle") {
         { code: "bundle.tensor_dtype", tensor: cut(name), dtype: typeof dtype === "string" ? cut(dtype) : null });
     }
   }
+  const tensors = safetensorsTensors(data, file, source);
+  const masked = isObject(meta) && meta.mask !== undefined && meta.mask !== null;
+  return { source, meta, tensors, salt: masked ? checkedMask(meta.mask) : null };
+}
+
+/** BundleFile.model_fingerprint: the fingerprint a bundle's file names, checked. */
+export const fileFingerprint = (file) => checkedText((isObject(file.meta) ? file.meta.model_fingerprint : null) ?? null,
+  "bundle: model_fingerprint", { code: "bundle.model_fingerprint" });
+
+/** BundleFile.payload_marker: the payload marker a bundle's file states, checked; null for an image. */
+export const filePayloadMarker = (file) => (isObject(file.meta) ? payloadMarkerOf(file.meta) : null);
+
+const payloadMarkerOf = (meta) => (meta.payload === undefined || meta.payload === null ? null : checkedMarker(meta.payload));
+
+/** BundleFile.bundle: checks 8 and 9, on the tensors unmasked with the model's mask secret where the bundle is masked. */
+export async function bundleOf(file, maskSecret = null) {
+  const { source, meta, salt } = file;
+  if (salt !== null && maskSecret === null) {
+    throw new UserError(`${source}: this bundle is masked with its model; it reads only with the model`, { code: "bundle.masked" });
+  }
+  const key = salt === null ? null : maskKey(maskSecret, salt);
   const tensors = new Map();
-  for (const [name, info] of safetensorsTensors(data, file, source)) tensors.set(name, decodeTensor(info.dtype, info.shape, info.bytes));
+  for (const [name, info] of file.tensors) {
+    tensors.set(name, decodeTensor(info.dtype, info.shape, key === null ? info.bytes : xorMasked(info.bytes, key, name)));
+  }
   if (!isObject(meta)) throw new UserError(`bundle metadata must be a JSON object: ${source}`, { code: "bundle.metadata_not_object" });
   const version = checkedFormat(meta, source);
+  if ((version >= MASKED_FROM) !== (salt !== null)) {
+    throw new UserError(`bundle: format ${version} bundles are ${version >= MASKED_FROM ? "" : "not "}masked`,
+      { code: "bundle.mask_format", format: version });
+  }
   const secret = meta.secret, noise = meta.noise;
   if (!isObject(secret) || !isObject(noise)) {
     throw new UserError("bundle: metadata needs 'secret' and 'noise' objects", { code: "bundle.no_secret_or_noise" });
@@ -300,8 +334,14 @@ export async function loadBundle(data, source = "secret.bundle") {
   for (let i = 0; i < tileData.length; i++) tiles.push(await parseTile(i, tileData[i], tensors, header));
   const bundle = { modelFingerprint: fingerprint, width, height, secretSha256: sha256, layout: header.layout,
     noiseDims: header.dims, dtype: header.dtype, tiles, coefficients: header.coefficients,
-    payloadMarker: meta.payload === undefined || meta.payload === null ? null : checkedMarker(meta.payload) };
+    payloadMarker: payloadMarkerOf(meta) };
   validate(bundle);
   for (const tile of bundle.tiles) layout.loaded(tile.noise);
   return bundle;
+}
+
+/** load_bundle: read and validate a bundle's bytes (a masked one with its model's mask secret); anything malformed
+ * is one UserError. */
+export async function loadBundle(data, source = "secret.bundle", maskSecret = null) {
+  return bundleOf(readBundleFile(data, source), maskSecret);
 }

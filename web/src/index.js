@@ -1,6 +1,7 @@
 // The stable API: `await reveal({model, bundle, passphrase})`, the browser's `noisenerf-reveal` (cli/reveal.py run):
-// the bundle is read and checked first, a sealed one's tag checked under the passphrase, then the model (graph and
-// fingerprint) on the whole file, then the bundle against the model and every tile's network, then every tile
+// the bundle is read and checked first (a masked one up to its mask), a sealed one's tag checked under the
+// passphrase, then the model (graph and fingerprint) on the whole file, then the bundle against the model (a masked
+// one unmasked with it and checked) and every tile's network, then every tile
 // renders (onnxruntime-web given only the checked graph pruned to those networks' outputs); a payload is opened
 // from the revealed pixels (cli/reveal.py write_payload). Every refusal is a UserError with the stable code and
 // params runtime/ raises for the same input (src/errors.js) and a one-line message.
@@ -8,8 +9,8 @@
 import { sha256 as sha256Of } from "@noble/hashes/sha2.js";
 import { bytesToHex } from "@noble/hashes/utils.js";
 import { UserError } from "./errors.js";
-import { loadBundle } from "./bundle.js";
-import { checkModel, checkBundle } from "./model.js";
+import { bundleOf, fileFingerprint, filePayloadMarker, readBundleFile } from "./bundle.js";
+import { checkBundle, checkFingerprint, checkModel } from "./model.js";
 import { LocalRenderer, bundleNetworks, revealBundle } from "./reveal.js";
 import { encodePng } from "./png.js";
 import { INEXACT, openPayload, sealOf } from "./payload.js";
@@ -17,23 +18,41 @@ import { NO_PASSPHRASE, NOT_SEALED, passphraseBytes, unsealKeys } from "./sealin
 
 export { UserError } from "./errors.js";
 
-/** Whether a bundle's bytes are a sealed payload (the page asks for a passphrase then); throws as reveal would. */
+/** Whether a bundle's bytes are a payload and sealed (the page asks for a passphrase then); throws as reveal would
+ * before its model is open. */
 export async function inspectBundle(bundle) {
-  const loaded = await loadBundle(bundle, "loaded.bundle");
-  return { payload: loaded.payloadMarker !== null, sealed: loaded.payloadMarker !== null && loaded.payloadMarker.sealed !== null,
-    width: loaded.width, height: loaded.height, tiles: loaded.tiles.length };
+  const marker = filePayloadMarker((await readBundle(bundle)).file);
+  return { payload: marker !== null, sealed: marker !== null && marker.sealed !== null };
 }
 
-/** The reveal's first steps, on the bundle alone: read and checked, a sealed one's tag checked under the passphrase
- * (a passphrase for an unsealed one refused). -> {loaded: the loaded bundle, keys: a sealed one's, else null}. */
+/** read_bundle: a bundle's bytes read and checked, all of it unless it is masked (runtime/api.py ReadBundle) ->
+ * {file, checked: the checked bundle, or null for a masked one until its model is open (`opened`)}. */
+async function readBundle(bytes) {
+  const file = readBundleFile(bytes, "secret.bundle");
+  return { file, checked: file.salt === null ? await bundleOf(file) : null };
+}
+
+/** ReadBundle.opened: the bundle's contents checked against the model; a masked bundle's unmasked with it, once the
+ * model is the one it names (another's would unmask to junk). */
+async function opened(read, model) {
+  if (read.checked === null) checkFingerprint(model, fileFingerprint(read.file));
+  const bundle = read.checked ?? await bundleOf(read.file, model.maskSecret);
+  checkBundle(model, bundle);
+  return bundle;
+}
+
+/** The reveal's first steps, on the bundle alone: read and checked (a masked one up to its mask), a sealed one's tag
+ * checked under the passphrase (a passphrase for an unsealed one refused). -> {read (readBundle's), keys: a sealed
+ * one's, else null}. */
 export async function openBundle(bundle, passphrase = null, onProgress = null) {
-  const loaded = await loadBundle(bundle, "loaded.bundle");
-  const seal = loaded.payloadMarker === null ? null : sealOf(loaded.payloadMarker);
+  const read = await readBundle(bundle);
+  const marker = filePayloadMarker(read.file);
+  const seal = marker === null ? null : sealOf(marker);
   const phrase = passphraseBytes(passphrase);
   if (seal === null && phrase !== null) throw new UserError(NOT_SEALED, { code: "seal.not_sealed" });
-  if (seal === null) return { loaded, keys: null };
+  if (seal === null) return { read, keys: null };
   if (phrase === null) throw new UserError(NO_PASSPHRASE, { code: "seal.no_passphrase" });
-  return { loaded, keys: await unsealKeys(bundle, seal, phrase, onProgress && ((done) => onProgress({ stage: "kdf", done, total: 1 }))) };
+  return { read, keys: await unsealKeys(bundle, seal, phrase, onProgress && ((done) => onProgress({ stage: "kdf", done, total: 1 }))) };
 }
 
 /**
@@ -50,9 +69,9 @@ export async function openBundle(bundle, passphrase = null, onProgress = null) {
  */
 export async function reveal({ model, bundle, passphrase = null, onProgress = null, openRenderer = LocalRenderer.open }) {
   if (!(model instanceof Uint8Array) || !(bundle instanceof Uint8Array)) throw new TypeError("model and bundle must be Uint8Arrays");
-  const { loaded, keys } = await openBundle(bundle, passphrase, onProgress);
+  const { read, keys } = await openBundle(bundle, passphrase, onProgress);
   const checked = checkModel(model, "model.onnx");
-  checkBundle(checked, loaded);
+  const loaded = await opened(read, checked);
   const total = loaded.tiles.reduce((n, tile) => n + tile.rect[2] * tile.rect[3], 0);
   let done = 0;
   const progress = onProgress && ((rays) => onProgress({ stage: "render", done: (done += rays), total }));

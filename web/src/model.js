@@ -135,17 +135,21 @@ export function metadataFromProps(props, source) {
   }
 }
 
-/** weights_fingerprint: weights (name -> {shape, values Float32Array}) and the architecture. */
-export function weightsFingerprint(weights, architecture) {
-  const digest = sha256.create();
+const MASK_SECRET_PREFIX = new TextEncoder().encode("noisenerf bundle mask secret\0");
+
+/** weights_digests: weights (name -> {shape, values Float32Array}) and the architecture -> {fingerprint, maskSecret}:
+ * SHA-256 over them, and SHA-256 over MASK_SECRET_PREFIX then the same bytes (what unmasks its bundles). */
+export function weightsDigests(weights, architecture) {
+  const fingerprint = sha256.create(), mask = sha256.create().update(MASK_SECRET_PREFIX);
   const encoder = new TextEncoder();
+  const update = (bytes) => { fingerprint.update(bytes); mask.update(bytes); };
   for (const name of [...weights.keys()].sort()) {
     const { shape, values } = weights.get(name);
-    digest.update(encoder.encode(`${name}|<f4|[${shape.join(", ")}]|`));
-    digest.update(new Uint8Array(values.buffer, values.byteOffset, values.byteLength)); // little-endian hosts only
+    update(encoder.encode(`${name}|<f4|[${shape.join(", ")}]|`));
+    update(new Uint8Array(values.buffer, values.byteOffset, values.byteLength)); // little-endian hosts only
   }
-  digest.update(encoder.encode(dumpsSorted(architecture)));
-  return bytesToHex(digest.digest());
+  update(encoder.encode(dumpsSorted(architecture)));
+  return { fingerprint: bytesToHex(fingerprint.digest()), maskSecret: mask.digest() };
 }
 
 export const shortFingerprint = (fingerprint) => `${fingerprint.slice(0, 12)}…`;
@@ -162,20 +166,27 @@ export function checkModel(data, source = "model.onnx") {
     throw error;
   }
   const weights = checkGraph(file, expected, source);
-  if (weightsFingerprint(weights, metadata.architecture) !== metadata.fingerprint) {
+  const digests = weightsDigests(weights, metadata.architecture);
+  if (digests.fingerprint !== metadata.fingerprint) {
     throw new UserError(`${source}: its weights do not match its fingerprint ${shortFingerprint(metadata.fingerprint)} ` +
       "(the model was changed after export); export the scene again", { code: "model.weights_changed" });
   }
-  return { file, metadata, networks: metadata.architecture.fine === null ? ["coarse"] : ["coarse", "fine"] };
+  return { file, metadata, networks: metadata.architecture.fine === null ? ["coarse"] : ["coarse", "fine"],
+    maskSecret: digests.maskSecret };
+}
+
+/** check_fingerprint: refuse a bundle hidden in another model, one naming another `fingerprint`. */
+export function checkFingerprint(model, fingerprint) {
+  if (fingerprint !== model.metadata.fingerprint) {
+    throw new UserError(`bundle was made for model ${shortFingerprint(fingerprint)}, this model is ` +
+      shortFingerprint(model.metadata.fingerprint),
+    { code: "model.other_model", bundle: fingerprint.slice(0, 12), model: model.metadata.fingerprint.slice(0, 12) });
+  }
 }
 
 /** check_bundle: refuse a bundle hidden in another model, or with noise the field cannot take. */
 export function checkBundle(model, bundle) {
-  if (bundle.modelFingerprint !== model.metadata.fingerprint) {
-    throw new UserError(`bundle was made for model ${shortFingerprint(bundle.modelFingerprint)}, this model is ` +
-      shortFingerprint(model.metadata.fingerprint),
-    { code: "model.other_model", bundle: bundle.modelFingerprint.slice(0, 12), model: model.metadata.fingerprint.slice(0, 12) });
-  }
+  checkFingerprint(model, bundle.modelFingerprint);
   if (bundle.noiseDims !== model.metadata.noiseDims) {
     throw new UserError(`bundle noise has ${bundle.noiseDims} dims, this model takes ${model.metadata.noiseDims}`,
       { code: "model.noise_dims", bundle: bundle.noiseDims, model: model.metadata.noiseDims });

@@ -39,10 +39,11 @@ export function* prunedNetworks(model, networks, needed = networks) {
 }
 
 /** OnnxField: onnxruntime-web sessions, one per network (session_for), each of the graph pruned to that network's
- * outputs; `create` opens one for each of the networks `needed` (all the model's by default). */
+ * outputs; `create` opens one for each of the networks `needed` (all the model's by default), on `provider`: "wasm"
+ * (the page's), or "webgpu" in a build of onnxruntime-web that has it (tools/webgpu_exactness.py measures it). */
 export class OnnxField {
-  static async create(model, networks, needed = networks) {
-    const field = new OnnxField(networks);
+  static async create(model, networks, needed = networks, provider = "wasm") {
+    const field = new OnnxField(networks, provider);
     try {
       for (const [network, pruned] of prunedNetworks(model, networks, needed)) await field.open(network, pruned);
     } catch (error) {
@@ -51,15 +52,16 @@ export class OnnxField {
     }
     return field;
   }
-  constructor(networks) {
+  constructor(networks, provider = "wasm") {
     this.networks = networks;
+    this.provider = provider;
     this.sessions = new Map(); // network -> session
   }
   /** A session of `model` (the graph pruned to the network's outputs: prunedNetworks) answering for `network`.
    * onnxruntime's own logging is silenced, as runtime/session.py's is (a pruned graph's unused initializers would
    * each be a warning); a failure is thrown. */
   async open(network, model) {
-    const session = await ort.InferenceSession.create(model, { executionProviders: ["wasm"], logSeverityLevel: 4 });
+    const session = await ort.InferenceSession.create(model, { executionProviders: [this.provider], logSeverityLevel: 4 });
     await this.sessions.get(network)?.release?.();
     this.sessions.set(network, session);
   }
@@ -160,8 +162,8 @@ export async function renderChunk(job, field) {
 /** Chunks rendered in this thread on its onnxruntime-web sessions (one per network `needed`: OnnxField), one at a
  * time (a renderer: slots, render, release; src/pool.js's FieldPool is the other, over Web Workers). */
 export class LocalRenderer {
-  static async open(model, networks, needed = networks) {
-    return new LocalRenderer(await OnnxField.create(model, networks, needed));
+  static async open(model, networks, needed = networks, provider = "wasm") {
+    return new LocalRenderer(await OnnxField.create(model, networks, needed, provider));
   }
   constructor(field) {
     this.field = field;

@@ -34,8 +34,8 @@ for (const [name, fixture] of Object.entries(manifest.fixtures)) {
 
 test("tiles cut into many small chunks, out of order in two workers, render the same colours as whole", { skip }, async () => {
   for (const name of Object.keys(manifest.fixtures)) {
-    const model = read(name, "model.onnx"), bundle = await loadBundle(read(name, "secret.bundle"));
-    const checked = checkModel(model), config = checked.metadata.renderConfig;
+    const model = read(name, "model.onnx"), checked = checkModel(model), config = checked.metadata.renderConfig;
+    const bundle = await loadBundle(read(name, "secret.bundle"), "secret.bundle", checked.maskSecret);
     const local = await LocalRenderer.open(model, checked.networks);
     const workers = await (await twoWorkers()).open(model, checked.networks);
     for (const tile of bundle.tiles) {
@@ -51,8 +51,8 @@ test("tiles cut into many small chunks, out of order in two workers, render the 
 
 test("a worker that dies is left out: the others render on and release does not wait for it", { skip }, async () => {
   const name = Object.keys(manifest.fixtures)[0];
-  const model = read(name, "model.onnx"), bundle = await loadBundle(read(name, "secret.bundle"));
-  const checked = checkModel(model), tile = bundle.tiles[0];
+  const model = read(name, "model.onnx"), checked = checkModel(model);
+  const bundle = await loadBundle(read(name, "secret.bundle"), "secret.bundle", checked.maskSecret), tile = bundle.tiles[0];
   const job = () => chunkJob(tile, bundle, checked.metadata.renderConfig, tileNetwork(tile, checked.networks), 0, 2);
   const pool = await (await nodePool(2)).open(model, checked.networks);
   try {
@@ -70,8 +70,8 @@ test("a worker that dies is left out: the others render on and release does not 
 test("a worker's refusal is the caller's UserError, and the pool renders on after it", { skip }, async () => {
   // a model of one network has no coarse outputs, which a network it lacks is asked for
   const name = Object.keys(manifest.fixtures).find((folder) => checkModel(read(folder, "model.onnx")).networks.length === 1);
-  const model = read(name, "model.onnx"), bundle = await loadBundle(read(name, "secret.bundle"));
-  const checked = checkModel(model);
+  const model = read(name, "model.onnx"), checked = checkModel(model);
+  const bundle = await loadBundle(read(name, "secret.bundle"), "secret.bundle", checked.maskSecret);
   const workers = await (await twoWorkers()).open(model, checked.networks);
   const tile = bundle.tiles[0], config = checked.metadata.renderConfig;
   await assert.rejects(workers.render(chunkJob(tile, bundle, config, "nonexistent", 0, 1)), (error) => {

@@ -45,8 +45,8 @@ for (const [name, fixture] of Object.entries(manifest.fixtures)) {
   test(`${name}: rays, noise and colours against Python`, { skip }, async (t) => {
     const model = fs.readFileSync(path.join(folder, "model.onnx"));
     const bundleBytes = fs.readFileSync(path.join(folder, "secret.bundle"));
-    const bundle = await loadBundle(new Uint8Array(bundleBytes));
     const checked = checkModel(new Uint8Array(model));
+    const bundle = await loadBundle(new Uint8Array(bundleBytes), "secret.bundle", checked.maskSecret);
     assert.equal(checked.metadata.fingerprint, fixture.fingerprint);
     const renderer = await LocalRenderer.open(new Uint8Array(model), checked.networks);
     const stats = { rays: [], noise: [], colors: [] };
