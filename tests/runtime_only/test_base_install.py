@@ -46,19 +46,24 @@ def test_base_install_reveal_equals_the_demo_reveal(demo_dir, tmp_path):
 
 def test_fingerprint_mismatch_is_one_line_and_exit_2(demo_dir, tmp_path):
     from noisenerf.runtime.bundle import load_bundle
+    from noisenerf.runtime.model import load_model
     import dataclasses
 
-    bundle = dataclasses.replace(load_bundle(demo_dir / "secret.bundle"), model_fingerprint="0" * 64)
-    bundle.save(tmp_path / "other.bundle")
+    model = load_model(demo_dir / "model.onnx")
+    bundle = dataclasses.replace(load_bundle(demo_dir / "secret.bundle", model.mask_secret), model_fingerprint="0" * 64)
+    bundle.save(tmp_path / "other.bundle", mask_secret=model.mask_secret)
     result = run_reveal(demo_dir / "model.onnx", tmp_path / "other.bundle", "-o", tmp_path / "r.png")
     assert_refused(result, tmp_path / "r.png", f"bundle was made for model 000000000000…, this model is "
-                   f"{bundle_fingerprint(demo_dir)[:12]}…", exact=True)
+                   f"{model.fingerprint[:12]}…", exact=True)
 
 
-def bundle_fingerprint(demo_dir):
+def test_a_bundle_without_its_model_is_refused_in_the_base_install(demo_dir):
     from noisenerf.runtime.bundle import load_bundle
+    from noisenerf.runtime.errors import UserError
 
-    return load_bundle(demo_dir / "secret.bundle").model_fingerprint
+    with pytest.raises(UserError) as refused:
+        load_bundle(demo_dir / "secret.bundle")
+    assert refused.value.code == "bundle.masked"
 
 
 def test_ordinary_render_skips_and_matches_the_demo_render(demo_dir, tmp_path):
