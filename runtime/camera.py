@@ -15,12 +15,14 @@ from dataclasses import dataclass
 import numpy as np
 
 from noisenerf.runtime.errors import UserError
+from noisenerf.runtime.lens import Lens, border_positions, lens_directions
 from noisenerf.runtime.limits import checked_float, checked_image_size
 
 
 @dataclass(frozen=True)
 class Camera:
-    """A pinhole camera: 4×4 camera-to-world (row-major, nested tuples), image size and intrinsics."""
+    """A camera: 4×4 camera-to-world (row-major, nested tuples), image size and intrinsics, and its lens's
+    distortion (runtime.lens) where it has one (None: a pinhole)."""
 
     c2w: tuple[tuple[float, ...], ...]
     width: int
@@ -29,6 +31,7 @@ class Camera:
     fy: float
     cx: float
     cy: float
+    lens: Lens | None = None
 
     @staticmethod
     def from_fov(c2w: np.ndarray, width: int, height: int, fov_x: float) -> "Camera":
@@ -49,7 +52,9 @@ class Camera:
         return np.asarray(self.c2w, dtype=np.float32).reshape(4, 4)
 
     def to_dict(self) -> dict:
-        return dataclasses.asdict(self)
+        """As metadata states it; a pinhole's has no lens key (what every camera before lenses wrote)."""
+        fields = {f.name: getattr(self, f.name) for f in dataclasses.fields(self) if f.name != "lens"}
+        return {**fields, **({"lens": self.lens.to_dict()} if self.lens is not None else {})}
 
     @staticmethod
     def from_dict(data) -> "Camera":
@@ -71,7 +76,11 @@ class Camera:
             raise UserError(f"malformed camera: {error}", code="camera.missing_key", key=error.args[0]) from None
         except (TypeError, ValueError) as error:  # numpy's words, or ours
             raise UserError(f"malformed camera: {error}", code="camera.bad_c2w") from None
-        return Camera(_as_tuple(c2w), width, height, fx, fy, cx, cy)
+        camera = Camera(_as_tuple(c2w), width, height, fx, fy, cx, cy,
+                        None if data.get("lens") is None else Lens.from_dict(data["lens"]))
+        if camera.lens is not None:  # a lens that folds over inside the image is refused when read, not mid-render
+            lens_directions(camera.lens, fx, fy, cx, cy, *border_positions(width, height), width, height)
+        return camera
 
 
 @dataclass(frozen=True)
@@ -115,9 +124,14 @@ def camera_rays(camera: Camera, pixel_center: float, rect: tuple[int, int, int, 
 
 
 def pixel_rays(camera: Camera, px: np.ndarray, py: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Rays through image-plane positions (px, py) in pixels. px, py: (n,) -> rays_o, rays_d: (n, 3)."""
+    """Rays through image-plane positions (px, py) in pixels, through the camera's lens where it has one.
+    px, py: (n,) -> rays_o, rays_d: (n, 3)."""
     c2w = camera.matrix()
-    dirs = np.stack([(px - camera.cx) / camera.fx, -(py - camera.cy) / camera.fy, -np.ones_like(px)], axis=-1)
+    if camera.lens is not None:
+        dirs = lens_directions(camera.lens, camera.fx, camera.fy, camera.cx, camera.cy, px, py, camera.width,
+                               camera.height)
+    else:
+        dirs = np.stack([(px - camera.cx) / camera.fx, -(py - camera.cy) / camera.fy, -np.ones_like(px)], axis=-1)
     rays_d = (dirs.astype(np.float32) @ c2w[:3, :3].T).astype(np.float32)
     rays_o = np.broadcast_to(c2w[:3, 3], rays_d.shape).astype(np.float32)
     return rays_o, rays_d

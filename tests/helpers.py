@@ -145,6 +145,22 @@ def interrupted_after_saves(n: int):
         yield
 
 
+def lens_scene(model: str, seed: int = 0):
+    """A random ring scene whose every camera has a lens: a phone's barrel distortion with all six terms ("opencv"),
+    or a fisheye ("fisheye")."""
+    import dataclasses
+
+    from noisenerf.runtime.lens import Lens
+    from noisenerf.train.scene.random_scene import random_scene
+
+    lens = Lens("opencv", (-0.12, 0.03, -0.004, 0.0005, 0.001, -0.0008)) if model == "opencv" else \
+        Lens("fisheye", (0.05, -0.01, 0.002, -0.0003, 0.0, 0.0))
+    scene = random_scene(seed=seed)
+    scene.config = dataclasses.replace(scene.config, cameras=tuple(dataclasses.replace(camera, lens=lens)
+                                                                   for camera in scene.config.cameras))
+    return scene
+
+
 def two_tile_bundle(scene, layout: str = "ray", seed: int = 0, network: str | None = None):
     """Random noise in two views side by side, for `network` (None: no network field, as bundles made
     before it existed); the digest is that of torch's render of this very noise."""

@@ -13,6 +13,7 @@ import pytest
 from helpers import assert_refused, run_main, write_png
 from noisenerf.cli.main import main
 from noisenerf.runtime.errors import UserError
+from noisenerf.runtime.lens import Lens
 from noisenerf.train.scene.captures import read_capture
 from noisenerf.train.scene.datasets import load_dataset
 from noisenerf.train.scene.import_nerfstudio import dataset_cameras
@@ -72,7 +73,7 @@ def test_a_colmap2nerf_file_reads_as_written(tmp_path):
     assert (frame.sharpness, frame.model, frame.distortion) == (83.5, None, (0.0,) * 6)
     assert capture.aabb_scale == 16 and capture.applied_transform is None and capture.applied_scale == 1.0
     dataset = load_dataset(tmp_path)
-    assert dataset.aabb == (-16.0,) * 3 + (16.0,) * 3 and dataset.distortion is None
+    assert dataset.aabb == (-16.0,) * 3 + (16.0,) * 3 and all(c.lens is None for c in dataset.cameras)
     assert {(c.width, c.height, c.fx, c.fy, c.cx, c.cy) for c in dataset.cameras} == {(8, 6, 7.0, 7.5, 4.25, 2.75)}
 
 
@@ -86,9 +87,9 @@ def test_an_ns_process_data_file_reads_as_written(tmp_path):
     np.testing.assert_array_equal(frame.camera().c2w, random_poses(4)[3])
     np.testing.assert_array_equal(capture.applied_transform, NS_APPLIED)
     dataset = load_dataset(tmp_path)
-    np.testing.assert_array_equal(dataset.distortion, [(-0.05, 0.01, 0.0, 0.002, -0.001)] * 4)
-    with pytest.raises(UserError, match=r"transforms.json frame 3: lens distortion is not reproduced"):
-        dataset_cameras(tmp_path, np.eye(4)[:3], 1.0, None)
+    assert {c.lens for c in dataset.cameras} == {Lens("opencv", (-0.05, 0.01, 0.0, 0.0, 0.002, -0.001))}
+    cameras = dataset_cameras(tmp_path, np.eye(4)[:3], 1.0, None)  # the import: the lens as nerfstudio bends rays
+    assert {camera.lens for camera in cameras} == {Lens("opencv", (-0.05, 0.01, 0.0, 0.0, 0.002, -0.001))}
 
 
 def nerfstudio_normalization(poses: np.ndarray) -> tuple[np.ndarray, float]:
@@ -150,8 +151,9 @@ def edit(change):
     (lambda d: d.update(cx=2e9), "transforms.json frame 0: 'cx' must be a finite number in"),
     (lambda d: d.update(camera_angle_x=4.0), "'camera_angle_x' must be a finite number in"),
     (lambda d: d.update(is_fisheye="no"), "transforms.json: 'is_fisheye' must be true or false, got 'no'"),
-    (lambda d: d["frames"][3].update(camera_model="OPENCV_FISHEYE"),
-     "transforms.json frame 3: camera_model 'OPENCV_FISHEYE' is not supported"),
+    (lambda d: d["frames"][3].update(camera_model="EQUIRECTANGULAR"),
+     "transforms.json frame 3: camera_model 'EQUIRECTANGULAR' is not supported"),
+    (lambda d: d.update(k1=2e3), "transforms.json frame 0: lens k1 must be a finite number in"),
     (lambda d: d.update(camera_model="SIMPLE_PINHOLE", k2=0.1),
      "camera_model SIMPLE_PINHOLE has no distortion, yet k2"),
     (lambda d: d.update(distortion_params=[0.0] * 4), "'distortion_params' must hold 6 items, got 4"),

@@ -3,6 +3,7 @@ nerfstudio's transforms.json, lens distortion included), real lego/fern, bad inp
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 
@@ -15,10 +16,10 @@ from helpers import (assert_refused, read_raw, run_main, run_reveal, tiny_fit, t
 from noisenerf.cli.main import main
 from noisenerf.runtime.camera import Camera, camera_rays
 from noisenerf.runtime.errors import UserError
+from noisenerf.runtime.lens import Lens, undistort
 from noisenerf.train.scene import procedural
 from noisenerf.train.scene.datasets import load_dataset, view_rays
 from noisenerf.train.scene.fit import Budget, fit
-from noisenerf.train.scene.distortion import distorted_camera_rays, undistort
 from noisenerf.runtime.images import read_native, write_image
 from noisenerf.train.scene.procedural import procedural_secret, write_procedural_dataset
 
@@ -260,8 +261,9 @@ def test_capture_cameras_intrinsics_and_splits(tmp_path):
     np.testing.assert_allclose(dataset.images[:, 0, 0, 0], np.arange(10) * 20 / 255, atol=1e-6)  # sorted by file
     intrinsics = [(c.width, c.height, c.fx, c.fy, c.cx, c.cy) for c in dataset.cameras]
     assert intrinsics == [(4, 3, 3.5, 3.75, 2.1, 1.45)] * 3 + [(4, 3, 4.5, 3.75, 2.1, 1.55)] + [intrinsics[0]] * 6
-    lens = list(LENS.values())
-    np.testing.assert_array_equal(dataset.distortion, [lens] * 3 + [[-0.1] + lens[1:]] + [lens] * 6)
+    lens = six(tuple(LENS.values()))
+    assert [c.lens for c in dataset.cameras] == [Lens("opencv", lens)] * 3 + [Lens("opencv", (-0.1,) + lens[1:])] + \
+        [Lens("opencv", lens)] * 6
     assert dataset.splits == {"train": (1, 2, 3, 4, 5, 6, 7, 9), "val": (0, 8), "test": (0, 8)}
     assert (dataset.near, dataset.ndc, dataset.aabb, dataset.alphas) == (0.05, None, (-4.0,) * 3 + (4.0,) * 3, None)
     # nerfstudio's "up" + "poses" + auto scale, as properties: one rotation R for all cameras, taking the mean
@@ -287,11 +289,16 @@ def test_capture_defaults_of_instant_ngp_files(tmp_path):
     camera = dataset.cameras[1]
     assert (camera.width, camera.height, camera.cx, camera.cy) == (8, 6, 4.0, 3.0)
     assert camera.fx == camera.fy == pytest.approx(4.0 / math.tan(0.6))
-    assert dataset.distortion is None and dataset.aabb == (-1.0,) * 3 + (1.0,) * 3
+    assert all(c.lens is None for c in dataset.cameras) and dataset.aabb == (-1.0,) * 3 + (1.0,) * 3
     assert dataset.splits == {"train": (1,), "val": (0,), "test": (0,)}
 
 
 PHONE_LENS = (-0.12, 0.08, -0.02, 0.001, -0.0015)  # k1, k2, k3, p1, p2: a strong phone wide angle
+
+
+def six(coefficients: tuple[float, ...]) -> tuple[float, ...]:
+    """OpenCV's k1, k2, k3, p1, p2 as runtime.lens's six (k4 = 0)."""
+    return tuple(coefficients[:3]) + (0.0,) + tuple(coefficients[3:])
 
 
 def opencv_project(points, fx, fy, cx, cy, lens):
@@ -311,7 +318,7 @@ def test_undistortion_inverts_the_lens_over_the_whole_image(coefficients):
     corners of a wide 640×480 view."""
     fx, fy, cx, cy = 352.0, 355.0, 321.5, 238.0
     u, v = (g.ravel() for g in np.meshgrid(np.linspace(0, 640, 81), np.linspace(0, 480, 61)))
-    x, y = undistort((u - cx) / fx, (v - cy) / fy, coefficients)
+    x, y = undistort((u - cx) / fx, (v - cy) / fy, six(coefficients))
     back_u, back_v = opencv_project(np.stack([x, y, np.ones_like(x)], axis=1), fx, fy, cx, cy, coefficients)
     np.testing.assert_allclose(back_u, u, atol=1e-5)
     np.testing.assert_allclose(back_v, v, atol=1e-5)
@@ -324,7 +331,7 @@ def test_distorted_rays_project_back_onto_their_pixels():
     c2w[:3, :3] = np.linalg.qr(np.random.default_rng(2).normal(size=(3, 3)))[0]
     c2w[:3, 3] = [0.5, -1.0, 2.0]
     camera = Camera(tuple(map(tuple, c2w)), 40, 30, 22.0, 22.5, 20.3, 14.6)
-    origins, directions = distorted_camera_rays(camera, PHONE_LENS, 0.5)
+    origins, directions = camera_rays(dataclasses.replace(camera, lens=Lens("opencv", six(PHONE_LENS))), 0.5)
     assert origins.shape == directions.shape == (1200, 3) and directions.dtype == np.float32
     np.testing.assert_allclose(origins, np.broadcast_to(c2w[:3, 3], (1200, 3)), atol=1e-6)
     local = directions.astype(np.float64) @ c2w[:3, :3]  # world -> camera: OpenGL, looking down −z
@@ -338,9 +345,9 @@ def test_distorted_rays_project_back_onto_their_pixels():
 def test_a_lens_that_folds_over_is_refused():
     """k1 = −1 folds the image back at r = 0.58: the corners of this wide view have no undistorted point."""
     camera = Camera(tuple(map(tuple, np.eye(4))), 40, 30, 22.0, 22.0, 20.0, 15.0)
-    with pytest.raises(UserError, match=r"lens distortion \(-1.0, 0.0, 0.0, 0.0, 0.0\) cannot be undone across a "
-                                        "40x30 image"):
-        distorted_camera_rays(camera, (-1.0, 0.0, 0.0, 0.0, 0.0), 0.5)
+    with pytest.raises(UserError, match=r"a opencv lens \(-1.0, 0.0, 0.0, 0.0, 0.0, 0.0\) cannot be undone across "
+                                        "a 40x30 image"):
+        camera_rays(dataclasses.replace(camera, lens=Lens("opencv", six((-1.0, 0.0, 0.0, 0.0, 0.0)))), 0.5)
 
 
 def test_training_rays_of_a_procedural_capture_see_its_pixels(tmp_path, monkeypatch):
@@ -354,11 +361,12 @@ def test_training_rays_of_a_procedural_capture_see_its_pixels(tmp_path, monkeypa
     names = [frame["file_path"] for frame in meta["frames"]]
     assert names != sorted(names) and sum("fl_x" in frame for frame in meta["frames"]) == 1
     dataset = load_dataset(folder)
-    assert dataset.images.shape == (3, 24, 32, 3) and dataset.distortion is not None
+    assert dataset.images.shape == (3, 24, 32, 3) and all(c.lens is not None for c in dataset.cameras)
     for index, frame in enumerate(sorted(meta["frames"], key=lambda f: f["file_path"])):
         written, loaded = np.asarray(frame["transform_matrix"]), dataset.cameras[index].matrix().astype(np.float64)
         matching = []
-        for origins, directions in (view_rays(dataset, index, 0.5), camera_rays(dataset.cameras[index], 0.5)):
+        camera = dataset.cameras[index]
+        for origins, directions in (view_rays(camera, 0.5), camera_rays(dataclasses.replace(camera, lens=None), 0.5)):
             world = directions @ loaded[:3, :3] @ written[:3, :3].T
             rgb, hit = procedural.shade(np.broadcast_to(written[:3, 3], world.shape), procedural.unit(world))
             error = np.abs(np.where(hit[:, None], rgb, 1.0) - dataset.images[index].reshape(-1, 3)).max(axis=1)
@@ -371,9 +379,9 @@ def edit_capture(edit):
 
 
 @pytest.mark.parametrize("break_it, message", [
-    (edit_capture(lambda d: d.update(camera_model="OPENCV_FISHEYE")), "camera_model 'OPENCV_FISHEYE' is not supported"),
+    (edit_capture(lambda d: d.update(camera_model="OPENCV_FISHEYE")), "a fisheye capture is not fitted"),
     (edit_capture(lambda d: d.update(camera_model="EQUIRECTANGULAR")), "camera_model 'EQUIRECTANGULAR' is not"),
-    (edit_capture(lambda d: d.update(is_fisheye=True)), "camera_model 'OPENCV_FISHEYE' is not supported"),
+    (edit_capture(lambda d: d.update(is_fisheye=True)), "a fisheye capture is not fitted"),
     (edit_capture(lambda d: d.pop("fl_x")), r"transforms.json frame \d: needs a focal length, 'fl_x' or"),
     (edit_capture(lambda d: d["frames"][1].update(fl_x=-3)), r"transforms.json frame 1: 'fl_x' must be a finite"),
     (edit_capture(lambda d: d["frames"][2]["transform_matrix"][1].__setitem__(2, float("nan"))),
@@ -399,7 +407,7 @@ def test_bad_capture_input_is_one_user_error(tmp_path, break_it, message):
 def test_fit_refuses_a_fisheye_capture_in_one_line(tmp_path, capfd):
     folder = write_capture(tmp_path / "data", n=2, top={**CAPTURE_TOP, "camera_model": "OPENCV_FISHEYE"})
     result = run_main(main, ["fit", folder, "-o", tmp_path / "scene", "--iters", "1", "--device", "cpu"], capfd)
-    assert_refused(result, tmp_path / "scene", "camera_model 'OPENCV_FISHEYE' is not supported")
+    assert_refused(result, tmp_path / "scene", "a fisheye capture is not fitted")
 
 
 def test_fit_runs_on_a_distorted_capture(tmp_path, capfd):

@@ -251,7 +251,7 @@ def test_a_config_that_would_run_code_runs_nothing(tmp_path, capfd):
     ("method", "a nerfacto-huge run"),
     ("old keys", "a nerfstudio 0.3 checkpoint"),
     ("oldest keys", "a nerfstudio 0.1–0.2 checkpoint"),
-    ("distortion", "lens distortion is not reproduced"),
+    ("folding lens", "its distortion folds over inside it"),
     ("linear proposals", "a proposal network with a linear head is not reproduced"),
     ("nan weight", "holds 1 NaN or infinite values; a scene with it cannot render"),
     ("inf weight", "NaN or infinite values; a scene with it cannot render"),
@@ -278,9 +278,9 @@ def test_hostile_and_unsupported_runs_are_refused_in_one_line(tmp_path, capfd, c
         checkpoint.write_bytes(checkpoint.read_bytes()[:5000])
     if case == "not a dict":
         torch.save([1, 2, 3], checkpoint)
-    if case == "distortion":
+    if case == "folding lens":
         transforms = data / "transforms.json"
-        transforms.write_text(transforms.read_text().replace('"k1": 0.0', '"k1": 0.02'))
+        transforms.write_text(transforms.read_text().replace('"k1": 0.0', '"k1": -5.0'))
     if case == "linear proposals":
         config = run / "config.yml"
         config.write_text(config.read_text().replace("use_linear: false", "use_linear: true", 1))

@@ -36,8 +36,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from helpers import (as_older_compact_format, flip_first_float32, make_tiny_scene, rewrite_bundle, write_nerfstudio_run,
-                     xor_masked_bytes)
+from helpers import (as_older_compact_format, flip_first_float32, lens_scene, make_tiny_scene, rewrite_bundle,
+                     write_nerfstudio_run, xor_masked_bytes)
 
 REPO = Path(__file__).resolve().parents[1]
 WEB = REPO / "web"
@@ -513,6 +513,7 @@ def write_fixtures(root: Path) -> dict:
               "ndc": make_tiny_scene(seed=1, ndc=True),
               "wide": make_tiny_scene(seed=0, width=64, depth=4),  # tests/test_reference.py's payload scene
               "hashgrid": make_tiny_scene(seed=2, kind="hashgrid"),
+              "lens_opencv": lens_scene("opencv", seed=5), "lens_fisheye": lens_scene("fisheye", seed=6),
               **{f"nerfacto_{implementation}": imported_nerfacto(root, implementation)
                  for implementation in ("tcnn", "torch")}}
     paper = (PaperSettings(iters=4, record_at=(4,)),)
@@ -527,6 +528,9 @@ def write_fixtures(root: Path) -> dict:
         "ndc_compact": ("ndc", secret[:8, :12], HideConfig(tile_size=16)),
         "hashgrid_compact": ("hashgrid", secret[:8, :12], HideConfig(tile_size=16)),
         "hashgrid_ray": ("hashgrid", secret[:6, :8], HideConfig(layout="ray", tile_size=16, view=2, seed=5)),
+        # cameras with lenses (runtime.lens): rays undistorted in float64 by both languages
+        "lens_opencv_compact": ("lens_opencv", secret[:12, :16], HideConfig(tile_size=16, view=1)),
+        "lens_fisheye_ray": ("lens_fisheye", secret[:6, :8], HideConfig(layout="ray", tile_size=16, view=3)),
         # the defaults, as `noisenerf hide SCENE secret.png -o b.nnrf --view 4` hides in an imported run
         "nerfacto_tcnn": ("nerfacto_tcnn", secret[:6, :7], HideConfig(view=4)),
         "nerfacto_torch": ("nerfacto_torch", secret[:6, :7], HideConfig(view=4)),
@@ -611,6 +615,11 @@ def write_fixtures(root: Path) -> dict:
             lambda meta: meta["mask"].update(salt="AAAA"))),
         tamper(root, "ray", "mask_other_cipher", edit_bundle=bundle_metadata_edit(
             lambda meta: meta["mask"].update(cipher="aes"))),
+        # a tile camera's lens (runtime.lens): folding over inside the image, a model neither reads
+        tamper(root, "lens_opencv_compact", "lens_folds", edit_bundle=bundle_metadata_edit(
+            lambda meta: meta["tiles"][0]["camera"]["lens"].update(k1=-5.0))),
+        tamper(root, "lens_opencv_compact", "lens_model", edit_bundle=bundle_metadata_edit(
+            lambda meta: meta["tiles"][0]["camera"]["lens"].update(model="equirectangular"))),
         tamper(root, "compact_tiles", "mask_on_format_4", edit_bundle=bundle_metadata_edit(
             lambda meta: meta.update(format_version=4))),
         # quoted as repr() quotes it: a no-break space, a line separator and a zero-width space escaped

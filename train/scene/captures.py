@@ -19,12 +19,11 @@ What is accepted, where nerfstudio's loader (nerfstudio/data/dataparsers/nerfstu
   the sizes w and h are whole numbers, given as integers or as integral floats (colmap2nerf.py writes 1080.0;
   both tools read them), a fraction refused (nerfstudio's int() would drop it);
 - the camera model (camera_model, the frame's or the file's: ns-process-data writes it per frame for several
-  cameras) is one whose rays are a pinhole's bent by OpenCV's polynomial: nerfstudio's perspective models
-  `PINHOLE_MODELS`, or none named (Instant-NGP names none). Fisheye ones (OPENCV_FISHEYE, Instant-NGP's
-  is_fisheye) and the rest are refused; so is a coefficient not 0 under PINHOLE or SIMPLE_PINHOLE (the fit
-  refused it, the import would have refused it as distortion);
+  cameras) is one whose rays runtime.lens reproduces: nerfstudio's perspective models `PINHOLE_MODELS`, or none
+  named (Instant-NGP names none), or OPENCV_FISHEYE (Instant-NGP's is_fisheye; the fit refuses it); equirectangular
+  and the rest are refused; so is a coefficient not 0 under PINHOLE or SIMPLE_PINHOLE;
 - the lens: k1, k2, k3, k4, p1, p2, or nerfstudio's distortion_params list of the six (which stands for the keys
-  where given), 0 where not stated; the import refuses any that is not 0, the fit a k4 (its lens has none);
+  where given), 0 where not stated (`CaptureFrame.lens`: runtime.lens's; the fit refuses a k4, its lens has none);
 - the focal length: fl_x, else camera_angle_x (radians) across w; fl_y, else camera_angle_y, else fl_x
   (Instant-NGP's defaults; nerfstudio's own reader needs fl_x, fl_y, cx and cy); cx, cy default to the image's
   centre and w, h to its size (the import reads no image, so it needs w and h);
@@ -47,11 +46,13 @@ import numpy as np
 from noisenerf.runtime.camera import Camera
 from noisenerf.runtime.errors import UserError
 from noisenerf.runtime.files import read_json
+from noisenerf.runtime.lens import Lens
 from noisenerf.runtime.limits import checked_float, checked_image_size, checked_list, is_finite
 
 CAPTURE_FILE = "transforms.json"
 MAX_CAPTURE_BYTES = 64 << 20
 PINHOLE_MODELS = ("OPENCV", "PINHOLE", "SIMPLE_PINHOLE", "SIMPLE_RADIAL", "RADIAL")  # nerfstudio's perspective ones
+FISHEYE_MODEL = "OPENCV_FISHEYE"  # nerfstudio's FISHEYE camera type
 UNDISTORTED_MODELS = ("PINHOLE", "SIMPLE_PINHOLE")
 COEFFICIENT_KEYS = ("k1", "k2", "k3", "k4", "p1", "p2")  # nerfstudio's distortion_params, in its order
 IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png", ".tif", ".tiff", ".exr")
@@ -85,6 +86,19 @@ class CaptureFrame:
     def coefficients(self, keys) -> tuple[float, ...]:
         """The lens coefficients named by `keys` (of COEFFICIENT_KEYS), in that order."""
         return tuple(self.distortion[COEFFICIENT_KEYS.index(key)] for key in keys)
+
+    def lens(self) -> Lens | None:
+        """The frame's lens as nerfstudio bends its rays (runtime.lens): a fisheye's (k1 to k4: nerfstudio's
+        dataparser drops p1 and p2 for it), an OpenCV one where any coefficient is not 0, else None (a pinhole). Its
+        coefficients are checked as a model's metadata's are."""
+        fisheye = self.model == FISHEYE_MODEL
+        if not fisheye and not any(self.distortion):
+            return None
+        coefficients = self.distortion[:4] + (0.0, 0.0) if fisheye else self.distortion
+        try:
+            return Lens.from_dict({"model": "fisheye" if fisheye else "opencv", **dict(zip(COEFFICIENT_KEYS, coefficients))})
+        except UserError as error:
+            raise UserError(f"{self.where}: {error}") from None
 
     def camera(self, image_size: tuple[int, int] | None = None) -> Camera:
         """The frame's pinhole camera as the file states it: its pose as written, its intrinsics in pixels of its
@@ -158,11 +172,13 @@ def read_frame(folder: Path, meta: dict, file_model: str | None, entry, where: s
     if model in UNDISTORTED_MODELS and any(distortion):
         raise UserError(f"{where}: camera_model {model} has no distortion, yet "
                         f"{next(k for k, c in zip(COEFFICIENT_KEYS, distortion) if c)} is not 0")
-    return CaptureFrame(entry["file_path"], path, c2w, where, model, width, height, number("fl_x", FOCAL_RANGE),
-                        number("fl_y", FOCAL_RANGE), number("camera_angle_x", ANGLE_RANGE),
-                        number("camera_angle_y", ANGLE_RANGE), number("cx", CENTRE_RANGE), number("cy", CENTRE_RANGE),
-                        distortion, None if entry.get("sharpness") is None else
-                        checked_float(entry["sharpness"], f"{where}: 'sharpness'"))
+    frame = CaptureFrame(entry["file_path"], path, c2w, where, model, width, height, number("fl_x", FOCAL_RANGE),
+                         number("fl_y", FOCAL_RANGE), number("camera_angle_x", ANGLE_RANGE),
+                         number("camera_angle_y", ANGLE_RANGE), number("cx", CENTRE_RANGE), number("cy", CENTRE_RANGE),
+                         distortion, None if entry.get("sharpness") is None else
+                         checked_float(entry["sharpness"], f"{where}: 'sharpness'"))
+    frame.lens()  # its coefficients within a lens's caps
+    return frame
 
 
 def camera_model(entry: dict, inherited: str | None, what: str) -> str | None:
@@ -172,10 +188,9 @@ def camera_model(entry: dict, inherited: str | None, what: str) -> str | None:
     if fisheye is not None and not isinstance(fisheye, bool):
         raise UserError(f"{what}: 'is_fisheye' must be true or false, got {fisheye!r:.40}")
     model = "OPENCV_FISHEYE" if fisheye else inherited if entry.get("camera_model") is None else entry["camera_model"]
-    if model is not None and model not in PINHOLE_MODELS:
-        raise UserError(f"{what}: camera_model {model!r:.40} is not supported (expected a pinhole model: "
-                        f"{', '.join(PINHOLE_MODELS[:-1])} or {PINHOLE_MODELS[-1]}; undistort the images first, e.g. "
-                        "with COLMAP's image_undistorter)")
+    if model is not None and model not in (*PINHOLE_MODELS, FISHEYE_MODEL):
+        raise UserError(f"{what}: camera_model {model!r:.40} is not supported (expected {', '.join(PINHOLE_MODELS)} "
+                        f"or {FISHEYE_MODEL})")
     return model
 
 

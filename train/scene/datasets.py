@@ -3,14 +3,16 @@
 `train.scene.captures`, which the nerfstudio import shares).
 
 All load to one `Dataset`: images composited on a background, one `Camera` per image (OpenGL c2w, at the
-loaded resolution), splits, the ray interval, for forward-facing LLFF scenes nerf-pytorch's NDC space, and
-for captures the lens distortion their training rays go through (`view_rays`).
+loaded resolution, a capture's with its lens: runtime.lens), splits, the ray interval, for forward-facing LLFF
+scenes nerf-pytorch's NDC space; `view_rays` gives a view's rays as its photo saw them.
 LLFF poses follow nerf-pytorch's `load_llff_data(factor, recenter=True, bd_factor=.75, spherify=False)`
 operation for operation (float32), so imported nerf-pytorch checkpoints see the cameras they were trained on.
 """
 
 from __future__ import annotations
 
+import dataclasses
+import functools
 import itertools
 import math
 import re
@@ -23,8 +25,7 @@ from noisenerf.runtime.camera import Camera, NDCSpace, camera_rays
 from noisenerf.runtime.errors import UserError
 from noisenerf.runtime.files import read_json
 from noisenerf.runtime.images import composite_over, image_shape, read_image, resize_image
-from noisenerf.train.scene.captures import CAPTURE_FILE, CaptureFrame, frame_file_and_pose, read_capture
-from noisenerf.train.scene.distortion import distorted_camera_rays
+from noisenerf.train.scene.captures import CAPTURE_FILE, FISHEYE_MODEL, CaptureFrame, frame_file_and_pose, read_capture
 
 BLENDER_SPLITS = ("train", "val", "test")
 BLENDER_NEAR, BLENDER_FAR = 2.0, 6.0
@@ -34,7 +35,6 @@ LLFF_BD_FACTOR = 0.75
 LLFF_HOLD = 8  # nerf-pytorch's llffhold: every 8th view is held out
 LLFF_DEFAULT_FACTOR = 8
 LLFF_IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png")
-DISTORTION_KEYS = ("k1", "k2", "k3", "p1", "p2")  # the fit's lens (train.scene.distortion): OpenCV's without k4
 CAPTURE_NEAR = 0.05  # in normalised units, where the cameras span [-1, 1]
 
 
@@ -50,7 +50,6 @@ class Dataset:
     background: tuple[float, float, float]
     aabb: tuple[float, ...]  # (xmin, ymin, zmin, xmax, ymax, zmax) in the field's space
     alphas: np.ndarray | None = None  # (n, H, W) float32 coverage of RGBA datasets (space carving); else None
-    distortion: np.ndarray | None = None  # (n, 5) float64 k1, k2, k3, p1, p2 of each image's lens; None: pinhole
 
 
 def load_dataset(data_dir, resolution: int | None = None, with_images: bool = True,
@@ -79,13 +78,26 @@ def load_dataset(data_dir, resolution: int | None = None, with_images: bool = Tr
                     f"poses_bounds.npy with images_N/ (LLFF) or {CAPTURE_FILE} (a capture)")
 
 
-def view_rays(dataset: Dataset, index: int, pixel_center: float) -> tuple[np.ndarray, np.ndarray]:
-    """World rays of view `index`'s pixels as its photo saw them, row-major: through the lens's distortion
-    where the dataset has one, else the pinhole camera's. -> rays_o, rays_d: (width · height, 3) float32."""
-    camera = dataset.cameras[index]
-    if dataset.distortion is None:
+AT_ORIGIN = tuple(tuple(float(i == j) for j in range(4)) for i in range(4))  # identity c2w: camera space
+
+
+@functools.lru_cache(maxsize=2)  # one lens per capture as a rule: inverting it is the cost, rotating it is not
+def lens_directions(lens_camera: Camera, pixel_center: float) -> np.ndarray:
+    """Camera-space directions of every pixel of a camera at AT_ORIGIN, row-major, read-only. -> (n, 3) float32."""
+    directions = camera_rays(lens_camera, pixel_center)[1]
+    directions.setflags(write=False)
+    return directions
+
+
+def view_rays(camera: Camera, pixel_center: float) -> tuple[np.ndarray, np.ndarray]:
+    """World rays of a view's pixels as its photo saw them, through its camera's lens, row-major: the same values
+    as runtime.camera.camera_rays (its directions times R, in float32), the lens inverted once per lens and size.
+    -> rays_o, rays_d: (width · height, 3) float32."""
+    if camera.lens is None:
         return camera_rays(camera, pixel_center)
-    return distorted_camera_rays(camera, dataset.distortion[index], pixel_center)
+    directions = lens_directions(dataclasses.replace(camera, c2w=AT_ORIGIN), float(pixel_center))
+    c2w = camera.matrix()
+    return np.broadcast_to(c2w[:3, 3], directions.shape).astype(np.float32), directions @ c2w[:3, :3].T
 
 
 # ---- shared ------------------------------------------------------------------------------------
@@ -321,24 +333,27 @@ def load_llff(data_dir: Path, resolution: int | None, with_images: bool,
 
 # ---- captures: Instant-NGP's and nerfstudio's transforms.json (read by train.scene.captures) --------------
 
-def fit_lens(frame: CaptureFrame, stored: tuple[int, int]) -> tuple[Camera, tuple[float, ...]]:
-    """A frame's camera at its image as stored (`stored`: width, height, which w and h must say where given), and
-    its lens as the fit bends rays (DISTORTION_KEYS: OpenCV's without k4)."""
+def fit_lens(frame: CaptureFrame, stored: tuple[int, int]) -> Camera:
+    """A frame's camera at its image as stored (`stored`: width, height, which w and h must say where given), with
+    its lens (runtime.lens: OpenCV's; the fit takes no fisheye and no k4)."""
     camera = frame.camera(stored)
     if (camera.width, camera.height) != stored:
         raise UserError(f"{frame.where}: w and h say {camera.width}x{camera.height}, but {frame.path} is "
                         f"{stored[0]}x{stored[1]}")
+    if frame.model == FISHEYE_MODEL:
+        raise UserError(f"{frame.where}: a fisheye capture is not fitted (its lens bends rays the fit's does not); "
+                        "`noisenerf import-nerfstudio` imports a nerfstudio run of it")
     if frame.coefficients(("k4",))[0]:
         raise UserError(f"{frame.where}: k4 is not supported (an r^8 term the fit's lens lacks: k1, k2, k3, p1, p2)")
-    return camera, frame.coefficients(DISTORTION_KEYS)
+    return dataclasses.replace(camera, lens=frame.lens())
 
 
-def capture_camera(lens: Camera, c2w: np.ndarray, size: tuple[int, int]) -> Camera:
-    """`lens`'s intrinsics at `size` (width, height) and pose c2w (4, 4): x scales by the width ratio and y by
-    the height ratio, as the area downscale maps them (they differ by the height's rounding). Distortion acts on
+def capture_camera(stated: Camera, c2w: np.ndarray, size: tuple[int, int]) -> Camera:
+    """`stated`'s intrinsics at `size` (width, height) and pose c2w (4, 4): x scales by the width ratio and y by
+    the height ratio, as the area downscale maps them (they differ by the height's rounding). The lens acts on
     normalised coordinates, so it does not scale."""
-    sx, sy = size[0] / lens.width, size[1] / lens.height
-    return Camera(matrix_rows(c2w), *size, lens.fx * sx, lens.fy * sy, lens.cx * sx, lens.cy * sy)
+    sx, sy = size[0] / stated.width, size[1] / stated.height
+    return Camera(matrix_rows(c2w), *size, stated.fx * sx, stated.fy * sy, stated.cx * sx, stated.cy * sy, stated.lens)
 
 
 def rotation_onto_z(up: np.ndarray) -> np.ndarray:
@@ -402,14 +417,12 @@ def load_capture(data_dir: Path, resolution: int | None, with_images: bool,
     frames = sorted(capture.frames, key=lambda frame: str(frame.path))
     paths = [frame.path for frame in frames]
     height, width = common_shape(paths, (3, 4))
-    lenses, distortion = zip(*(fit_lens(frame, (width, height)) for frame in frames))
+    stated = [fit_lens(frame, (width, height)) for frame in frames]
     c2w = normalized_poses(np.stack([frame.c2w for frame in frames]), capture.path)
     size = scaled_size(width, height, resolution)
-    cameras = tuple(capture_camera(lens, matrix, size) for lens, matrix in zip(lenses, c2w))
-    distortion = np.array(distortion)
-    distorted = bool(distortion.any())
+    cameras = tuple(capture_camera(camera, matrix, size) for camera, matrix in zip(stated, c2w))
+    distorted = any(camera.lens is not None for camera in cameras)
     aabb = (-capture.aabb_scale,) * 3 + (capture.aabb_scale,) * 3
     images, alphas = load_images(paths, size, background, composite=True) if with_images else (None, None)
     return Dataset("capture", images, cameras, holdout_splits(len(frames)), CAPTURE_NEAR,
-                   farthest_corner(c2w[:, :3, 3], aabb), None, background, aabb, None if distorted else alphas,
-                   distortion if distorted else None)
+                   farthest_corner(c2w[:, :3, 3], aabb), None, background, aabb, None if distorted else alphas)

@@ -31,7 +31,6 @@ import numpy as np
 import torch
 from safetensors.torch import load_file, save
 
-from noisenerf.runtime import render as numpy_render
 from noisenerf.runtime.errors import UserError
 from noisenerf.runtime.files import check_output_directory, read_json, write_bytes, write_json
 from noisenerf.runtime.progress import Counter, ProgressFn
@@ -128,7 +127,7 @@ def training_rays(dataset: Dataset, render: RenderConfig, config: FitConfig, dev
     offset = 0
     for index in dataset.splits["train"]:
         camera = dataset.cameras[index]
-        batch = field_space_rays(render, *view_rays(dataset, index, render.pixel_center))
+        batch = field_space_rays(render, *view_rays(dataset.cameras[index], render.pixel_center))
         origins.append(batch.origins)
         directions.append(batch.directions)
         viewdirs.append(batch.viewdirs)
@@ -298,32 +297,17 @@ class Fitter:
 
 def held_out_quality(scene: Scene, dataset: Dataset, views: list[int], skipping: bool = True) -> dict:
     """Mean PSNR / SSIM over views rendered the way recipients render them (runtime + skipping, or
-    hierarchical for scenes with a fine network)."""
+    hierarchical for scenes with a fine network), through each camera's lens where it has one."""
     field, sampler = numpy_field(scene.render_field), scene.sampler(skipping)
     scores, dense, evaluated = [], 0, 0
     for index in views:
-        if dataset.distortion is None:
-            image, stats = render_view(dataset.cameras[index], scene.config.render, field, sampler)
-        else:  # the photo saw its lens's rays, not the pinhole camera's: render those
-            image, stats = lens_view(scene, dataset, index, field, sampler)
+        image, stats = render_view(dataset.cameras[index], scene.config.render, field, sampler)
         target = dataset.images[index]
         scores.append((psnr(image, target), ssim(image, target)))
         dense += stats.n_samples_dense
         evaluated += stats.n_samples_evaluated
     return {"psnr": float(np.mean([s[0] for s in scores])), "ssim": float(np.mean([s[1] for s in scores])),
             "views": len(views), "samples_dense": dense, "samples_evaluated": evaluated}
-
-
-def lens_view(scene: Scene, dataset: Dataset, index: int, field, sampler: numpy_render.Sampler
-              ) -> tuple[np.ndarray, numpy_render.RenderStats]:
-    """View `index` rendered along the rays its photo saw (datasets.view_rays, through the lens's distortion),
-    a chunk at a time as render_view renders: image (height, width, 3) float32 and counts."""
-    camera, config = dataset.cameras[index], scene.config.render
-    rays = field_space_rays(config, *view_rays(dataset, index, config.pixel_center))
-    colors, stats = numpy_render.render_in_chunks(
-        len(rays), numpy_render.rays_per_chunk(sampler.samples_per_ray),
-        lambda start, stop: sampler.render(rays.rows(start, stop), field))
-    return colors.reshape(camera.height, camera.width, 3), stats
 
 
 def curve_psnr(scene: Scene, dataset: Dataset, views: list[int], rays_per_view: int, seed: int) -> float:
@@ -335,7 +319,7 @@ def curve_psnr(scene: Scene, dataset: Dataset, views: list[int], rays_per_view: 
         camera = dataset.cameras[index]
         chosen = rng.choice(camera.width * camera.height, min(rays_per_view, camera.width * camera.height),
                             replace=False)
-        rays_o, rays_d = view_rays(dataset, index, scene.config.render.pixel_center)
+        rays_o, rays_d = view_rays(camera, scene.config.render.pixel_center)
         rays = field_space_rays(scene.config.render, rays_o[chosen], rays_d[chosen])
         colors, _ = sampler.render(rays, field)
         errors.append((colors - dataset.images[index].reshape(-1, 3)[chosen]) ** 2)

@@ -427,7 +427,8 @@ def dataset_cameras(data_dir: Path, transform: np.ndarray, scale: float, downsca
                     ) -> tuple[Camera, ...]:
     """Every frame's camera as nerfstudio builds it at eval: frames sorted by file name, the pose mapped
     into nerfstudio's frame (the transform applies to poses as saved; a transforms.json's applied_transform
-    is already in them), intrinsics divided by the downscale. Lens distortion is refused."""
+    is already in them), intrinsics divided by the downscale, the lens as nerfstudio bends its rays (runtime.lens:
+    its coefficients are in normalised coordinates, whatever the downscale)."""
     capture = read_capture(data_dir)
     applied = capture.applied_transform
     if applied is None and (Path(data_dir) / "colmap" / "sparse" / "0").exists():
@@ -438,15 +439,14 @@ def dataset_cameras(data_dir: Path, transform: np.ndarray, scale: float, downsca
     pose_scale = scale / capture.applied_scale
     cameras = []
     for frame in sorted(capture.frames, key=lambda frame: Path(frame.file_path).name):
-        if any(frame.distortion):
-            raise UserError(f"{frame.where}: lens distortion is not reproduced ({frame.file_path})")
-        stated = frame.camera()
+        stated, lens = frame.camera(), frame.lens()
         c2w = saved @ frame.c2w
         c2w[:3, 3] *= pose_scale
         factor = downscale or auto_downscale(Path(data_dir), frame.file_path, stated.width, stated.height)
         cameras.append(Camera.from_dict({
             "c2w": c2w.tolist(), "width": int(stated.width / factor), "height": int(stated.height / factor),
-            "fx": stated.fx / factor, "fy": stated.fy / factor, "cx": stated.cx / factor, "cy": stated.cy / factor}))
+            "fx": stated.fx / factor, "fy": stated.fy / factor, "cx": stated.cx / factor, "cy": stated.cy / factor,
+            **({"lens": lens.to_dict()} if lens is not None else {})}))
     return tuple(cameras)
 
 

@@ -24,8 +24,8 @@ from noisenerf.runtime.errors import UserError
 from noisenerf.runtime.files import check_output_directory, write_json
 from noisenerf.runtime.images import composite_over, write_image
 from noisenerf.runtime.images import to_uint8
-from noisenerf.train.scene.datasets import CAPTURE_FILE, DISTORTION_KEYS, matrix_rows
-from noisenerf.train.scene.distortion import distorted_pixel_rays
+from noisenerf.runtime.lens import COEFFICIENTS, Lens
+from noisenerf.train.scene.datasets import CAPTURE_FILE, matrix_rows
 
 FOV_X = 0.6911112070083618  # lego's camera_angle_x
 CAMERA_RADIUS = 4.0
@@ -137,15 +137,14 @@ def shade(origins: np.ndarray, dirs: np.ndarray) -> tuple[np.ndarray, np.ndarray
     return albedo * (AMBIENT + (1.0 - AMBIENT) * lambert)[:, None], hit
 
 
-def render_rgba(camera: Camera, distortion: tuple[float, ...] | None = None) -> np.ndarray:
-    """A view with straight alpha (the covered fraction of each pixel), seen through a lens with OpenCV
-    distortion k1, k2, k3, p1, p2 (None: a pinhole). -> (height, width, 4) float64 in [0, 1]."""
+def render_rgba(camera: Camera) -> np.ndarray:
+    """A view with straight alpha (the covered fraction of each pixel), seen through the camera's lens where it
+    has one. -> (height, width, 4) float64 in [0, 1]."""
     offsets = (np.arange(SUPERSAMPLE) + 0.5) / SUPERSAMPLE
     shape = (camera.height, camera.width, SUPERSAMPLE, SUPERSAMPLE)
     px = np.broadcast_to(np.arange(camera.width)[None, :, None, None] + offsets[None, None, None, :], shape).ravel()
     py = np.broadcast_to(np.arange(camera.height)[:, None, None, None] + offsets[None, None, :, None], shape).ravel()
-    origins, dirs = (pixel_rays(camera, px, py) if distortion is None
-                     else distorted_pixel_rays(camera, distortion, px, py))
+    origins, dirs = pixel_rays(camera, px, py)
     rgb, hit = shade(origins.astype(np.float64), unit(dirs.astype(np.float64)))
     per_pixel = SUPERSAMPLE * SUPERSAMPLE
     rgb = rgb.reshape(camera.height, camera.width, per_pixel, 3).sum(axis=2)
@@ -191,14 +190,15 @@ def write_capture(folder: Path, count: int, size: int, rng: np.random.Generator)
     images/frame_00001.png on (size × ¾·size), and one transforms.json as nerfstudio writes it: camera_model
     OPENCV, shared intrinsics that the second frame overrides (fl_x, cx), frames in shuffled order."""
     shared = capture_intrinsics(size, size * 3 // 4)
-    distortion = tuple(CAPTURE_LENS.get(key, 0.0) for key in DISTORTION_KEYS)
+    lens = Lens("opencv", tuple(float(CAPTURE_LENS.get(key, 0.0)) for key in COEFFICIENTS))
     (folder / "images").mkdir()
     frames = []
     for k, eye in enumerate(camera_positions(count, rng, CAPTURE_RADIUS)):
         own = {"fl_x": 1.1 * shared["fl_x"], "cx": shared["cx"] - 0.6} if k == 1 else {}
-        lens, c2w, name = {**shared, **own}, look_at_origin(eye), f"images/frame_{k + 1:05d}.png"
-        camera = Camera(matrix_rows(c2w), lens["w"], lens["h"], lens["fl_x"], lens["fl_y"], lens["cx"], lens["cy"])
-        write_image(folder / name, to_uint8(composite_over(render_rgba(camera, distortion), (1.0, 1.0, 1.0))))
+        stated, c2w, name = {**shared, **own}, look_at_origin(eye), f"images/frame_{k + 1:05d}.png"
+        camera = Camera(matrix_rows(c2w), stated["w"], stated["h"], stated["fl_x"], stated["fl_y"], stated["cx"],
+                        stated["cy"], lens)
+        write_image(folder / name, to_uint8(composite_over(render_rgba(camera), (1.0, 1.0, 1.0))))
         frames.append({"file_path": name, "transform_matrix": c2w.tolist(), **own})
     write_json(folder / CAPTURE_FILE, {"camera_model": "OPENCV", **shared, **CAPTURE_LENS,
                                        "frames": [frames[k] for k in rng.permutation(count)]})

@@ -36,7 +36,77 @@ export function cameraFromDict(data) {
   const [width, height] = checkedImageSize(size[0], size[1], "camera", { code: "camera.size" });
   const [fx, fy] = ["fx", "fy"].map((key) => checkedFloat(get(key), `camera ${key}`, 1e-6, 1e9, { code: "camera.focal", key }));
   const [cx, cy] = ["cx", "cy"].map((key) => checkedFloat(get(key), `camera ${key}`, -1e9, 1e9, { code: "camera.center", key }));
-  return { c2w: matrix, width, height, fx, fy, cx, cy };
+  const lens = data.lens === undefined || data.lens === null ? null : lensFromDict(data.lens);
+  const camera = { c2w: matrix, width, height, fx, fy, cx, cy, lens };
+  if (lens) { // border_positions: a lens that folds over inside the image is refused when read, not mid-render
+    for (let i = 0; i < width; i++) for (const v of [0.5, height - 0.5]) lensDirection(camera, i + 0.5, v);
+    for (let j = 0; j < height; j++) for (const u of [0.5, width - 0.5]) lensDirection(camera, u, j + 0.5);
+  }
+  return camera;
+}
+
+// runtime/lens.py: nerfstudio's radial-tangential distortion inverted by Newton's method, in float64 (doubles here,
+// the same operations in the same order: both languages agree to the bit before the float32 cast)
+const LENS_MODELS = ["opencv", "fisheye"];
+const COEFFICIENTS = ["k1", "k2", "k3", "k4", "p1", "p2"];
+const MAX_COEFFICIENT = 1e3, NEWTON_STEPS = 10, SINGULAR = 1e-3, TOLERANCE_PX = 1e-3;
+
+/** Lens.from_dict: a known model, the six coefficients finite within ±MAX_COEFFICIENT (a fisheye's p1, p2 zero). */
+function lensFromDict(data) {
+  const keys = data !== null && typeof data === "object" && !Array.isArray(data) ? Object.keys(data).sort() : null;
+  if (!keys || keys.join() !== ["model", ...COEFFICIENTS].sort().join() || !LENS_MODELS.includes(data.model)) {
+    throw new UserError(`a camera's lens must be an object with a model (${LENS_MODELS.join(" or ")}) and ${COEFFICIENTS.join(", ")}`,
+      { code: "camera.lens", models: LENS_MODELS });
+  }
+  const coefficients = COEFFICIENTS.map((key) => checkedFloat(data[key], `lens ${key}`, -MAX_COEFFICIENT, MAX_COEFFICIENT,
+    { code: "camera.lens_coefficient", key }));
+  if (data.model === "fisheye" && (coefficients[4] || coefficients[5])) {
+    throw new UserError("a fisheye lens has no tangential coefficients (p1, p2 must be 0)",
+      { code: "camera.lens_coefficient", key: coefficients[4] ? "p1" : "p2" });
+  }
+  return { model: data.model, coefficients };
+}
+
+/** distort and undistort of runtime/lens.py for one point: normalised (xd, yd) -> undistorted [x, y], and whether
+ * distorting them lands back within TOLERANCE_PX of the pixel (fx, fy: the focal lengths in pixels). */
+function undistortPoint(xd, yd, [k1, k2, k3, k4, p1, p2], fx, fy) {
+  let x = xd, y = yd;
+  for (let step = 0; step < NEWTON_STEPS; step++) {
+    const r = x * x + y * y;
+    const d = 1.0 + r * (k1 + r * (k2 + r * (k3 + r * k4)));
+    const ex = d * x + 2 * p1 * x * y + p2 * (r + 2 * x * x) - xd;
+    const ey = d * y + 2 * p2 * x * y + p1 * (r + 2 * y * y) - yd;
+    const dR = k1 + r * (2.0 * k2 + r * (3.0 * k3 + r * 4.0 * k4));
+    const dX = 2.0 * x * dR, dY = 2.0 * y * dR;
+    const exX = d + dX * x + 2.0 * p1 * y + 6.0 * p2 * x;
+    const exY = dY * x + 2.0 * p1 * x + 2.0 * p2 * y;
+    const eyX = dX * y + 2.0 * p2 * y + 2.0 * p1 * x;
+    const eyY = d + dY * y + 2.0 * p2 * x + 6.0 * p1 * y;
+    const denominator = eyX * exY - exX * eyY;
+    const taken = Math.abs(denominator) > SINGULAR;
+    x = x + (taken ? (ex * eyY - ey * exY) / denominator : 0.0);
+    y = y + (taken ? (ey * exX - ex * eyX) / denominator : 0.0);
+  }
+  const r = x * x + y * y;
+  const d = 1.0 + r * (k1 + r * (k2 + r * (k3 + r * k4)));
+  const backX = d * x + 2 * p1 * x * y + p2 * (r + 2 * x * x), backY = d * y + 2 * p2 * x * y + p1 * (r + 2 * y * y);
+  return [x, y, Math.max(Math.abs(backX - xd) * fx, Math.abs(backY - yd) * fy) <= TOLERANCE_PX];
+}
+
+/** lens_directions for pixel position (px, py): camera-space [x, y, z] as doubles; throws where the lens folds over. */
+function lensDirection(camera, px, py) {
+  const { lens } = camera;
+  const [x, yDown, inverted] = undistortPoint((px - camera.cx) / camera.fx, (py - camera.cy) / camera.fy, lens.coefficients,
+    camera.fx, camera.fy);
+  if (!inverted) {
+    throw new UserError(`a ${lens.model} lens (${lens.coefficients.join(", ")}) cannot be undone across a ` +
+      `${camera.width}x${camera.height} image: its distortion folds over inside it`, { code: "camera.lens_folds", model: lens.model });
+  }
+  const y = -yDown;
+  if (lens.model === "opencv") return [x, y, -1];
+  const theta = Math.min(Math.max(Math.sqrt(x * x + y * y), 0.0), Math.PI);
+  const scale = theta > 0 ? Math.sin(theta) / theta : 1.0;
+  return [x * scale, y * scale, -Math.cos(theta)];
 }
 
 /** NDCSpace.from_dict. */
@@ -62,9 +132,18 @@ export function cameraRays(camera, pixelCenter, start = 0, stop = camera.width *
   const pc = f32(pixelCenter), cx = f32(camera.cx), cy = f32(camera.cy), fx = f32(camera.fx), fy = f32(camera.fy);
   for (let p = start; p < stop; p++) {
     const j = Math.floor(p / width), i = p - j * width;
+    const at = (p - start) * 3;
+    if (camera.lens) {
+      // numpy: float32 pixel positions, the lens in float64, its directions cast to float32 before the matmul
+      const [lx, ly, lz] = lensDirection(camera, f32(i + pc), f32(j + pc)).map(f32);
+      for (let r = 0; r < 3; r++) {
+        directions[at + r] = f32(f32(f32(lx * R[3 * r]) + f32(ly * R[3 * r + 1])) + f32(lz * R[3 * r + 2]));
+        origins[at + r] = t[r];
+      }
+      continue;
+    }
     const dy = -f32(f32(f32(j + pc) - cy) / fy);
     const dx = f32(f32(f32(i + pc) - cx) / fx);
-    const at = (p - start) * 3;
     for (let r = 0; r < 3; r++) {
       directions[at + r] = f32(f32(f32(dx * R[3 * r]) + f32(dy * R[3 * r + 1])) - R[3 * r + 2]);
       origins[at + r] = t[r];
