@@ -233,6 +233,18 @@ def refused_import(tmp_path, capfd, run, data, message):
     assert_refused(result, tmp_path / "out", message)
 
 
+def test_the_data_the_run_recorded_is_found_or_named_in_the_refusal(tmp_path, capfd):
+    """Without --data the run's recorded path (here `data`, as ns-train was given it) is looked up beside the run's
+    parent folders; where it is gone, the one line names it."""
+    run, data = write_nerfstudio_run(tmp_path, "torch", seed=2)
+    result = run_main(main, ["import-nerfstudio", run, "-o", tmp_path / "found", "--json"], capfd)
+    assert result.code == 0, result.err
+    data.rename(tmp_path / "moved")
+    result = run_main(main, ["import-nerfstudio", run, "-o", tmp_path / "out"], capfd)
+    assert_refused(result, tmp_path / "out", "the run's dataset (transforms.json) was not found at the path it "
+                   "recorded, 'data', as given or under the run's parent folders; give it with --data")
+
+
 def test_a_config_that_would_run_code_runs_nothing(tmp_path, capfd):
     marker = tmp_path / "ran"
     run, data = write_nerfstudio_run(tmp_path, "torch", config_extra=(

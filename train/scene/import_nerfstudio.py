@@ -414,13 +414,14 @@ def data_directory(config: dict, run_dir: Path, data: Path | None) -> Path:
         return Path(data)
     datamanager = config["pipeline"].get("datamanager", {})
     recorded = [datamanager.get("dataparser", {}).get("data"), datamanager.get("data"), config.get("data")]
-    for value in recorded:
-        if not value or value == ".":
-            continue
+    stated = [value for value in recorded if value and value != "."]
+    for value in stated:
         for base in (Path("."), *run_dir.resolve().parents):
             if (base / value / "transforms.json").is_file():
                 return base / value
-    raise UserError("the run's dataset (transforms.json) was not found; give it with --data")
+    where = f"at the path it recorded, {str(stated[0])!r:.200}, " if stated else "(it recorded no path) "
+    raise UserError(f"the run's dataset (transforms.json) was not found {where}as given or under the run's parent "
+                    "folders; give it with --data")
 
 
 def dataset_cameras(data_dir: Path, transform: np.ndarray, scale: float, downscale: int | None
