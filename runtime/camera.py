@@ -1,8 +1,9 @@
 """Cameras and rays, shared by training, hiding and reveal.
 
 Convention: NeRF-Synthetic / OpenGL camera-to-world matrices (the camera looks down −z, +y is up).
-Ray directions are not normalised: their camera-space z is −1, so a ray parameter t is depth along the
-optical axis, as in nerf-pytorch; `viewdirs` are the normalised directions the field is conditioned on.
+Ray directions are not normalised: their camera-space z is −1 (a pinhole's, or through an OpenCV lens:
+runtime.lens), so a ray parameter t is depth along the optical axis, as in nerf-pytorch (a fisheye's are unit
+vectors, as nerfstudio's); `viewdirs` are the normalised directions the field is conditioned on.
 Pixel (i, j) is shot through (i + pixel_center, j + pixel_center): 0.5 hits pixel centres (our scenes),
 0.0 reproduces nerf-pytorch renders of imported checkpoints.
 """

@@ -10,8 +10,8 @@ pixel at (u, v) (centre at +pixel_center) has normalised coordinates x_d = (u �
     y_d = y d + 2 p2 x y + p1 (r² + 2 y²)
 
 inverted by 10 Newton steps from (x_d, y_d), a step taken only where the Jacobian's determinant exceeds 1e-3 in
-magnitude (nerfstudio's, in float64 here: both languages then agree to the bit). y is flipped to OpenGL's up; a
-`opencv` (perspective) lens looks along (x, y, −1), a `fisheye` one (nerfstudio's OPENCV_FISHEYE: the same
+magnitude (nerfstudio's; in float64 here, in both languages). y is flipped to OpenGL's up; an `opencv`
+(perspective) lens looks along (x, y, −1), a `fisheye` one (nerfstudio's OPENCV_FISHEYE: the same
 polynomial, p1 = p2 = 0, then an equidistant projection) along (x sin θ/θ, y sin θ/θ, −cos θ), θ = |(x, y)| clipped
 to [0, π]. A lens whose inversion does not land back on its pixels (the polynomial folds over inside the image) is
 refused. web/src/camera.js mirrors this module.
