@@ -203,6 +203,20 @@ def import_nerfstudio(run: PathLike, output: PathLike, *, data: PathLike | None 
             "cameras": len(scene.config.cameras)}
 
 
+def import_ingp(snapshot: PathLike, output: PathLike, *, data: PathLike | None = None, force: bool = False) -> dict:
+    """Import an Instant-NGP NeRF snapshot (`.ingp`, `.msgpack`) as the hashgrid scene folder `output`; `data`:
+    the capture folder holding transforms.json whose cameras to keep (default: the cameras the snapshot
+    carries); force: replace an earlier scene in `output`. -> what `noisenerf import-ingp --json` prints."""
+    from noisenerf.train.scene.import_ingp import import_ingp as import_snapshot
+
+    snapshot, output = checked_path(snapshot, "snapshot"), checked_path(output, "output")
+    data, force = optional(checked_path, data, "data"), checked_flag(force, "force")
+    scene = import_snapshot(Path(snapshot), Path(output), data=Path(data) if data is not None else None, force=force)
+    field = scene.config.coarse
+    return {"scene": str(output), "fingerprint": scene.fingerprint(), "cameras": len(scene.config.cameras),
+            "levels": field.levels, "features": field.features, "log2_table": field.log2_table}
+
+
 def export_model(scene: PathLike, output: PathLike, *, force: bool = False) -> dict:
     """Export a scene folder's frozen fields to one ONNX file with a `noise` input port; written only once
     onnx.checker, the torch-against-onnxruntime probe and the fingerprint check pass; an existing `output` is

@@ -71,6 +71,15 @@ def cmd_import_nerfstudio(args) -> None:
                              f"fingerprint: {report['fingerprint']}"])
 
 
+def cmd_import_ingp(args) -> None:
+    from noisenerf import api
+
+    report = api.import_ingp(args.snapshot, args.output, data=args.data, force=args.force)
+    emit(report, args.json, [f"scene: {args.output} (hashgrid: {report['levels']} levels x {report['features']} "
+                             f"features, 2^{report['log2_table']} entries; {report['cameras']} cameras)",
+                             f"fingerprint: {report['fingerprint']}"])
+
+
 def cmd_hide(args) -> None:
     from noisenerf import api
 
@@ -203,6 +212,13 @@ def import_nerfstudio_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--force", action="store_true", help="replace an earlier scene in the output folder")
 
 
+def import_ingp_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("snapshot", help="an Instant-NGP NeRF snapshot: .ingp (compressed) or .msgpack")
+    p.add_argument("--data", help="the capture folder holding transforms.json (default: the snapshot's cameras)")
+    p.add_argument("-o", "--output", required=True)
+    p.add_argument("--force", action="store_true", help="replace an earlier scene in the output folder")
+
+
 def hide_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("scene_dir")
     p.add_argument("secret", nargs="?", help="PNG/JPEG/TIFF/EXR; RGBA is composited over white")
@@ -297,6 +313,8 @@ COMMANDS = (  # (command, handler, help, its arguments)
      import_nerf_pytorch_arguments),
     ("import-nerfstudio", cmd_import_nerfstudio, "convert a nerfstudio nerfacto run directory into a scene directory",
      import_nerfstudio_arguments),
+    ("import-ingp", cmd_import_ingp, "convert an Instant-NGP NeRF snapshot (.ingp, .msgpack) into a scene directory",
+     import_ingp_arguments),
     ("hide", cmd_hide, "hide a secret image (or any file) in a scene; writes the secret bundle",
      hide_arguments),
     ("export", cmd_export, "export a scene's frozen field as one ONNX file with a noise input",

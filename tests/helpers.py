@@ -510,6 +510,61 @@ def write_nerfstudio_run(folder: Path, implementation: str, seed: int = 0, prefi
     return run, data
 
 
+HASH_PRIMES = (1, 2654435761, 805459861)  # tiny-cuda-nn's, written here as the spec
+
+
+def spec_grid(unit, values, levels, log2, max_res, implementation, features=2, base=16, per_level_scale=None):
+    """Interpolated features (n, levels·F): tcnn §2.1 (params laid out level, entry, feature) or nerfstudio's
+    torch grid §2.2 (table (levels·T, F), every level hashed, ceil/floor corners, no +0.5). The growth per level:
+    per_level_scale, else from max_res (research/nerfacto-import.md)."""
+    import torch
+
+    b = per_level_scale or math.exp((math.log(max_res) - math.log(base)) / (levels - 1))
+    size, out, offset = 1 << log2, [], 0
+    for level in range(levels):
+        if implementation == "tcnn":
+            scale = base * b ** level - 1
+            res = math.ceil(scale) + 1
+            rows = min(-(-res ** 3 // 8) * 8, size)
+            position = unit * scale + 0.5
+            lower = np.floor(position)
+            upper = lower + 1
+        else:
+            scale = float(torch.floor(base * b ** torch.arange(levels))[level])  # nerfstudio's expression: float32
+            res, rows = None, size
+            position = unit * scale
+            lower, upper = np.floor(position), np.ceil(position)
+        fraction = position - lower
+        total = np.zeros((len(unit), features))
+        for corner in range(8):
+            bits = [(corner >> d) & 1 for d in range(3)]
+            vertex = np.stack([np.where(bit, upper[:, d], lower[:, d]) for d, bit in enumerate(bits)], 1).astype(np.int64)
+            weight = np.prod([np.where(bit, fraction[:, d], 1 - fraction[:, d]) for d, bit in enumerate(bits)], 0)
+            if res is not None and res ** 3 <= rows:
+                index = (vertex[:, 0] + vertex[:, 1] * res + vertex[:, 2] * res * res) % rows
+            else:
+                index = (vertex[:, 0] * HASH_PRIMES[0] ^ vertex[:, 1] * HASH_PRIMES[1] ^ vertex[:, 2] * HASH_PRIMES[2]) % rows
+            total += weight[:, None] * values[offset + index]
+        out.append(total)
+        offset += rows
+    return np.concatenate(out, 1)
+
+
+def tcnn_mlp(params, x, widths, pad_value):
+    """tiny-cuda-nn: input padded to 16 with `pad_value`, row-major matrices without bias, outputs padded."""
+    pad = lambda n: -(-n // 16) * 16  # noqa: E731
+    h = np.concatenate([x, np.full((len(x), pad(x.shape[1]) - x.shape[1]), pad_value)], 1)
+    at = 0
+    for i, out in enumerate(widths):
+        rows = pad(out) if i == len(widths) - 1 else out
+        matrix = params[at:at + rows * h.shape[1]].reshape(rows, h.shape[1])
+        at += matrix.size
+        h = h @ matrix.T
+        if i < len(widths) - 1:
+            h = np.maximum(h, 0)
+    return h[:, :widths[-1]], at
+
+
 def tcnn_sh(d: np.ndarray) -> np.ndarray:
     """tiny-cuda-nn's real spherical harmonics of degree 4 of unit directions, written out (the spec the
     field kinds' SH matrix is checked against). (n, 3) -> (n, 16)."""
@@ -546,3 +601,144 @@ def nerfstudio_run_from_goldens(folder: Path) -> tuple[Path, Path]:
     torch.save({"step": 549, "pipeline": pipeline, "optimizers": {"fields": {"param_groups": [{"lr": np.float64(1e-2)}]}},
                 "scalers": {}}, run / "nerfstudio_models" / "step-000000549.ckpt")
     return run, data
+
+
+# ---- Instant-NGP snapshots, written from the documented format (train/scene/import_ingp.py's docstring) ---
+
+@dataclass(frozen=True)
+class IngpNetwork:
+    """An Instant-NGP NeRF network config: configs/nerf/base.json's shape (8 levels x 4 features, 2^19, density MLP
+    64 x 1 hidden, colour MLP 64 x 2 hidden) unless told otherwise."""
+
+    levels: int = 8
+    features: int = 4
+    log2_table: int = 19
+    base_resolution: int = 16
+    aabb_scale: int = 1
+    width: int = 64
+    colour_layers: int = 2
+
+    @property
+    def per_level_scale(self) -> float:
+        """testbed.cu:4245–4252, in float32."""
+        ratio = np.float32(2048.0 * self.aabb_scale / self.base_resolution)
+        return float(np.exp(np.float32(np.log(ratio)) / np.float32(self.levels - 1)))
+
+    def grid_rows(self) -> int:
+        rows = 0
+        for level in range(self.levels):
+            scale = np.float32(np.exp2(np.float32(level * np.log2(np.float32(self.per_level_scale))))
+                               * self.base_resolution - 1)
+            res = int(math.ceil(scale)) + 1
+            rows += min(-(-res ** 3 // 8) * 8, 1 << self.log2_table)
+        return rows
+
+    def matrices(self) -> list[tuple[int, int]]:
+        """(rows, columns) of each tiny-cuda-nn matrix in the snapshot's order: density, then colour."""
+        pad = lambda n: -(-n // 16) * 16  # noqa: E731
+        w = self.width
+        return ([(w, pad(self.levels * self.features)), (16, w), (w, 32)]
+                + [(w, w)] * (self.colour_layers - 1) + [(16, w)])
+
+
+def ngp_parameters(network: IngpNetwork, seed: int) -> np.ndarray:
+    """Random parameters of `network`, as float16 values: MLPs ~ N(0, 2/fan_in), grid features ±0.5 (wider
+    than tiny-cuda-nn's ±1e-4 init, so renders show structure). -> (n_params,) float16."""
+    rng = np.random.default_rng(seed)
+    parts = [rng.normal(0, math.sqrt(2 / columns), rows * columns) for rows, columns in network.matrices()]
+    parts.append(rng.uniform(-0.5, 0.5, network.grid_rows() * network.features))
+    return np.concatenate(parts).astype(np.float16)
+
+
+def look_at_cameras(n: int, radius: float, centre, size: int, seed: int) -> list[np.ndarray]:
+    """n OpenGL camera-to-world (4, 4) matrices on a sphere around `centre`, looking at it, up +y."""
+    rng = np.random.default_rng(seed)
+    poses = []
+    for _ in range(n):
+        direction = rng.normal(size=3)
+        direction[1] = abs(direction[1]) + 0.3
+        position = np.asarray(centre, np.float64) + radius * direction / np.linalg.norm(direction)
+        back = (position - centre) / np.linalg.norm(position - centre)
+        right = np.cross([0.0, 1.0, 0.0], back)
+        right /= np.linalg.norm(right)
+        pose = np.eye(4)
+        pose[:3, :3] = np.stack([right, np.cross(back, right), back], 1)
+        pose[:3, 3] = position
+        poses.append(pose)
+    return poses
+
+
+def ngp_snapshot(network: IngpNetwork, params: np.ndarray, poses_ngp: list[np.ndarray], size: int, *,
+                 params_type: str = "__half", mode: str = "nerf", lens: dict | None = None,
+                 state_per_level_scale: bool = True) -> dict:
+    """The msgpack object Instant-NGP's save_snapshot writes (src/testbed.cu:5288–5345): base.json's config and the
+    snapshot; `poses_ngp`: cameras in Instant-NGP's frame, OpenGL axes (turned into its own, y and z flipped)."""
+    encoding = {"otype": "HashGrid", "n_levels": network.levels, "n_features_per_level": network.features,
+                "log2_hashmap_size": network.log2_table, "base_resolution": network.base_resolution}
+    if state_per_level_scale:
+        encoding["per_level_scale"] = network.per_level_scale
+    binary = params.astype(np.float16 if params_type == "__half" else np.float32).astype("<f2" if params_type ==
+                                                                                        "__half" else "<f4").tobytes()
+    half = 0.5 * min(network.aabb_scale, 128)
+    xforms = [{"start": (pose[:3] * np.array([1.0, -1.0, -1.0, 1.0])).tolist(),
+               "end": (pose[:3] * np.array([1.0, -1.0, -1.0, 1.0])).tolist()} for pose in poses_ngp]
+    metadata = [{"focal_length": [size * 1.1, size * 1.1], "principal_point": [0.5, 0.5], "resolution": [size, size],
+                 "rolling_shutter": [0.0, 0.0, 0.0, 0.0], "lens": lens} for _ in poses_ngp]
+    return {
+        "loss": {"otype": "Huber"}, "optimizer": {"otype": "Ema", "decay": 0.95},
+        "encoding": encoding,
+        "network": {"otype": "FullyFusedMLP", "activation": "ReLU", "output_activation": "None",
+                    "n_neurons": network.width, "n_hidden_layers": 1},
+        "dir_encoding": {"otype": "Composite", "nested": [{"n_dims_to_encode": 3, "otype": "SphericalHarmonics",
+                                                           "degree": 4}, {"otype": "Identity"}]},
+        "rgb_network": {"otype": "FullyFusedMLP", "activation": "ReLU", "output_activation": "None",
+                        "n_neurons": network.width, "n_hidden_layers": network.colour_layers},
+        "snapshot": {
+            "n_params": int(params.size), "params_type": params_type, "params_binary": binary,
+            "version": 1, "mode": mode, "density_grid_size": 128,
+            "density_grid_binary": np.zeros(128 ** 3, np.float16).tobytes(),
+            "nerf": {"aabb_scale": network.aabb_scale, "cam_pos_offset": [], "cam_rot_offset": [],
+                     "extra_dims_opt": [], "rgb": {"rays_per_batch": 4096, "measured_batch_size": 0,
+                                                   "measured_batch_size_before_compaction": 0},
+                     "dataset": {"n_images": len(poses_ngp), "paths": [f"images/{k}.png" for k in range(len(poses_ngp))],
+                                 "metadata": metadata, "xforms": xforms,
+                                 "render_aabb": {"min": [0.5 - half] * 3, "max": [0.5 + half] * 3},
+                                 "render_aabb_to_local": [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]],
+                                 "up": [0.0, 1.0, 0.0], "offset": [0.5, 0.5, 0.5], "envmap_resolution": [0, 0],
+                                 "scale": 0.33, "aabb_scale": network.aabb_scale, "from_mitsuba": False,
+                                 "is_hdr": False, "wants_importance_sampling": True, "n_extra_learnable_dims": 0}},
+            "training_step": 1000, "loss": 0.01,
+            "aabb": {"min": [0.5 - half] * 3, "max": [0.5 + half] * 3}, "bounding_radius": 1.0,
+            "background_color": [0.0, 0.0, 0.0, 1.0], "exposure": 0.0,
+            "camera": {"matrix": [[1.0, 0.0, 0.0, 0.5], [0.0, -1.0, 0.0, 0.5], [0.0, 0.0, -1.0, 0.5]]},
+        },
+    }
+
+
+def write_ingp(path: Path, snapshot: dict) -> Path:
+    """msgpack, then gzip as zstr deflates a `.ingp` (window bits 15 + 16); a `.msgpack` raw."""
+    import gzip
+
+    import msgpack
+
+    data = msgpack.packb(snapshot, use_bin_type=True)
+    path.write_bytes(gzip.compress(data, 6) if path.suffix == ".ingp" else data)
+    return path
+
+
+def ngp_spec_field(network: IngpNetwork, params: np.ndarray, points: np.ndarray, directions: np.ndarray,
+                   aabb) -> tuple[np.ndarray, np.ndarray]:
+    """Instant-NGP's field written from its code's description (nerf_network.h, nerf_device.cuh), float64, on the
+    snapshot's flat parameters: grid of (p − min)/(max − min), density MLP → 16 outputs, σ = exp(out[0]); colour
+    MLP on [16 outputs ‖ SH(d)], logistic. -> rgb (n, 3), σ (n,)."""
+    flat = params.astype(np.float64)
+    mlp_sizes = sum(rows * columns for rows, columns in network.matrices())
+    lo, hi = np.asarray(aabb[:3], np.float64), np.asarray(aabb[3:], np.float64)
+    unit = np.clip((points - lo) / (hi - lo), 0, 1)
+    features = spec_grid(unit, flat[mlp_sizes:].reshape(-1, network.features), network.levels, network.log2_table,
+                         None, "tcnn", network.features, network.base_resolution, network.per_level_scale)
+    density, used = tcnn_mlp(flat, features, (network.width, 16), 0.0)
+    colour_in = np.concatenate([density, tcnn_sh(directions.astype(np.float64))], 1)
+    widths = (network.width,) * network.colour_layers + (3,)
+    raw_rgb, _ = tcnn_mlp(flat[used:], colour_in, widths, 1.0)
+    return 1 / (1 + np.exp(-raw_rgb)), np.exp(density[:, 0])

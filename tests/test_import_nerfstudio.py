@@ -6,7 +6,6 @@ with hostile run directories."""
 
 from __future__ import annotations
 
-import math
 import shutil
 
 import numpy as np
@@ -14,13 +13,10 @@ import pytest
 import torch
 
 from helpers import (
-    NERFSTUDIO_GOLDENS, assert_refused, nerfstudio_layout, nerfstudio_run_from_goldens, run_main, run_reveal, tcnn_sh, write_nerfstudio_run, write_png,
+    NERFSTUDIO_GOLDENS, assert_refused, nerfstudio_layout, nerfstudio_run_from_goldens, run_main, run_reveal, spec_grid, tcnn_mlp, tcnn_sh, write_nerfstudio_run, write_png,
 )
 from noisenerf.cli.main import main
 from noisenerf.runtime.model import load_model
-
-PRIMES = (1, 2654435761, 805459861)
-
 
 # ---- the spec, evaluated on the checkpoint's own tensors ---------------------------------------------
 
@@ -31,40 +27,6 @@ def contract(points):
     unit = (contracted + 2) / 4
     inside = np.all((unit > 0) & (unit < 1), -1, keepdims=True)
     return unit * inside, inside[:, 0]
-
-
-def spec_grid(unit, values, levels, log2, max_res, implementation, features=2):
-    """Interpolated features (n, levels·F): tcnn §2.1 (params laid out level, entry, feature) or nerfstudio's
-    torch grid §2.2 (table (levels·T, F), every level hashed, ceil/floor corners, no +0.5)."""
-    b = math.exp((math.log(max_res) - math.log(16)) / (levels - 1))
-    size, out, offset = 1 << log2, [], 0
-    for level in range(levels):
-        if implementation == "tcnn":
-            scale = 16 * b ** level - 1
-            res = math.ceil(scale) + 1
-            rows = min(-(-res ** 3 // 8) * 8, size)
-            position = unit * scale + 0.5
-            lower = np.floor(position)
-            upper = lower + 1
-        else:
-            scale = float(torch.floor(16 * b ** torch.arange(levels))[level])  # nerfstudio's expression: float32
-            res, rows = None, size
-            position = unit * scale
-            lower, upper = np.floor(position), np.ceil(position)
-        fraction = position - lower
-        total = np.zeros((len(unit), features))
-        for corner in range(8):
-            bits = [(corner >> d) & 1 for d in range(3)]
-            vertex = np.stack([np.where(bit, upper[:, d], lower[:, d]) for d, bit in enumerate(bits)], 1).astype(np.int64)
-            weight = np.prod([np.where(bit, fraction[:, d], 1 - fraction[:, d]) for d, bit in enumerate(bits)], 0)
-            if res is not None and res ** 3 <= rows:
-                index = (vertex[:, 0] + vertex[:, 1] * res + vertex[:, 2] * res * res) % rows
-            else:
-                index = (vertex[:, 0] * PRIMES[0] ^ vertex[:, 1] * PRIMES[1] ^ vertex[:, 2] * PRIMES[2]) % rows
-            total += weight[:, None] * values[offset + index]
-        out.append(total)
-        offset += rows
-    return np.concatenate(out, 1)
 
 
 def spec_sh(d, implementation):
@@ -80,21 +42,6 @@ def spec_sh(d, implementation):
                      0.4570457994644658 * y * (5 * zz - 1), 0.3731763325901154 * z * (5 * zz - 3),
                      0.4570457994644658 * x * (5 * zz - 1), 1.445305721320277 * z * (xx - yy),
                      0.5900435899266435 * x * (xx - 3 * yy)], 1)
-
-
-def tcnn_mlp(params, x, widths, pad_value):
-    """tiny-cuda-nn: input padded to 16 with `pad_value`, row-major matrices without bias, outputs padded."""
-    pad = lambda n: -(-n // 16) * 16  # noqa: E731
-    h = np.concatenate([x, np.full((len(x), pad(x.shape[1]) - x.shape[1]), pad_value)], 1)
-    at = 0
-    for i, out in enumerate(widths):
-        rows = pad(out) if i == len(widths) - 1 else out
-        matrix = params[at:at + rows * h.shape[1]].reshape(rows, h.shape[1])
-        at += matrix.size
-        h = h @ matrix.T
-        if i < len(widths) - 1:
-            h = np.maximum(h, 0)
-    return h[:, :widths[-1]], at
 
 
 def torch_mlp(state, prefix, x, layers):
