@@ -190,7 +190,7 @@ def checked_pixels(secret) -> np.ndarray:
 
 
 def import_nerfstudio(run: PathLike, output: PathLike, *, data: PathLike | None = None, force: bool = False) -> dict:
-    """Import a nerfstudio nerfacto run directory (config.yml, dataparser_transforms.json,
+    """Import a nerfstudio nerfacto or instant-ngp run directory (config.yml, dataparser_transforms.json,
     nerfstudio_models/) as the scene folder `output`; `data`: the dataset holding transforms.json (default:
     the path the run recorded); force: replace an earlier scene in `output` (a folder holding anything else is
     refused). -> what `noisenerf import-nerfstudio --json` prints."""
@@ -199,8 +199,9 @@ def import_nerfstudio(run: PathLike, output: PathLike, *, data: PathLike | None 
     run, output, data = checked_path(run, "run"), checked_path(output, "output"), optional(checked_path, data, "data")
     force = checked_flag(force, "force")
     scene = import_run(Path(run), Path(output), data=Path(data) if data is not None else None, force=force)
-    return {"scene": str(output), "fingerprint": scene.fingerprint(), "implementation": scene.config.coarse.implementation,
-            "cameras": len(scene.config.cameras)}
+    return {"scene": str(output), "fingerprint": scene.fingerprint(),
+            "method": "nerfacto" if scene.config.coarse.proposals else "instant-ngp",
+            "implementation": scene.config.coarse.implementation, "cameras": len(scene.config.cameras)}
 
 
 def import_ingp(snapshot: PathLike, output: PathLike, *, data: PathLike | None = None, force: bool = False) -> dict:

@@ -66,7 +66,7 @@ def cmd_import_nerfstudio(args) -> None:
     from noisenerf import api
 
     report = api.import_nerfstudio(args.run_dir, args.output, data=args.data, force=args.force)
-    emit(report, args.json, [f"scene: {args.output} (nerfacto, {report['implementation']} implementation, "
+    emit(report, args.json, [f"scene: {args.output} ({report['method']}, {report['implementation']} implementation, "
                              f"{report['cameras']} cameras in nerfstudio's frame order)",
                              f"fingerprint: {report['fingerprint']}"])
 
@@ -158,7 +158,7 @@ def cmd_bench(args) -> None:
                          big_secret=size_argument(args.big_secret, "--big-secret"),
                          fields_minutes=args.fields_minutes, fields_resolution=args.fields_resolution,
                          nerfstudio_run=args.nerfstudio_run, nerfstudio_data=args.nerfstudio_data,
-                         nerfstudio_golden=args.nerfstudio_golden,
+                         nerfstudio_golden=args.nerfstudio_golden, ingp_snapshot=args.ingp_snapshot,
                          device=str(resolve_device(args.device)),
                          experiments=tuple(args.only.split(",")) if args.only else None)
     command = "noisenerf " + " ".join(sys.argv[1:]) if sys.argv[0].endswith("noisenerf") else "noisenerf bench ..."
@@ -205,7 +205,7 @@ def import_nerf_pytorch_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def import_nerfstudio_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("run_dir", help="outputs/<experiment>/nerfacto/<timestamp>: config.yml, dataparser_transforms.json, "
+    p.add_argument("run_dir", help="outputs/<experiment>/<method>/<timestamp>: config.yml, dataparser_transforms.json, "
                                    "nerfstudio_models/")
     p.add_argument("--data", help="the dataset folder holding transforms.json (default: the run's recorded path)")
     p.add_argument("-o", "--output", required=True)
@@ -291,9 +291,10 @@ def bench_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--big-secret", default="7680x4320", help="WxH of the secret the big_secret experiment hides and reveals")
     p.add_argument("--fields-minutes", type=float, default=15.0, help="fields: each field kind's fit, in minutes")
     p.add_argument("--fields-resolution", type=int, default=200, help="fields: the width the kinds are fitted at")
-    p.add_argument("--nerfstudio-run", help="nerfstudio: a nerfacto run directory to import")
+    p.add_argument("--nerfstudio-run", help="nerfstudio: a nerfacto or instant-ngp run directory to import")
     p.add_argument("--nerfstudio-data", help="nerfstudio: its dataset folder (transforms.json)")
     p.add_argument("--nerfstudio-golden", help="nerfstudio: tools/nerfstudio_goldens.py's folder for that run")
+    p.add_argument("--ingp-snapshot", help="ingp: an Instant-NGP NeRF snapshot (.ingp, .msgpack) to import")
     p.add_argument("--only", help="comma-separated experiments, run with those they need (default: all)")
     device_argument(p)
     p.add_argument("--stress", action="store_true", help="also run the full numerical stress suite")
@@ -311,7 +312,7 @@ COMMANDS = (  # (command, handler, help, its arguments)
      fit_arguments),
     ("import-nerf-pytorch", cmd_import, "convert a nerf-pytorch checkpoint into a scene directory",
      import_nerf_pytorch_arguments),
-    ("import-nerfstudio", cmd_import_nerfstudio, "convert a nerfstudio nerfacto run directory into a scene directory",
+    ("import-nerfstudio", cmd_import_nerfstudio, "convert a nerfstudio nerfacto or instant-ngp run directory into a scene directory",
      import_nerfstudio_arguments),
     ("import-ingp", cmd_import_ingp, "convert an Instant-NGP NeRF snapshot (.ingp, .msgpack) into a scene directory",
      import_ingp_arguments),

@@ -39,7 +39,8 @@ from noisenerf.runtime.camera import Camera
 from noisenerf.runtime.errors import UserError
 from noisenerf.runtime.files import parse_json
 from noisenerf.runtime.fingerprint import weights_digests
-from noisenerf.runtime.fields import field_graph, proposal_sampler
+from noisenerf.runtime.fields import field_graph, grid_sampler, proposal_sampler
+from noisenerf.runtime.grid_marching import GridMarching, GridMarchingSampler
 from noisenerf.runtime.graph import FieldGraph, check_graph
 from noisenerf.runtime.limits import (
     MAX_CAMERAS, MAX_GRID_RESOLUTION, MAX_NOISE_DIMS, checked_float, checked_int, checked_list,
@@ -186,13 +187,16 @@ class Model:
 
     def sampler(self, skip: bool = True) -> Sampler:
         """How an ordinary render places its samples: nerfacto's proposal sampler where the render network's
-        kind has one, nerf-pytorch's hierarchy beside a fine network, else uniform samples through the grid
-        (skipping empty space when `skip`)."""
+        kind has one, nerfacc's grid marcher for nerfstudio's instant-ngp, nerf-pytorch's hierarchy beside a fine
+        network, else uniform samples through the grid (skipping empty space when `skip`)."""
         proposals = proposal_sampler(self.metadata.architecture)
         if proposals is not None:
             return ProposalSampler(ProposalSampling.from_architecture(proposals),
                                    tuple(self.field.proposal_density(i)
                                          for i in range(len(proposals["proposal_samples"]))))
+        marching = grid_sampler(self.metadata.architecture)
+        if marching is not None:
+            return GridMarchingSampler(GridMarching.from_architecture(marching))
         if self.metadata.hierarchy is not None:
             return HierarchicalSampler(self.render_config, self.field.network("coarse"), self.metadata.hierarchy)
         return MarchingSampler(self.render_config, self.grid, skip)

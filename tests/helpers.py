@@ -580,10 +580,34 @@ def tcnn_sh(d: np.ndarray) -> np.ndarray:
 
 
 NERFSTUDIO_GOLDENS = Path(__file__).parent / "goldens" / "nerfacto_torch"
+# runs nerfstudio 1.1.5 trained (tools/nerfstudio_train_tiny.py): a pinhole capture, an OPENCV one, an OPENCV_FISHEYE one
+NERFSTUDIO_RUNS = tuple(NERFSTUDIO_GOLDENS.parent / name for name in ("nerfacto_torch", "nerfacto_opencv", "nerfacto_fisheye"))
+# an instant-ngp run made by nerfstudio's own classes on the CPU (tools/nerfstudio_ngp_goldens.py: not trained)
+NGP_GOLDENS = NERFSTUDIO_GOLDENS.parent / "ngp_torch"
 
 
-def nerfstudio_run_from_goldens(folder: Path) -> tuple[Path, Path]:
-    """The goldens' run (tests/goldens/nerfacto_torch, a run nerfstudio trained) rebuilt as nerfstudio wrote it:
+def assert_photos_hide_exactly(folder: Path, photos, views, tmp_path: Path, capfd) -> None:
+    """Each photo (40 px wide) hidden with `noisenerf hide` in folder/scene at its view reveals exactly through
+    folder/model.onnx: `noisenerf-reveal` says so, and `noisenerf.reveal` gives the photo's pixels."""
+    import noisenerf
+    from noisenerf.cli.main import main
+    from noisenerf.runtime.images import load_secret
+
+    for photo, view in zip(photos, views, strict=True):
+        pixels = load_secret(photo)[0]
+        step = max(1, pixels.shape[1] // 40)
+        secret = write_png(tmp_path / f"{view}.png", np.ascontiguousarray(pixels[::step, ::step][:40, :40]))
+        bundle = tmp_path / f"{view}.bundle"
+        result = run_main(main, ["hide", folder / "scene", secret, "-o", bundle, "--view", view], capfd)
+        assert result.code in (0, None), result.err
+        revealed = run_reveal(folder / "model.onnx", bundle, "-o", tmp_path / f"{view}_out.png")
+        assert revealed.returncode == 0 and "exact" in revealed.stdout, revealed.stdout + revealed.stderr
+        through_api = noisenerf.reveal(folder / "model.onnx", bundle)
+        assert through_api.exact and np.array_equal(through_api.pixels, load_secret(secret)[0])
+
+
+def nerfstudio_run_from_goldens(folder: Path, goldens: Path = NERFSTUDIO_GOLDENS) -> tuple[Path, Path]:
+    """The goldens' run (tests/goldens/nerfacto_*, a run nerfstudio trained: `goldens`) rebuilt as nerfstudio wrote it:
     its config.yml and dataparser_transforms.json as they are, the checkpoint's model tensors in a step-*.ckpt
     with numpy-scalar optimizer state, its transforms.json. -> (run directory, data directory)."""
     import shutil
@@ -595,9 +619,9 @@ def nerfstudio_run_from_goldens(folder: Path) -> tuple[Path, Path]:
     (run / "nerfstudio_models").mkdir(parents=True)
     data.mkdir()
     for name in ("config.yml", "dataparser_transforms.json"):
-        shutil.copy(NERFSTUDIO_GOLDENS / name, run / name)
-    shutil.copy(NERFSTUDIO_GOLDENS / "transforms.json", data / "transforms.json")
-    pipeline = {k: torch.from_numpy(v) for k, v in load_file(NERFSTUDIO_GOLDENS / "weights.safetensors").items()}
+        shutil.copy(goldens / name, run / name)
+    shutil.copy(goldens / "transforms.json", data / "transforms.json")
+    pipeline = {k: torch.from_numpy(v) for k, v in load_file(goldens / "weights.safetensors").items()}
     torch.save({"step": 549, "pipeline": pipeline, "optimizers": {"fields": {"param_groups": [{"lr": np.float64(1e-2)}]}},
                 "scalers": {}}, run / "nerfstudio_models" / "step-000000549.ckpt")
     return run, data

@@ -12,7 +12,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from helpers import NERFSTUDIO_GOLDENS, make_tiny_scene, nerfstudio_run_from_goldens
+from helpers import (
+    NERFSTUDIO_GOLDENS, IngpNetwork, look_at_cameras, make_tiny_scene, nerfstudio_run_from_goldens, ngp_parameters,
+    ngp_snapshot, write_ingp,
+)
 from noisenerf.cli.bench import (EXPERIMENTS, REGISTRY, BenchConfig, BenchContext, Experiment, config, field_flops,
                                   run_bench, stress)
 from noisenerf.cli.bench.browser import RUNS, browser_missing
@@ -43,13 +46,16 @@ def inputs(tmp_path_factory):
     secret = np.random.default_rng(0).integers(0, 256, (12, 16, 3), dtype=np.uint8)
     write_image(folder / "secret.png", secret)
     run, run_data = nerfstudio_run_from_goldens(folder / "nerfstudio")
+    network = IngpNetwork(levels=4, features=2, log2_table=10, base_resolution=4, width=16, colour_layers=1)
+    snapshot = write_ingp(folder / "snapshot.ingp", ngp_snapshot(network, ngp_parameters(network, 4),
+                                                                 look_at_cameras(6, 1.3, (0.5, 0.5, 0.5), 12, 4), 12))
     config = BenchConfig(scene=str(folder / "scene"), secret=str(folder / "secret.png"),
                          photos=(str(folder / "secret.png"),), small_width=12, paper_samples=3, paper_iters=60, ablation_samples=2,
                          twok_size=32, twok_tile=16, twok_rows=1, threads=(1,), payload_bytes=200, view_width=12, masking_width=32, margin_width=12, margin_views=2,
                          contention_width=12, browser_size=32, browser_repeats=3, big_secret=(40, 24),
                          data=str(data), fields_minutes=0.2, fields_resolution=16, fields_curve_seconds=2.0,
                          coverage_size=8, nerfstudio_run=str(run), nerfstudio_data=str(run_data), junk_bytes=8 << 20,
-                         nerfstudio_golden=str(NERFSTUDIO_GOLDENS), nerfstudio_width=12,
+                         nerfstudio_golden=str(NERFSTUDIO_GOLDENS), nerfstudio_width=12, ingp_snapshot=str(snapshot),
                          experiments=tuple(name for name in EXPERIMENTS if name != "cluster"))  # Ray: test_cluster.py
     return folder, config
 
@@ -333,3 +339,13 @@ def test_hidden_photos_reveal_exactly_in_the_browser(report, section):
     _, sections = report
     hides = [row for row in sections[section].rows if row["row"] == "hide"]
     assert hides and [row["browser_exact"] for row in hides] == [True] * len(hides)
+
+
+def test_snapshot_rows_time_the_import_and_hide_exactly(report):
+    out, sections = report
+    rows = sections["ingp"].rows
+    imported = next(row for row in rows if row["row"] == "import")
+    assert imported["parameters"] > 0 and imported["cameras"] == 6 and imported["import_seconds"] > 0
+    hides = [row for row in rows if row["row"] == "hide"]
+    assert len(hides) == 2 and all(row["exact"] for row in hides)
+    assert "imported in" in (out / "BENCHMARKS.md").read_text()

@@ -13,7 +13,7 @@ import pytest
 import torch
 
 from helpers import (
-    NERFSTUDIO_GOLDENS, assert_refused, nerfstudio_layout, nerfstudio_run_from_goldens, run_main, run_reveal, spec_grid, tcnn_mlp, tcnn_sh, write_nerfstudio_run, write_png,
+    NERFSTUDIO_RUNS, assert_photos_hide_exactly, assert_refused, nerfstudio_layout, nerfstudio_run_from_goldens, run_main, run_reveal, spec_grid, tcnn_mlp, tcnn_sh, write_nerfstudio_run, write_png,
 )
 from noisenerf.cli.main import main
 from noisenerf.runtime.model import load_model
@@ -274,24 +274,23 @@ def test_each_set_of_outputs_runs_a_graph_pruned_to_it(imported):
     assert np.array_equal(load_model(folder / "model.onnx").field.proposal_density(0)(points), whole)
 
 
-# ---- nerfstudio's own numbers (a run nerfstudio 1.1.5 trained: tests/goldens/nerfacto_torch) ---------
-
-GOLDENS = NERFSTUDIO_GOLDENS
+# ---- nerfstudio's own numbers (runs nerfstudio 1.1.5 trained: tests/goldens/nerfacto_{torch,opencv,fisheye}) ---
 
 
-@pytest.fixture(scope="module")
-def nerfstudio_trained(tmp_path_factory):
-    """The goldens' run rebuilt as nerfstudio wrote it (its config.yml and dataparser_transforms.json as they
+@pytest.fixture(scope="module", params=NERFSTUDIO_RUNS, ids=lambda goldens: goldens.name)
+def nerfstudio_trained(request, tmp_path_factory):
+    """Each goldens' run rebuilt as nerfstudio wrote it (its config.yml and dataparser_transforms.json as they
     are, the checkpoint's model tensors in a step-*.ckpt with numpy-scalar optimizer state), imported and
-    exported; and nerfstudio's numbers."""
+    exported; and nerfstudio's numbers: a pinhole capture, one with OpenCV distortion (k1 k2 p1 p2), a fisheye."""
     import json
     from safetensors.numpy import load_file
-    folder = tmp_path_factory.mktemp("nerfstudio_trained")
-    run, data = nerfstudio_run_from_goldens(folder)
+    goldens = request.param
+    folder = tmp_path_factory.mktemp(goldens.name)
+    run, data = nerfstudio_run_from_goldens(folder, goldens)
     assert main(["import-nerfstudio", str(run), "-o", str(folder / "scene"), "--data", str(data)]) in (0, None)
     assert main(["export", str(folder / "scene"), "-o", str(folder / "model.onnx")]) in (0, None)
-    return load_model(folder / "model.onnx"), load_file(GOLDENS / "golden.safetensors"), \
-        json.loads((GOLDENS / "golden.json").read_text()), folder
+    return load_model(folder / "model.onnx"), load_file(goldens / "golden.safetensors"), \
+        json.loads((goldens / "golden.json").read_text()), folder
 
 
 def test_field_outputs_are_nerfstudios(nerfstudio_trained):
@@ -325,15 +324,43 @@ def test_proposal_sampler_is_nerfstudios(nerfstudio_trained):
     assert np.abs(colours - golden["rays_rgb"]).max() < 1e-4
 
 
-@pytest.mark.parametrize("split", ["train", "eval"])
+def golden_view(folder, info, split: str) -> int:
+    """The scene camera of a goldens camera: its frame's place in file-name order (nerfstudio's)."""
+    import json
+    frames = sorted(json.loads((folder / "data" / "transforms.json").read_text())["frames"],
+                    key=lambda frame: frame["file_path"])
+    return [frame["file_path"] for frame in frames].index(info["cameras"][split]["file_path"])
+
+
+def test_lens_rays_are_nerfstudios(nerfstudio_trained):
+    """The rays nerfstudio's Cameras generate through the lens at the image's corners and centre: ours equal them
+    within float32 (the pinhole run has none to check beyond its pinhole rays)."""
+    from noisenerf.runtime.camera import pixel_rays
+    model, golden, info, folder = nerfstudio_trained
+    if "lens_directions" not in golden:
+        assert "lens" not in info and model.cameras[0].lens is None
+        return
+    camera = model.cameras[golden_view(folder, info, "train")]
+    assert camera.lens is not None and camera.lens.model == {1: "opencv", 2: "fisheye"}[int(golden["lens_camera_type"][0])]
+    assert np.allclose(camera.lens.coefficients, golden["lens_distortion_params"][0], atol=1e-7)
+    y, x = golden["lens_pixels_yx"].T
+    origins, directions = pixel_rays(camera, x + 0.5, y + 0.5)
+    directions = directions / np.linalg.norm(directions, axis=1, keepdims=True)
+    assert np.abs(directions - golden["lens_directions"]).max() < 2e-6
+    assert np.abs(directions - golden["lens_directions_pinhole"]).max() > 1e-3  # the lens did bend them
+    assert np.allclose(origins, golden["lens_origins"], atol=1e-6)
+
+
+@pytest.mark.parametrize("split", ["train", "eval", "train13"])
 def test_ordinary_render_is_nerfstudios_eval_render(nerfstudio_trained, split):
     """`noisenerf-reveal MODEL --view I` against nerfstudio's get_outputs_for_camera of the same camera, I
     being the frame's place in file-name order: equal within float32 noise (the bins above)."""
     model, golden, info, folder = nerfstudio_trained
     from noisenerf.runtime.api import render
-    frames = sorted(__import__("json").loads((GOLDENS / "transforms.json").read_text())["frames"],
-                    key=lambda frame: frame["file_path"])
-    view = [frame["file_path"] for frame in frames].index(info["cameras"][split]["file_path"])
+    if split not in info["cameras"]:
+        assert folder.name.startswith("nerfacto_torch")  # the first run's goldens have two cameras
+        return
+    view = golden_view(folder, info, split)
     camera = model.cameras[view]
     assert np.allclose(camera.matrix()[:3], golden[f"{split}_camera_to_worlds"], atol=1e-5)
     assert np.allclose([camera.fx, camera.fy, camera.cx, camera.cy],
@@ -345,20 +372,11 @@ def test_ordinary_render_is_nerfstudios_eval_render(nerfstudio_trained, split):
 
 def test_photos_hidden_in_nerfstudios_run_reveal_exactly(nerfstudio_trained, shared_data, tmp_path, capfd):
     """Two photos (an ImageNet and a CelebA-HQ one, 40 px wide) at two of the run's cameras: exact through
-    onnxruntime."""
-    from noisenerf.runtime.images import load_secret
+    onnxruntime and the Python API."""
     _, _, _, folder = nerfstudio_trained
     photos = (shared_data / "secrets" / "imagenet" / "n01440764_tench.JPEG",
               shared_data / "secrets" / "celeba_hq" / "female_039913.jpg")
-    for photo, view in zip(photos, (7, 22)):
-        pixels = load_secret(photo)[0]
-        step = max(1, pixels.shape[1] // 40)
-        secret = write_png(tmp_path / f"{view}.png", np.ascontiguousarray(pixels[::step, ::step][:40, :40]))
-        bundle = tmp_path / f"{view}.bundle"
-        result = run_main(main, ["hide", folder / "scene", secret, "-o", bundle, "--view", view], capfd)
-        assert result.code in (0, None), result.err
-        revealed = run_reveal(folder / "model.onnx", bundle, "-o", tmp_path / f"{view}_out.png")
-        assert revealed.returncode == 0 and "exact" in revealed.stdout, revealed.stdout + revealed.stderr
+    assert_photos_hide_exactly(folder, photos, (7, 22), tmp_path, capfd)
 
 
 def test_the_python_api_imports_as_the_command_line_does(tmp_path):

@@ -21,6 +21,7 @@ NOISENERF_WEB_FIXTURES=DIR).
 
 from __future__ import annotations
 
+import base64
 import contextlib
 import dataclasses
 import hashlib
@@ -36,8 +37,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from helpers import (as_older_compact_format, flip_first_float32, lens_scene, make_tiny_scene, rewrite_bundle,
-                     write_nerfstudio_run, xor_masked_bytes)
+from helpers import (NGP_GOLDENS, as_older_compact_format, flip_first_float32, lens_scene, make_tiny_scene,
+                     nerfstudio_run_from_goldens, rewrite_bundle, write_nerfstudio_run, xor_masked_bytes)
 
 REPO = Path(__file__).resolve().parents[1]
 WEB = REPO / "web"
@@ -348,7 +349,7 @@ def nerfacto_architectures(imported: dict) -> tuple[list, list]:
     Python's message): the imported runs' fields of both implementations (`imported`: implementation -> coarse
     architecture) and variants (one proposal network, other SH degrees and widths, every level hashed or
     dense, integer scales), then every check of runtime.fields.nerfacto, and proposal networks beside a fine one."""
-    tcnn, torch_field = imported["tcnn"], imported["torch"]
+    tcnn, torch_field, ngp = imported["tcnn"], imported["torch"], imported["ngp"]
     mlp = {"depth": 2, "width": 8, "skips": [1], "xyz_freqs": 2, "dir_freqs": 1, "use_viewdirs": True}
 
     def coarse(field=tcnn, **change) -> dict:
@@ -365,7 +366,9 @@ def nerfacto_architectures(imported: dict) -> tuple[list, list]:
               coarse(torch_field, sh_degree=3, geo_features=0, colour_layers=1, colour_hidden=5),
               coarse(**one, log2_table=3, sh_degree=1),
               coarse(scales=[0.0, 1.0, 2.5, 7.25], log2_table=12, features=1, density_scale=0.3),
-              coarse(torch_field, scales=[16, 23, 35], density_scale=1, proposals=torch_field["proposals"][::-1])]
+              coarse(torch_field, scales=[16, 23, 35], density_scale=1, proposals=torch_field["proposals"][::-1]),
+              coarse(ngp), coarse(ngp, implementation="tcnn", sampler=sampler(
+                  ngp, levels=1, resolution=64, occupancy=base64.b64encode(bytes(64 ** 3 // 8)).decode()))]
     without = {key: value for key, value in tcnn.items() if key != "sampler"}
     refused = [coarse(implementation="cuda"), coarse(implementation=3), {"coarse": without, "fine": None},
                coarse(proposals=[], sampler=sampler(proposal_samples=[])), coarse(scales=[255.0, 15.0], log2_table=12),
@@ -386,7 +389,17 @@ def nerfacto_architectures(imported: dict) -> tuple[list, list]:
                coarse(torch_field, scales=[1000.0] * 32, log2_table=24, features=8),
                {"coarse": tcnn, "fine": tcnn}, {"coarse": mlp, "fine": torch_field},
                {"coarse": {**tcnn, "proposals": [], "sampler": sampler(proposal_samples=[])}, "fine": mlp},
-               {"coarse": {**mlp, "kind": "nerfacto"}, "fine": None}]
+               {"coarse": {**mlp, "kind": "nerfacto"}, "fine": None},
+               # nerfstudio's instant-ngp: nerfacc's grid sampler where there are no proposal networks
+               coarse(ngp, sampler=sampler(tcnn)), coarse(tcnn, sampler=sampler(ngp)),
+               coarse(ngp, sampler={key: v for key, v in ngp["sampler"].items() if key != "cone_angle"}),
+               coarse(ngp, sampler=sampler(ngp, levels=9)), coarse(ngp, sampler=sampler(ngp, resolution=0)),
+               coarse(ngp, sampler=sampler(ngp, resolution=513)), coarse(ngp, sampler=sampler(ngp, levels=8, resolution=300)),
+               coarse(ngp, sampler=sampler(ngp, occupancy=ngp["sampler"]["occupancy"][:-4])),
+               coarse(ngp, sampler=sampler(ngp, occupancy="*" + ngp["sampler"]["occupancy"][1:])),
+               coarse(ngp, sampler=sampler(ngp, occupancy=3)), coarse(ngp, sampler=sampler(ngp, aabb=[1, 1, 1, 0, 2, 2])),
+               coarse(ngp, sampler=sampler(ngp, aabb=[1, 1])), coarse(ngp, sampler=sampler(ngp, cone_angle=2.0)),
+               coarse(ngp, sampler=sampler(ngp, step=0.0)), coarse(ngp, sampler=sampler(ngp, near=3.0, far=2.0))]
     return graphs, refused
 
 
@@ -496,6 +509,17 @@ def imported_nerfacto(root: Path, implementation: str):
     return import_nerfstudio(run, folder / "scene", data=data)
 
 
+def imported_ngp(root: Path):
+    """nerfstudio's instant-ngp run of tests/goldens/ngp_torch, imported -> the scene (no proposal networks: its
+    architecture's sampler is nerfacc's grid, which the page must check as Python does)."""
+    from noisenerf.train.scene.import_nerfstudio import import_nerfstudio
+
+    folder = root / "nerfstudio" / "ngp"
+    folder.mkdir(parents=True)
+    run, data = nerfstudio_run_from_goldens(folder, NGP_GOLDENS)
+    return import_nerfstudio(run, folder / "scene", data=data)
+
+
 def write_fixtures(root: Path) -> dict:
     """Every fixture under root, and root/manifest.json describing them."""
     import torch
@@ -515,7 +539,7 @@ def write_fixtures(root: Path) -> dict:
               "hashgrid": make_tiny_scene(seed=2, kind="hashgrid"),
               "lens_opencv": lens_scene("opencv", seed=5), "lens_fisheye": lens_scene("fisheye", seed=6),
               **{f"nerfacto_{implementation}": imported_nerfacto(root, implementation)
-                 for implementation in ("tcnn", "torch")}}
+                 for implementation in ("tcnn", "torch")}, "ngp": imported_ngp(root)}
     paper = (PaperSettings(iters=4, record_at=(4,)),)
     cases = {  # name -> scene, secret, hide config
         "compact_tiles": ("plain", secret, HideConfig(tile_size=16, part_pixels=96)),  # bands of 6 rows
@@ -534,6 +558,7 @@ def write_fixtures(root: Path) -> dict:
         # the defaults, as `noisenerf hide SCENE secret.png -o b.nnrf --view 4` hides in an imported run
         "nerfacto_tcnn": ("nerfacto_tcnn", secret[:6, :7], HideConfig(view=4)),
         "nerfacto_torch": ("nerfacto_torch", secret[:6, :7], HideConfig(view=4)),
+        "ngp": ("ngp", secret[:6, :7], HideConfig(view=5)),
     }
     manifest = {"fixtures": {}, "tampered": []}
     threads = torch.get_num_threads()
@@ -732,8 +757,9 @@ def write_fixtures(root: Path) -> dict:
     noise_dims = scenes["hashgrid"].render_field.config.noise_dims
     manifest["graphs"] = [graph_golden(architecture, noise_dims) for architecture in graphs + refused]
     assert ["code" in graph for graph in manifest["graphs"]] == [False] * len(graphs) + [True] * len(refused)
-    graphs, refused = nerfacto_architectures({implementation: model_architecture(
-        root / "scenes" / f"nerfacto_{implementation}.onnx")["coarse"] for implementation in ("tcnn", "torch")})
+    graphs, refused = nerfacto_architectures({name: model_architecture(root / "scenes" / f"{scene}.onnx")["coarse"]
+                                              for name, scene in (("tcnn", "nerfacto_tcnn"), ("torch", "nerfacto_torch"),
+                                                                  ("ngp", "ngp"))})
     nerfacto = [graph_golden(architecture, scenes["nerfacto_tcnn"].render_field.config.noise_dims)
                 for architecture in graphs + refused]
     assert ["code" in graph for graph in nerfacto] == [False] * len(graphs) + [True] * len(refused)

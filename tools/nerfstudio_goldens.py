@@ -4,6 +4,8 @@ NOT part of noisenerf and never run by CI.  Usage, with the venv described in
 ``tools/nerfstudio_train_tiny.py`` (nerfstudio 1.1.5, CPU torch)::
 
     /work/nsvenv/bin/python tools/nerfstudio_goldens.py RUN_DIR tests/goldens/nerfacto_torch
+    /work/nsvenv/bin/python tools/nerfstudio_goldens.py RUN_DIR tests/goldens/nerfacto_opencv \
+        --extra-train-cameras 13   # lens runs (tools/nerfstudio_train_tiny.py --camera-model ...)
 
 RUN_DIR is a nerfstudio run directory (``.../nerfacto/<timestamp>`` holding
 ``config.yml``, ``dataparser_transforms.json`` and ``nerfstudio_models/``).
@@ -18,6 +20,16 @@ Writes into OUT_DIR:
                        ``_model.proposal_networks.`` (exact keys, float32; original dtypes in the metadata)
   golden.safetensors   cameras, renders, per-ray proposal-sampler stages, field outputs at points
   golden.json          versions, commands, seeds, frames, downscale, shapes, notes
+
+``--extra-train-cameras I,J`` also renders train cameras I, J (keys ``train{I}_*``,
+golden.json ``cameras.train{I}``).  For a capture with a lens (nonzero distortion or
+a fisheye camera type) it also writes ``lens_*`` tensors and golden.json ``lens``:
+nerfstudio's rays for the corner pixels with the lens, without it
+(``disable_distortion``) and of a pinhole camera with the same fx fy cx cy, the
+train cameras' distortion params as nerfstudio's Cameras hold them
+([k1, k2, k3, k4, p1, p2]), and the largest gap between nerfstudio's rays (every
+pixel of train camera 0, as pinhole image coordinates) and OpenCV's undistortPoints
+of the same pixel centres (the model the images were warped with).
   config.yml, dataparser_transforms.json, transforms.json   copies (no images)
 """
 
@@ -56,6 +68,26 @@ NOTES = [
 ]
 
 
+LENS_BUILT_BY = (
+    "; then warped through the {model} lens: each pixel centre (index + 0.5) undistorted with OpenCV "
+    "(cv2.undistortPoints / cv2.fisheye.undistortPoints, 100 iterations, eps 1e-12) takes the colour of the "
+    "64-px pinhole image (same fl, cx, cy) there, cv2.remap bilinear, replicated border (edge pixels are white)"
+)
+LENS_NOTES = [
+    "Lens: nerfstudio's Cameras hold distortion_params as [k1, k2, k3, k4, p1, p2] (camera_utils.get_distortion_params); "
+    "OPENCV maps to CameraType.PERSPECTIVE (1), OPENCV_FISHEYE to CameraType.FISHEYE (2) (cameras.py "
+    "CAMERA_MODEL_TO_TYPE).",
+    "Lens rays (cameras.py _generate_rays_from_coords): ((x+0.5-cx)/fx, (y+0.5-cy)/fy) undistorted by "
+    "camera_utils.radial_and_tangential_undistort (10 Newton steps from the distorted point, a step skipped where "
+    "|det| <= 1e-3), d = 1 + k1 r + k2 r^2 + k3 r^3 + k4 r^4 with r = x^2 + y^2; then y negated (OpenGL). "
+    "Perspective: direction (x, y, -1). Fisheye: theta = |(x, y)| clipped to [0, pi], direction "
+    "(x sin(theta)/theta, y sin(theta)/theta, -cos(theta)); the same Newton solve on the fisheye's k1..k4 is "
+    "OpenCV's theta_d = theta (1 + k1 theta^2 + k2 theta^4 + k3 theta^6 + k4 theta^8). Then rotated by c2w and "
+    "normalised. Eval renders (get_outputs_for_camera) use these rays; see 'lens' for corner rays with and "
+    "without the lens.",
+]
+
+
 def _safe_globals():
     import numpy as np
 
@@ -71,13 +103,119 @@ def _safe_globals():
     return names
 
 
+LENS_PIXELS_YX = [(0, 0), (0, 63), (63, 0), (63, 63), (32, 32)]
+
+
+def _parse_args():
+    import argparse
+
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("run_dir", type=Path)
+    ap.add_argument("out_dir", type=Path)
+    ap.add_argument("--extra-train-cameras", default="", help="comma-separated train dataset indices to render too")
+    return ap.parse_args()
+
+
+def _has_lens(cameras) -> bool:
+    from nerfstudio.cameras.cameras import CameraType
+
+    dist = cameras.distortion_params
+    lens = dist is not None and bool((dist != 0).any())
+    return lens or bool((cameras.camera_type != CameraType.PERSPECTIVE.value).any())
+
+
+def _lens_check(cameras, idx: int, transforms: dict):
+    """nerfstudio's rays of a lens camera vs the same pixels without the lens, and vs OpenCV."""
+    import cv2
+    import numpy as np
+    import torch
+    from nerfstudio.cameras.cameras import Cameras, CameraType
+
+    cam = cameras[idx : idx + 1]
+    ys = torch.tensor([p[0] for p in LENS_PIXELS_YX])
+    xs = torch.tensor([p[1] for p in LENS_PIXELS_YX])
+    full = cam.generate_rays(camera_indices=0, keep_shape=True)
+    no_lens = cam.generate_rays(camera_indices=0, keep_shape=True, disable_distortion=True)
+    pinhole_cam = Cameras(
+        camera_to_worlds=cam.camera_to_worlds,
+        fx=cam.fx,
+        fy=cam.fy,
+        cx=cam.cx,
+        cy=cam.cy,
+        width=cam.width,
+        height=cam.height,
+        camera_type=CameraType.PERSPECTIVE,
+    )
+    pinhole = pinhole_cam.generate_rays(camera_indices=0, keep_shape=True)
+    g = {
+        "lens_pixels_yx": torch.tensor(LENS_PIXELS_YX, dtype=torch.int64),
+        "lens_directions": full.directions[ys, xs].float(),
+        "lens_directions_disable_distortion": no_lens.directions[ys, xs].float(),
+        "lens_directions_pinhole": pinhole.directions[ys, xs].float(),
+        "lens_origins": full.origins[ys, xs].float(),
+        "lens_distortion_params": cameras.distortion_params.float(),
+        "lens_camera_type": cameras.camera_type[..., 0].long(),
+    }
+    # every pixel: nerfstudio's ray in the camera frame (OpenGL) -> pinhole image coords (OpenCV, y down)
+    R = cam.camera_to_worlds[0, :3, :3].double()
+    d_cam = full.directions.double().reshape(-1, 3) @ R  # R^T d
+    x_ns = d_cam[:, 0] / -d_cam[:, 2]
+    y_ns = d_cam[:, 1] / d_cam[:, 2]
+    h, w = int(cam.height[0]), int(cam.width[0])
+    K = np.array([[float(cam.fx[0]), 0, float(cam.cx[0])], [0, float(cam.fy[0]), float(cam.cy[0])], [0, 0, 1.0]])
+    yy, xx = np.mgrid[0:h, 0:w].astype(np.float64)
+    pts = np.stack([xx + 0.5, yy + 0.5], -1).reshape(-1, 1, 2)
+    crit = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 100, 1e-12)
+    if transforms.get("camera_model") == "OPENCV_FISHEYE":
+        D = np.array([transforms.get(k, 0.0) for k in ("k1", "k2", "k3", "k4")])
+        und = cv2.fisheye.undistortPoints(pts, K, D, criteria=crit).reshape(-1, 2)
+        opencv_fn = "cv2.fisheye.undistortPoints"
+    else:
+        D = np.array([transforms.get(k, 0.0) for k in ("k1", "k2", "p1", "p2")])
+        und = cv2.undistortPoints(pts, K, D, criteria=crit).reshape(-1, 2)
+        opencv_fn = "cv2.undistortPoints"
+    gap = np.abs(np.stack([x_ns.numpy(), y_ns.numpy()], -1) - und)
+    info = {
+        "camera": f"train {idx}",
+        "pixel_center_offset": 0.5,
+        "camera_type": int(cam.camera_type[0].item()),
+        "distortion_params_k1k2k3k4p1p2": cam.distortion_params[0].tolist(),
+        "corners": [
+            {
+                "pixel_yx": list(p),
+                "direction_ns": g["lens_directions"][i].tolist(),
+                "direction_ns_disable_distortion": g["lens_directions_disable_distortion"][i].tolist(),
+                "direction_pinhole_same_intrinsics": g["lens_directions_pinhole"][i].tolist(),
+                "angle_to_pinhole_deg": float(
+                    torch.rad2deg(
+                        torch.arccos(
+                            (g["lens_directions"][i].double() * g["lens_directions_pinhole"][i].double())
+                            .sum()
+                            .clamp(-1, 1)
+                        )
+                    )
+                ),
+            }
+            for i, p in enumerate(LENS_PIXELS_YX)
+        ],
+        "rays_vs_opencv": {
+            "opencv": opencv_fn + " (100 iterations, eps 1e-12), the model the images were warped with",
+            "max_abs_normalized": float(gap.max()),
+            "max_abs_px": float((gap * np.array([K[0, 0], K[1, 1]])).max()),
+        },
+    }
+    return g, info
+
+
 def main() -> None:
     import numpy as np
     import torch
     from safetensors.torch import save_file
 
-    run_dir = Path(sys.argv[1]).resolve()
-    out_dir = Path(sys.argv[2]).resolve()
+    args = _parse_args()
+    run_dir = args.run_dir.resolve()
+    out_dir = args.out_dir.resolve()
+    extra_train = [int(i) for i in args.extra_train_cameras.split(",") if i.strip()]
     out_dir.mkdir(parents=True, exist_ok=True)
     torch.set_num_threads(nerfstudio_train_tiny.NUM_THREADS)
 
@@ -118,6 +256,8 @@ def main() -> None:
         "train": (dm.train_dataset.cameras, TRAIN_CAMERA_INDEX, dm.train_dataset, train_files),
         "eval": (dm.eval_dataset.cameras, EVAL_CAMERA_INDEX, dm.eval_dataset, eval_files),
     }
+    for i in extra_train:
+        cams[f"train{i}"] = (dm.train_dataset.cameras, i, dm.train_dataset, train_files)
     cam_info = {}
     for name, (cameras, idx, dataset, files) in cams.items():
         cam = cameras[idx : idx + 1].to(model.device)
@@ -183,6 +323,14 @@ def main() -> None:
         fwd = model.forward(ray_bundle=bundle_full[ys, xs])
     rays_vs_forward = float((fwd["rgb"] - g["rays_rgb"]).abs().max())
     rays_vs_render = float((g["train_render_rgb"][ys, xs] - g["rays_rgb"]).abs().max())
+
+    # ---- lens: nerfstudio's rays with and without the distortion --------------------------------
+    lens_info = None
+    transforms = json.loads(tj.read_text())
+    if _has_lens(dm.train_dataset.cameras):
+        with torch.no_grad():
+            lg, lens_info = _lens_check(dm.train_dataset.cameras, TRAIN_CAMERA_INDEX, transforms)
+        g.update(lg)
 
     # ---- field outputs at random points ---------------------------------------------------------
     gen = torch.Generator().manual_seed(POINT_SEED)
@@ -308,9 +456,10 @@ def main() -> None:
                 for f in json.loads(tj.read_text())["frames"]
             ],
             "built_by": "tools/nerfstudio_train_tiny.py build_dataset: NeRF-Synthetic lego train split, "
-            "frames i*100//30, RGBA composited on white at 800 px, PIL BOX-downscaled to 64 px, RGB PNG",
+            "frames i*100//30, RGBA composited on white at 800 px, PIL BOX-downscaled to 64 px, RGB PNG"
+            + (LENS_BUILT_BY.format(model=transforms.get("camera_model")) if lens_info else ""),
         },
-        "notes": NOTES,
+        "notes": NOTES + (LENS_NOTES if lens_info else []),
         "cameras": cam_info,
         "rays": {
             "camera": "train",
@@ -323,13 +472,14 @@ def main() -> None:
             "layout": f"{n_in // 2} in [-0.3,0.3]^3, {n_in - n_in // 2} in [-1,1]^3, {n_mid} with inf-norm in [1,4), {n_far} with |p| in [10,1000)",
             "appearance": "eval mode: mean of the train appearance embeddings",
         },
+        **({"lens": lens_info} if lens_info else {}),
         "tensors": {k: {"shape": list(v.shape), "dtype": str(v.dtype).replace("torch.", "")} for k, v in g.items()},
         "weights": {k: {"shape": list(v.shape), "original_dtype": orig_dtypes[k]} for k, v in weights.items()},
     }
     (out_dir / "golden.json").write_text(json.dumps(info, indent=1, default=str) + "\n")
     for f in out_dir.iterdir():
         f.chmod(0o644)
-    print(json.dumps({"cameras": cam_info, "rays": info["rays"]}, indent=1))
+    print(json.dumps({"cameras": cam_info, "rays": info["rays"], "lens": lens_info}, indent=1))
 
 
 def _dist_version(name: str) -> str:

@@ -24,7 +24,28 @@ rawpy are only there to satisfy those imports.)
 
 Step 1 writes a nerfstudio-data dataset (``transforms.json`` as ns-process-data
 writes it, OPENCV camera model with zero distortion, RGB PNGs composited on
-white, downscaled).  Step 2 runs nerfstudio's own ``ns-train`` entry point
+white, downscaled).  With ``--camera-model`` / ``--k1 ..`` it writes a distorted
+capture instead, top-level keys exactly as ns-process-data's
+``parse_colmap_camera_params`` writes them (OPENCV: w h fl_x fl_y cx cy k1 k2 p1 p2;
+OPENCV_FISHEYE: w h fl_x fl_y cx cy k1 k2 k3 k4; then camera_model), and its images
+really distorted: each pixel centre (index + 0.5, nerfstudio's convention) is
+undistorted with ``cv2.undistortPoints`` / ``cv2.fisheye.undistortPoints`` (100
+iterations, eps 1e-12) and takes the colour the undistorted pinhole image (the
+64-px image the default writes, same fl/cx/cy) has there (``cv2.remap``, bilinear,
+replicated border: points outside the pinhole frame, a pixel or a few at the
+corners, take the nearest edge colour, white for lego)::
+
+    /work/nsvenv/bin/python tools/nerfstudio_train_tiny.py --data /work/nsrun2/data_opencv \
+        --outputs /work/nsrun2/outputs --experiment lego64_opencv \
+        --camera-model OPENCV --k1 -0.12 --k2 0.03 --p1 0.001 --p2 -0.0015
+    /work/nsvenv/bin/python tools/nerfstudio_train_tiny.py --data /work/nsrun2/data_fisheye \
+        --outputs /work/nsrun2/outputs --experiment lego64_fisheye \
+        --camera-model OPENCV_FISHEYE --k1 0.05 --k2 -0.01 --k3 0.002 --k4 -0.0005
+
+(Use one ``--outputs`` per experiment if the goldens tool should read each run's
+``ns_train_command.txt``, which is written into ``--outputs`` itself.)
+
+Step 2 runs nerfstudio's own ``ns-train`` entry point
 (``nerfstudio.scripts.train.entrypoint``) as
 ``ns-train nerfacto --machine.device-type cpu --pipeline.model.implementation torch ...
 nerfstudio-data --data DIR``.
@@ -230,10 +251,73 @@ def install_standins() -> None:
 # dataset
 
 
-def build_dataset(scene: Path, out: Path, n_frames: int, size: int) -> dict:
-    """lego train split (NeRF-Synthetic, RGBA, OpenGL c2w) -> nerfstudio-data dataset."""
+def lens_params(camera_model: str, coeffs: dict[str, float]) -> dict[str, float]:
+    """The distortion keys ns-process-data writes for ``camera_model``, in its order
+    (nerfstudio/process_data/colmap_utils.py ``parse_colmap_camera_params``)."""
+    if camera_model == "OPENCV":
+        keys, zero = ("k1", "k2", "p1", "p2"), ("k3", "k4")
+    elif camera_model == "OPENCV_FISHEYE":
+        keys, zero = ("k1", "k2", "k3", "k4"), ("p1", "p2")
+    else:
+        raise ValueError(f"camera model {camera_model!r}: only OPENCV and OPENCV_FISHEYE")
+    bad = [k for k in zero if coeffs.get(k, 0.0) != 0.0]
+    if bad:
+        raise ValueError(f"{camera_model} has no {', '.join(bad)}")
+    return {k: float(coeffs.get(k, 0.0)) for k in keys}
+
+
+def distort_image(pinhole, fl: float, c: float, camera_model: str, lens: dict[str, float]):
+    """The pinhole image (H, W, 3 uint8; focal fl, centre c, both axes) seen through the lens:
+    each output pixel centre (index + 0.5) is undistorted with OpenCV and takes the pinhole
+    image's colour at the undistorted point (bilinear). -> (image, info)"""
+    import cv2
+    import numpy as np
+
+    h, w = pinhole.shape[:2]
+    K = np.array([[fl, 0.0, c], [0.0, fl, c], [0.0, 0.0, 1.0]])
+    ys, xs = np.mgrid[0:h, 0:w].astype(np.float64)
+    pts = np.stack([xs + 0.5, ys + 0.5], axis=-1).reshape(-1, 1, 2)
+    crit = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 100, 1e-12)
+    if camera_model == "OPENCV":
+        d = np.array([lens["k1"], lens["k2"], lens["p1"], lens["p2"]])
+        und = cv2.undistortPoints(pts, K, d, criteria=crit).reshape(-1, 2)
+        # forward check with OpenCV's own projection
+        obj = np.concatenate([und, np.ones((und.shape[0], 1))], axis=1).reshape(-1, 1, 3)
+        back = cv2.projectPoints(obj, np.zeros(3), np.zeros(3), K, d)[0].reshape(-1, 2)
+    else:
+        d = np.array([lens["k1"], lens["k2"], lens["k3"], lens["k4"]])
+        und = cv2.fisheye.undistortPoints(pts, K, d, criteria=crit).reshape(-1, 2)
+        obj = np.concatenate([und, np.ones((und.shape[0], 1))], axis=1).reshape(-1, 1, 3)
+        back = cv2.fisheye.projectPoints(obj, np.zeros(3), np.zeros(3), K, d)[0].reshape(-1, 2)
+    map_x = (fl * und[:, 0] + c - 0.5).reshape(h, w).astype(np.float32)
+    map_y = (fl * und[:, 1] + c - 0.5).reshape(h, w).astype(np.float32)
+    img = cv2.remap(pinhole, map_x, map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+    outside = (map_x < -0.5) | (map_x > w - 0.5) | (map_y < -0.5) | (map_y > h - 0.5)
+    info = {
+        "reprojection_max_abs_px": float(np.abs(back - pts.reshape(-1, 2)).max()),
+        "pixels_outside_pinhole_frame": int(outside.sum()),
+        "undistorted_px_range": [float(map_x.min()) + 0.5, float(map_x.max()) + 0.5],
+    }
+    return img, info
+
+
+def build_dataset(
+    scene: Path,
+    out: Path,
+    n_frames: int,
+    size: int,
+    camera_model: str = "OPENCV",
+    coeffs: dict[str, float] | None = None,
+) -> dict:
+    """lego train split (NeRF-Synthetic, RGBA, OpenGL c2w) -> nerfstudio-data dataset.
+    With a lens (``camera_model`` OPENCV_FISHEYE, or nonzero ``coeffs``) the images are the
+    pinhole ones warped through it (``distort_image``)."""
     import numpy as np
     from PIL import Image
+
+    lens = lens_params(camera_model, coeffs or {})
+    warp = camera_model != "OPENCV" or any(v != 0.0 for v in lens.values())
+    warp_infos = []
 
     meta = json.loads((scene / "transforms_train.json").read_text())
     frames_in = meta["frames"]
@@ -250,6 +334,10 @@ def build_dataset(scene: Path, out: Path, n_frames: int, size: int) -> dict:
         rgb = rgba[..., :3] * rgba[..., 3:] + (1.0 - rgba[..., 3:])  # composite on white
         full = Image.fromarray(np.clip(np.round(rgb * 255.0), 0, 255).astype(np.uint8), "RGB")
         small = full.resize((size, size), Image.Resampling.BOX)
+        if warp:
+            arr, info = distort_image(np.asarray(small), focal, size / 2.0, camera_model, lens)
+            small = Image.fromarray(arr, "RGB")
+            warp_infos.append(info)
         name = f"frame_{k + 1:05d}.png"
         small.save(out / "images" / name)
         frames.append(
@@ -267,14 +355,25 @@ def build_dataset(scene: Path, out: Path, n_frames: int, size: int) -> dict:
         "fl_y": focal,
         "cx": size / 2.0,
         "cy": size / 2.0,
-        "k1": 0.0,
-        "k2": 0.0,
-        "p1": 0.0,
-        "p2": 0.0,
-        "camera_model": "OPENCV",
+        **lens,
+        "camera_model": camera_model,
         "frames": frames,
     }
     (out / "transforms.json").write_text(json.dumps(transforms, indent=4))
+    if warp:
+        print(
+            "lens warp:",
+            json.dumps(
+                {
+                    "camera_model": camera_model,
+                    **lens,
+                    "reprojection_max_abs_px": max(i["reprojection_max_abs_px"] for i in warp_infos),
+                    "pixels_outside_pinhole_frame_per_image": warp_infos[0]["pixels_outside_pinhole_frame"],
+                    "undistorted_px_range": warp_infos[0]["undistorted_px_range"],
+                }
+            ),
+            flush=True,
+        )
     return transforms
 
 
@@ -295,12 +394,16 @@ def main() -> None:
     ap.add_argument("--log2-hashmap-size", type=int, default=12)
     ap.add_argument("--prop-log2-hashmap-size", type=int, default=12)
     ap.add_argument("--seed", type=int, default=42)
+    ap.add_argument("--camera-model", default="OPENCV", choices=["OPENCV", "OPENCV_FISHEYE"])
+    for k in ("k1", "k2", "k3", "k4", "p1", "p2"):
+        ap.add_argument(f"--{k}", type=float, default=0.0, help="lens coefficient (default 0)")
     ap.add_argument("--skip-data", action="store_true")
     ap.add_argument("--dry-run", action="store_true", help="print the ns-train command only")
     args = ap.parse_args()
 
     if not args.skip_data:
-        build_dataset(args.scene, args.data, args.frames, args.size)
+        coeffs = {k: getattr(args, k) for k in ("k1", "k2", "k3", "k4", "p1", "p2")}
+        build_dataset(args.scene, args.data, args.frames, args.size, args.camera_model, coeffs)
 
     ns_args = [
         "ns-train",

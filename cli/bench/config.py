@@ -53,6 +53,7 @@ class BenchConfig:
     nerfstudio_run: str | None = None  # the nerfstudio experiment's nerfacto run directory
     nerfstudio_data: str | None = None  # its dataset (transforms.json)
     nerfstudio_golden: str | None = None  # tools/nerfstudio_goldens.py's folder for that run: nerfstudio's renders
-    nerfstudio_width: int = 48  # the photos hidden in it (its cameras may be small)
+    nerfstudio_width: int = 48  # the photos hidden in it (its cameras may be small), and in the ingp experiment's
+    ingp_snapshot: str | None = None  # the ingp experiment's Instant-NGP snapshot (.ingp, .msgpack)
     experiments: tuple[str, ...] | None = None  # --only's names; None: every experiment (registry.selected)
     seed: int = 0

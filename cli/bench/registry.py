@@ -10,7 +10,7 @@ from typing import Any, Callable, Mapping
 
 from noisenerf.runtime.errors import UserError
 
-from noisenerf.cli.bench import (big_secret, browser, cluster, coverage, exact_cost, exact_scale, fields, keys,
+from noisenerf.cli.bench import (big_secret, browser, cluster, coverage, exact_cost, exact_scale, fields, ingp, keys,
                                  margins, masking, nerfstudio, paper, payload, reliability)
 from noisenerf.cli.bench.context import BenchContext, Measured, Section
 
@@ -73,6 +73,8 @@ REGISTRY = (
                fields.describe_fields, fields.plot_fields),
     Experiment("nerfstudio", "A nerfstudio run imported: its renders against nerfstudio's, secrets hidden in it",
                nerfstudio.measure_nerfstudio, nerfstudio.describe_nerfstudio),
+    Experiment("ingp", "An Instant-NGP snapshot imported: its cost, secrets hidden in it", ingp.measure_ingp,
+               ingp.describe_ingp),
 )
 EXPERIMENTS = tuple(experiment.name for experiment in REGISTRY)
 

@@ -52,6 +52,11 @@ class FieldKind:
         one density output per proposal network (proposal_sampler)."""
         raise NotImplementedError
 
+    def grid_sampler(self, config: dict) -> dict | None:
+        """A checked architecture's occupancy-grid marcher for ordinary renders (runtime.grid_marching's fields);
+        None where the kind has none."""
+        return None
+
     def proposal_sampler(self, config: dict) -> dict | None:
         """A checked architecture's proposal sampler (runtime.proposal.ProposalSampling's fields), one stage
         per proposal network (outputs sigma_proposal0, …: density alone, no noise); None for a field
@@ -72,6 +77,12 @@ def proposal_sampler(architecture: dict) -> dict | None:
     """The proposal sampler of a (graph-checked) architecture's render network, if its kind has one."""
     kind = field_kind(architecture["coarse"], "coarse")
     return kind.proposal_sampler(kind.checked(architecture["coarse"], "coarse"))
+
+
+def grid_sampler(architecture: dict) -> dict | None:
+    """The occupancy-grid marcher of a (graph-checked) architecture's render network, if its kind has one."""
+    kind = field_kind(architecture["coarse"], "coarse")
+    return kind.grid_sampler(kind.checked(architecture["coarse"], "coarse"))
 
 
 def field_kind(config, what: str) -> FieldKind:

@@ -18,11 +18,15 @@ the interpolated grid features, then the SH values.
 
 Proposal networks (nerfstudio's HashMLPDensityField): their own grid on the same u and a ReLU MLP to one raw
 density, σ as above; outputs sigma_proposal0, … on the points alone, no noise (they only place the
-ordinary render's samples: runtime.proposal). Every MLP layer has a bias (tiny-cuda-nn's have none: the
+ordinary render's samples: runtime.proposal). A field without proposal networks is nerfstudio's instant-ngp:
+its `sampler` is then nerfacc's occupancy grid (runtime.grid_marching). Every MLP layer has a bias (tiny-cuda-nn's have none: the
 importer writes zeros, and its padded-one input columns as the bias they act as).
 """
 
 from __future__ import annotations
+
+import base64
+import binascii
 
 import numpy as np
 
@@ -34,7 +38,7 @@ from noisenerf.runtime.fields.hashgrid import (
 )
 from noisenerf.runtime.graph import GraphBuilder, proposal_output
 from noisenerf.runtime.limits import (
-    MAX_FIELD_WIDTH, MAX_HASH_FEATURES, MAX_HASH_LEVELS, MAX_HASH_RESOLUTION, MAX_LOG2_TABLE,
+    MAX_FIELD_WIDTH, MAX_GRID_RESOLUTION, MAX_HASH_FEATURES, MAX_HASH_LEVELS, MAX_HASH_RESOLUTION, MAX_LOG2_TABLE,
     MAX_PROPOSAL_NETWORKS, MAX_SAMPLES_PER_RAY, MAX_TABLE_VALUES, checked_float, checked_int, checked_list,
 )
 
@@ -43,6 +47,8 @@ KEYS = {"kind", "implementation", "features", "log2_table", "scales", "density_h
         "colour_hidden", "colour_layers", "density_scale", "proposals", "sampler"}
 PROPOSAL_KEYS = {"features", "log2_table", "scales", "hidden"}
 SAMPLER_KEYS = {"proposal_samples", "samples", "histogram_padding", "near", "far"}
+GRID_SAMPLER_KEYS = {"step", "cone_angle", "near", "far", "levels", "resolution", "aabb", "occupancy"}
+MAX_GRID_LEVELS = 8  # nerfacc's cascades (nerfstudio's instant-ngp: 4)
 # nerfstudio's torch SH (nerfstudio.utils.spherical_harmonics) against tiny-cuda-nn's: odd-m rows negated
 TORCH_SH_SIGNS = np.array([1, -1, 1, -1, 1, -1, 1, -1, 1, -1, 1, -1, 1, -1, 1, -1], np.float32)
 
@@ -71,12 +77,10 @@ class NerfactoKind(FieldKind):
                                                     code="field.density_scale")}
         proposals = checked_list(config["proposals"], f"{what} proposals", most=MAX_PROPOSAL_NETWORKS,
                                  code="field.proposals")
-        if not proposals:
-            raise UserError(f"the {what} network needs a proposal network (its sampler has a stage per network)",
-                            code="field.no_proposals", network=what)
         checked["proposals"] = [checked_proposal(proposal, implementation, f"{what} proposal network {i}")
                                 for i, proposal in enumerate(proposals)]
-        checked["sampler"] = checked_sampler(config["sampler"], len(proposals), what)
+        checked["sampler"] = (checked_sampler(config["sampler"], len(proposals), what) if proposals
+                              else checked_grid_sampler(config["sampler"], what))
         values = sum(grid_layout(implementation, grid["scales"], grid["log2_table"]).total_rows * grid["features"]
                      for grid in [checked, *checked["proposals"]])
         if values > MAX_TABLE_VALUES:
@@ -88,9 +92,14 @@ class NerfactoKind(FieldKind):
         return (Segment("position", len(config["scales"]) * config["features"]),
                 Segment("direction", config["sh_degree"] ** 2))
 
-    def proposal_sampler(self, config: dict) -> dict:
-        """The sampler of ordinary renders: one proposal stage per proposal network (outputs sigma_proposal0, …)."""
-        return config["sampler"]
+    def proposal_sampler(self, config: dict) -> dict | None:
+        """The sampler of ordinary renders: one proposal stage per proposal network (outputs sigma_proposal0, …);
+        None for nerfstudio's instant-ngp (no proposal networks: grid_sampler)."""
+        return config["sampler"] if config["proposals"] else None
+
+    def grid_sampler(self, config: dict) -> dict | None:
+        """nerfstudio's instant-ngp: nerfacc's occupancy-grid marcher (runtime.grid_marching) renders ordinary views."""
+        return None if config["proposals"] else config["sampler"]
 
     def build(self, builder: GraphBuilder, prefix: str, config: dict, rgb: str, sigma: str) -> None:
         axes = grid_axes(builder)
@@ -165,6 +174,47 @@ def checked_sampler(config, proposals: int, what: str) -> dict:
             "histogram_padding": checked_float(config["histogram_padding"], f"{what} histogram_padding", 0.0, 1.0,
                                                        code="field.histogram_padding"),
             "near": near, "far": far}
+
+
+def checked_grid_sampler(config, what: str) -> dict:
+    """nerfstudio's instant-ngp sampler (runtime.grid_marching): the step, the cone angle, the ray interval, the
+    grid's levels, cells per side, scene box and occupancy (one bit per cell, C order [level, x, y, z], base64),
+    its size checked before it is decoded."""
+    if not isinstance(config, dict) or set(config) != GRID_SAMPLER_KEYS:
+        raise UserError(f"the {what} network's grid sampler must have exactly {', '.join(sorted(GRID_SAMPLER_KEYS))}",
+                        code="field.sampler_keys", network=what)
+    near = checked_float(config["near"], f"{what} sampler near", 0.0, 1e9, code="field.sampler_near")
+    far = checked_float(config["far"], f"{what} sampler far", 0.0, 1e9, code="field.sampler_far")
+    if not near < far:
+        raise UserError(f"the {what} network's sampler needs near < far, got {near}, {far}", code="field.near_far",
+                        network=what, near=near, far=far)
+    levels = checked_int(config["levels"], f"{what} grid levels", 1, MAX_GRID_LEVELS, code="field.grid_levels")
+    resolution = checked_int(config["resolution"], f"{what} grid resolution", 1, MAX_GRID_RESOLUTION,
+                             code="field.grid_resolution")
+    aabb = [checked_float(v, f"{what} grid aabb", -1e9, 1e9, code="field.grid_aabb")
+            for v in checked_list(config["aabb"], f"{what} grid aabb", length=6, code="field.grid_aabb")]
+    if not all(aabb[i] < aabb[i + 3] for i in range(3)):
+        raise UserError(f"the {what} network's grid aabb must have min < max on every axis", code="field.grid_aabb",
+                        network=what)
+    if levels * resolution ** 3 > MAX_GRID_RESOLUTION ** 3:
+        raise UserError(f"the {what} network's grid holds {levels} x {resolution}^3 cells, more than "
+                        f"{MAX_GRID_RESOLUTION}^3", code="field.grid_cells", network=what)
+    needed = -(-levels * resolution ** 3 // 8)
+    occupancy = config["occupancy"]
+    if not isinstance(occupancy, str) or len(occupancy) != 4 * -(-needed // 3) or len(base64_bytes(occupancy)) != needed:
+        raise UserError(f"the {what} network's grid occupancy must be {needed} bytes in base64 (levels x resolution^3 "
+                        "bits)", code="field.grid_occupancy", network=what, needed=needed)
+    return {"step": checked_float(config["step"], f"{what} sampler step", 1e-9, 1e9, code="field.sampler_step"),
+            "cone_angle": checked_float(config["cone_angle"], f"{what} cone angle", 0.0, 1.0, code="field.cone_angle"),
+            "near": near, "far": far, "levels": levels, "resolution": resolution, "aabb": aabb, "occupancy": occupancy}
+
+
+def base64_bytes(text: str) -> bytes:
+    """Standard base64 as Python's strict decoder reads it; b'' where it is not."""
+    try:
+        return base64.b64decode(text, validate=True)
+    except (ValueError, binascii.Error):
+        return b""
 
 
 def contracted_unit(builder: GraphBuilder, prefix: str) -> tuple[str, str]:

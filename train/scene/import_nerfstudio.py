@@ -1,4 +1,4 @@
-"""`noisenerf import-nerfstudio`: a nerfstudio `nerfacto` run directory -> a scene directory.
+"""`noisenerf import-nerfstudio`: a nerfstudio `nerfacto` or `instant-ngp` run directory -> a scene directory.
 
 Read without nerfstudio and without running anything a file says:
 - `config.yml` through a safe YAML loader whose Python tags become plain data (objects → mappings, paths
@@ -19,14 +19,21 @@ and render with the parameters rounded to float16, so the import rounds them too
 checked against the layout the config implies before anything is built. The mean appearance embedding
 nerfacto uses at eval is folded into the colour MLP's first bias.
 
+nerfstudio's `instant-ngp` method is the same field without proposal networks (NerfactoField's defaults but for
+the grid's size, density scale 1, its appearance embedding zero at eval) rendered by nerfacc's occupancy-grid
+marcher: the checkpoint's `occupancy_grid.binaries` and boxes, the config's cone angle and planes, its step or
+nerfstudio's default (the scene box's diagonal / 1000) become the field's grid sampler (runtime.grid_marching).
+
 Refused in one line, because they would not be reproduced: other methods, nerfstudio runs older than
 1.0 (their key layout), scene contraction off, proposal networks that share weights or use a linear
-head, an initial sampler other than the piecewise one, backgrounds other than `last_sample`, lens
-distortion, and camera models other than pinhole ones (which train.scene.captures refuses for the fit too).
+head, an initial sampler other than the piecewise one, backgrounds other than `last_sample` (nerfacto) or
+over black (instant-ngp), an instant-ngp collider, and camera models other than the perspective ones and
+OPENCV_FISHEYE (train.scene.captures).
 """
 
 from __future__ import annotations
 
+import base64
 import math
 import pickle
 import re
@@ -46,7 +53,9 @@ from noisenerf.runtime.occupancy import OccupancyGrid
 from noisenerf.runtime.render import RenderConfig
 from noisenerf.runtime.sampling import SamplingConfig
 from noisenerf.train.scene.captures import read_capture
-from noisenerf.train.scene.nerfacto import NerfactoConfig, NerfactoField, ProposalConfig, SamplerConfig
+from noisenerf.train.scene.nerfacto import (
+    GridSamplerConfig, NerfactoConfig, NerfactoField, ProposalConfig, SamplerConfig,
+)
 from noisenerf.train.scene.scene import Scene, SceneConfig, check_scene_output
 
 MAX_CONFIG_BYTES = 1 << 20
@@ -118,6 +127,7 @@ class NerfactoSettings:
     appearance_dim: int
     average_appearance: bool
     average_init_density: float
+    marcher: dict | None = None  # instant-ngp: cone_angle, near, far, levels, resolution, step (None: diagonal/1000)
 
 
 MODEL_DEFAULTS = {  # nerfstudio 1.x NerfactoModelConfig / HashMLPDensityField defaults
@@ -130,13 +140,52 @@ MODEL_DEFAULTS = {  # nerfstudio 1.x NerfactoModelConfig / HashMLPDensityField d
 }
 
 
+NGP_DEFAULTS = {  # nerfstudio 1.1.5 InstantNGPModelConfig (models/instant_ngp.py:40–80, research/ngp-method.md §1)
+    "enable_collider": False, "grid_resolution": 128, "grid_levels": 4, "max_res": 2048, "log2_hashmap_size": 19,
+    "cone_angle": 0.004, "render_step_size": None, "near_plane": 0.05, "far_plane": 1000.0,
+    "use_appearance_embedding": False, "background_color": "random", "disable_scene_contraction": False,
+}
+
+
+def ngp_settings(model: dict, source: str) -> NerfactoSettings:
+    """The model section of an instant-ngp config: nerfacto's field with NerfactoField's defaults but for the
+    grid's size (instant_ngp.py:105–112; its appearance flag is inverted: 32 wide unless asked for, zeros at
+    eval), nerfacc's grid marcher with the config's step, cone angle and planes."""
+    get = lambda key: model.get(key, NGP_DEFAULTS[key])  # noqa: E731
+    if get("disable_scene_contraction"):
+        raise UserError(f"{source}: an instant-ngp run without scene contraction is not reproduced")
+    if get("enable_collider"):
+        raise UserError(f"{source}: an instant-ngp run with a collider is not reproduced (its planes move the march)")
+    if get("background_color") not in ("random", "black"):
+        raise UserError(f"{source}: background {get('background_color')!r} is not reproduced (at eval 'random' and "
+                        "'black' composite over black)")
+    resolution = get("grid_resolution")
+    if isinstance(resolution, list) and len(set(resolution)) == 1:
+        resolution = resolution[0]
+    step = get("render_step_size")
+    try:
+        marcher = {"cone_angle": float(get("cone_angle")), "near": float(get("near_plane")),
+                   "far": float(get("far_plane")), "levels": int(get("grid_levels")), "resolution": int(resolution),
+                   "step": None if step is None else float(step)}
+        return NerfactoSettings(
+            implementation="tcnn", hidden_dim=64, hidden_dim_color=64, num_levels=16, base_res=16,
+            max_res=int(get("max_res")), log2_hashmap_size=int(get("log2_hashmap_size")), features_per_level=2,
+            proposal_samples=(), nerf_samples=0, proposals=(),
+            appearance_dim=0 if get("use_appearance_embedding") else 32, average_appearance=False,
+            average_init_density=1.0, marcher=marcher)
+    except (TypeError, ValueError) as error:
+        raise UserError(f"{source}: malformed instant-ngp settings ({error})") from None
+
+
 def nerfacto_settings(config: dict, source: str) -> NerfactoSettings:
-    """The model section of a nerfacto config, refusing what would not be reproduced."""
+    """The model section of a nerfacto (or instant-ngp) config, refusing what would not be reproduced."""
     model = config["pipeline"].get("model")
     target = str(model.get("_target", "")) if isinstance(model, dict) else ""
+    if target.endswith("NGPModel"):
+        return ngp_settings(model, source)
     if not target.endswith("NerfactoModel"):
         name = config.get("method_name") or target or "unknown"
-        raise UserError(f"{source}: a {name} run; only nerfacto runs can be imported")
+        raise UserError(f"{source}: a {name} run; only nerfacto and instant-ngp runs can be imported")
     get = lambda key: model.get(key, MODEL_DEFAULTS.get(key))  # noqa: E731
     refusals = {
         "use_same_proposal_network": (True, "one proposal network shared by every stage"),
@@ -192,7 +241,8 @@ def grid_scales(implementation: str, num_levels: int, base_res: int, max_res: in
     return tuple(float(v) for v in scales.astype(np.float32))
 
 
-def field_config(settings: NerfactoSettings) -> NerfactoConfig:
+def field_config(settings: NerfactoSettings, sampler: GridSamplerConfig | None = None) -> NerfactoConfig:
+    """The field's config; an instant-ngp run's grid sampler (`grid_sampler`) comes from its checkpoint."""
     implementation = settings.implementation
     proposals = tuple(ProposalConfig(
         features=2, log2_table=p["log2_hashmap_size"], hidden=p["hidden_dim"],
@@ -202,7 +252,24 @@ def field_config(settings: NerfactoSettings) -> NerfactoConfig:
         scales=grid_scales(implementation, settings.num_levels, settings.base_res, settings.max_res),
         density_hidden=settings.hidden_dim, geo_features=15, sh_degree=4, colour_hidden=settings.hidden_dim_color,
         colour_layers=2, density_scale=settings.average_init_density, proposals=proposals,
-        sampler=SamplerConfig(settings.proposal_samples, settings.nerf_samples, 0.01, 0.0, 1000.0))
+        sampler=sampler or SamplerConfig(settings.proposal_samples, settings.nerf_samples, 0.01, 0.0, 1000.0))
+
+
+def grid_sampler(state: dict, settings: NerfactoSettings, source: str) -> GridSamplerConfig:
+    """An instant-ngp run's nerfacc grid from its checkpoint (occupancy_grid.binaries [levels, x, y, z] and aabbs,
+    level 0 the scene box), its step nerfstudio's default where the config leaves it None: the box's diagonal
+    / 1000 (float32 norm, then a Python division: instant_ngp.py:116–118)."""
+    marcher = settings.marcher
+    levels, resolution = marcher["levels"], marcher["resolution"]
+    binaries = tensor(state, "occupancy_grid.binaries", (levels, resolution, resolution, resolution), source)
+    box = tensor(state, "occupancy_grid.aabbs", (levels, 6), source)[0]
+    step = marcher["step"]
+    if step is None:
+        step = float(((box[3:] - box[:3]) ** 2).sum().sqrt().item()) / 1000
+    occupancy = base64.b64encode(np.packbits(binaries.numpy().reshape(-1) > 0.5).tobytes()).decode("ascii")
+    return GridSamplerConfig(step=float(np.float32(step)), cone_angle=marcher["cone_angle"], near=marcher["near"],
+                             far=marcher["far"], levels=levels, resolution=resolution,
+                             aabb=tuple(float(v) for v in box.tolist()), occupancy=occupancy)
 
 
 def latest_checkpoint(run_dir: Path) -> Path:
@@ -236,7 +303,7 @@ def read_pipeline(path: Path) -> dict[str, torch.Tensor]:
     state = {}
     for key, value in pipeline.items():
         name = re.sub(r"^_model\.(module\.)?", "", str(key))
-        if name.startswith(("field.", "proposal_networks.")):
+        if name.startswith(("field.", "proposal_networks.", "occupancy_grid.")):
             state[name] = value.detach().to(torch.float32)
     if not state:
         raise UserError(f"{path}: holds no nerfacto field (no _model.field.* tensors)")
@@ -484,7 +551,7 @@ def import_nerfstudio(run_dir: Path, out_dir: Path, data: Path | None = None, fo
     generation = key_generation(state, str(checkpoint))
     if generation != settings.implementation:
         settings = NerfactoSettings(**{**settings.__dict__, "implementation": generation})  # tcnn fell back to torch
-    field_settings = field_config(settings)
+    field_settings = field_config(settings, grid_sampler(state, settings, str(checkpoint)) if settings.marcher else None)
     field = NerfactoField(field_settings)
     field.load_state_dict(field_state(state, field_settings, settings, str(checkpoint)))
     transform, scale = dataparser_transform(run_dir)

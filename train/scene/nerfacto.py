@@ -51,6 +51,21 @@ class SamplerConfig:
 
 
 @dataclass(frozen=True)
+class GridSamplerConfig:
+    """nerfstudio's instant-ngp sampler, nerfacc's occupancy grid (runtime.grid_marching): occupancy is one bit
+    per cell, C order [level, x, y, z], base64 (runtime.fields.nerfacto.checked_grid_sampler)."""
+
+    step: float
+    cone_angle: float
+    near: float
+    far: float
+    levels: int
+    resolution: int
+    aabb: tuple[float, ...]
+    occupancy: str
+
+
+@dataclass(frozen=True)
 class NerfactoConfig(GridFieldDims):
     """Architecture of an imported nerfacto field (runtime.fields.nerfacto's keys)."""
 
@@ -66,7 +81,7 @@ class NerfactoConfig(GridFieldDims):
     colour_layers: int
     density_scale: float
     proposals: tuple[ProposalConfig, ...]
-    sampler: SamplerConfig
+    sampler: SamplerConfig | GridSamplerConfig  # the proposal sampler, or instant-ngp's grid where proposals is ()
 
     @property
     def position_dims(self) -> int:
@@ -85,7 +100,7 @@ class NerfactoConfig(GridFieldDims):
         return NerfactoConfig(**{
             **tuples({k: v for k, v in checked.items() if k != "kind"}),
             "proposals": tuple(ProposalConfig(**tuples(p)) for p in checked["proposals"]),
-            "sampler": SamplerConfig(**tuples(checked["sampler"]))})
+            "sampler": (SamplerConfig if checked["proposals"] else GridSamplerConfig)(**tuples(checked["sampler"]))})
 
 
 def contracted_unit(points: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -120,7 +135,8 @@ class ProposalNetwork(nn.Module):
 
 
 class NerfactoField(HashGridField):
-    """F(enc(contract(x)) + δ_x, SH(d) + δ_d) -> (rgb, σ), nerfacto's field; `proposals` its proposal networks."""
+    """F(enc(contract(x)) + δ_x, SH(d) + δ_d) -> (rgb, σ), nerfacto's field; `proposals` its proposal networks
+    (none for nerfstudio's instant-ngp)."""
 
     def __init__(self, config: NerfactoConfig):
         nn.Module.__init__(self)

@@ -26,7 +26,8 @@ from noisenerf.runtime.fingerprint import WeightsDigests, weights_digests
 from noisenerf.runtime.networks import render_network
 from noisenerf.runtime.occupancy import OccupancyGrid
 from noisenerf.runtime.pdf import Hierarchy
-from noisenerf.runtime.fields import proposal_sampler
+from noisenerf.runtime.fields import grid_sampler, proposal_sampler
+from noisenerf.runtime.grid_marching import GridMarching, GridMarchingSampler
 from noisenerf.runtime.proposal import ProposalSampler, ProposalSampling
 from noisenerf.runtime.render import HierarchicalSampler, MarchingSampler, RenderConfig, Sampler
 from noisenerf.train.scene.field_kinds import Field, FieldConfigs, build_field, config_from_dict
@@ -119,6 +120,9 @@ class Scene:
         if proposals is not None:
             return ProposalSampler(ProposalSampling.from_architecture(proposals),
                                    tuple(numpy_density(network) for network in self.coarse.proposals))
+        marching = grid_sampler(self.config.architecture())
+        if marching is not None:
+            return GridMarchingSampler(GridMarching.from_architecture(marching))
         if self.hierarchy is not None:
             return HierarchicalSampler(self.config.render, numpy_field(self.coarse), self.hierarchy)
         return MarchingSampler(self.config.render, self.grid, skip)

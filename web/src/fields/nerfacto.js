@@ -5,14 +5,15 @@
 // fit) or `torch` (cell of scale·u, every level hashed), the float32 scales stored per level. Direction: SH of degree
 // ≤ 4 in tiny-cuda-nn's convention (`tcnn`), or nerfstudio's torch SH, the polynomial at (d + 1)/2 with the odd-m
 // rows negated (`torch`). σ = density_scale·exp(min(raw, 30))·selector; colour as the hash grid's. Proposal networks:
-// their own grid on the same u and a ReLU MLP to one raw density, σ as above, outputs sigma_proposal0, … (no noise).
+// their own grid on the same u and a ReLU MLP to one raw density, σ as above, outputs sigma_proposal0, … (no noise);
+// none for nerfstudio's instant-ngp, whose sampler is nerfacc's occupancy grid.
 //
 // Float32 constants are numpy's to the bit: the scales, JSON floats, are rounded through float32 (Math.fround) as the
 // Python check rounds them, density.scale is float32(density_scale), the torch SH's signs multiply the float32 matrix.
 
 import { UserError, cut } from "../errors.js";
 import {
-  MAX_FIELD_WIDTH, MAX_HASH_FEATURES, MAX_HASH_LEVELS, MAX_HASH_RESOLUTION, MAX_LOG2_TABLE, MAX_PROPOSAL_NETWORKS,
+  MAX_FIELD_WIDTH, MAX_GRID_RESOLUTION, MAX_HASH_FEATURES, MAX_HASH_LEVELS, MAX_HASH_RESOLUTION, MAX_LOG2_TABLE, MAX_PROPOSAL_NETWORKS,
   MAX_SAMPLES_PER_RAY, MAX_TABLE_VALUES, checkedFloat, checkedInt, checkedList,
 } from "../limits.js";
 import { proposalOutput } from "../graph.js";
@@ -27,6 +28,8 @@ const KEYS = ["kind", "implementation", "features", "log2_table", "scales", "den
   "colour_hidden", "colour_layers", "density_scale", "proposals", "sampler"];
 const PROPOSAL_KEYS = ["features", "log2_table", "scales", "hidden"];
 const SAMPLER_KEYS = ["proposal_samples", "samples", "histogram_padding", "near", "far"];
+const GRID_SAMPLER_KEYS = ["step", "cone_angle", "near", "far", "levels", "resolution", "aabb", "occupancy"];
+const MAX_GRID_LEVELS = 8; // nerfacc's cascades (nerfstudio's instant-ngp: 4)
 // nerfstudio's torch SH (nerfstudio.utils.spherical_harmonics) against tiny-cuda-nn's: odd-m rows negated
 const TORCH_SH_SIGNS = [1, -1, 1, -1, 1, -1, 1, -1, 1, -1, 1, -1, 1, -1, 1, -1];
 const f32 = Math.fround;
@@ -83,6 +86,47 @@ function checkedSampler(config, proposals, what) {
     histogram_padding: checkedFloat(config.histogram_padding, `${what} histogram_padding`, 0.0, 1.0,
       { code: "field.histogram_padding" }),
     near, far,
+  };
+}
+
+/** checked_grid_sampler: nerfstudio's instant-ngp sampler (nerfacc's occupancy grid, rendered by the Python runtime's
+ * runtime/grid_marching.py): step, cone angle, ray interval, levels, cells per side, scene box, occupancy (one bit per
+ * cell, base64), its size checked without decoding it. */
+function checkedGridSampler(config, what) {
+  if (!hasExactly(config, GRID_SAMPLER_KEYS)) {
+    throw new UserError(`the ${what} network's grid sampler must have exactly ${exactly(GRID_SAMPLER_KEYS)}`,
+      { code: "field.sampler_keys", network: what });
+  }
+  const near = checkedFloat(config.near, `${what} sampler near`, 0.0, 1e9, { code: "field.sampler_near" });
+  const far = checkedFloat(config.far, `${what} sampler far`, 0.0, 1e9, { code: "field.sampler_far" });
+  if (!(near < far)) {
+    throw new UserError(`the ${what} network's sampler needs near < far, got ${near}, ${far}`,
+      { code: "field.near_far", network: what, near, far });
+  }
+  const levels = checkedInt(config.levels, `${what} grid levels`, 1, MAX_GRID_LEVELS, { code: "field.grid_levels" });
+  const resolution = checkedInt(config.resolution, `${what} grid resolution`, 1, MAX_GRID_RESOLUTION,
+    { code: "field.grid_resolution" });
+  const aabb = checkedList(config.aabb, `${what} grid aabb`, 6, undefined, { code: "field.grid_aabb" })
+    .map((v) => checkedFloat(v, `${what} grid aabb`, -1e9, 1e9, { code: "field.grid_aabb" }));
+  if (![0, 1, 2].every((i) => aabb[i] < aabb[i + 3])) {
+    throw new UserError(`the ${what} network's grid aabb must have min < max on every axis`, { code: "field.grid_aabb", network: what });
+  }
+  if (levels * resolution ** 3 > MAX_GRID_RESOLUTION ** 3) {
+    throw new UserError(`the ${what} network's grid holds ${levels} x ${resolution}^3 cells, more than ${MAX_GRID_RESOLUTION}^3`,
+      { code: "field.grid_cells", network: what });
+  }
+  const needed = Math.ceil(levels * resolution ** 3 / 8);
+  const text = config.occupancy;
+  const valid = typeof text === "string" && text.length === 4 * Math.ceil(needed / 3) && /^[A-Za-z0-9+/]*={0,2}$/.test(text)
+    && (text.length / 4) * 3 - (text.endsWith("==") ? 2 : text.endsWith("=") ? 1 : 0) === needed;
+  if (!valid) {
+    throw new UserError(`the ${what} network's grid occupancy must be ${needed} bytes in base64 (levels x resolution^3 bits)`,
+      { code: "field.grid_occupancy", network: what, needed });
+  }
+  return {
+    step: checkedFloat(config.step, `${what} sampler step`, 1e-9, 1e9, { code: "field.sampler_step" }),
+    cone_angle: checkedFloat(config.cone_angle, `${what} cone angle`, 0.0, 1.0, { code: "field.cone_angle" }),
+    near, far, levels, resolution, aabb, occupancy: text,
   };
 }
 
@@ -147,12 +191,9 @@ export const NERFACTO = {
       ...checkedMlps(config, what),
       density_scale: checkedFloat(config.density_scale, `${what} density_scale`, 1e-12, 1e12, { code: "field.density_scale" }) };
     const proposals = checkedList(config.proposals, `${what} proposals`, null, MAX_PROPOSAL_NETWORKS, { code: "field.proposals" });
-    if (!proposals.length) {
-      throw new UserError(`the ${what} network needs a proposal network (its sampler has a stage per network)`,
-        { code: "field.no_proposals", network: what });
-    }
     checked.proposals = proposals.map((proposal, i) => checkedProposal(proposal, implementation, `${what} proposal network ${i}`));
-    checked.sampler = checkedSampler(config.sampler, proposals.length, what);
+    checked.sampler = proposals.length ? checkedSampler(config.sampler, proposals.length, what)
+      : checkedGridSampler(config.sampler, what);
     const values = [checked, ...checked.proposals].reduce((sum, grid) => (
       sum + gridLayout(implementation, grid.scales, grid.log2_table).totalRows * grid.features), 0);
     if (values > MAX_TABLE_VALUES) {
@@ -166,9 +207,10 @@ export const NERFACTO = {
     return [segment("position", config.scales.length * config.features), segment("direction", config.sh_degree ** 2)];
   },
 
-  /** The sampler of ordinary renders: one proposal stage per proposal network (outputs sigma_proposal0, …). */
+  /** The sampler of ordinary renders: one proposal stage per proposal network (outputs sigma_proposal0, …); null for
+   * nerfstudio's instant-ngp (no proposal networks: its sampler is nerfacc's occupancy grid). */
   proposalSampler(config) {
-    return config.sampler;
+    return Array.isArray(config.proposals) && !config.proposals.length ? null : config.sampler;
   },
 
   build(builder, prefix, config, rgb, sigma) {
