@@ -641,10 +641,13 @@ class IngpNetwork:
     aabb_scale: int = 1
     width: int = 64
     colour_layers: int = 2
+    stated_scale: float | None = None  # the config's per_level_scale, where it states one
 
     @property
     def per_level_scale(self) -> float:
-        """testbed.cu:4245–4252, in float32."""
+        """The stated one, else testbed.cu:4245–4252's, in float32."""
+        if self.stated_scale is not None:
+            return self.stated_scale
         ratio = np.float32(2048.0 * self.aabb_scale / self.base_resolution)
         return float(np.exp(np.float32(np.log(ratio)) / np.float32(self.levels - 1)))
 
@@ -694,7 +697,7 @@ def look_at_cameras(n: int, radius: float, centre, size: int, seed: int) -> list
 
 def ngp_snapshot(network: IngpNetwork, params: np.ndarray, poses_ngp: list[np.ndarray], size: int, *,
                  params_type: str = "__half", mode: str = "nerf", lens: dict | None = None,
-                 state_per_level_scale: bool = True) -> dict:
+                 state_per_level_scale: bool = True, focal: float | None = None) -> dict:
     """The msgpack object Instant-NGP's save_snapshot writes (src/testbed.cu:5288–5345): base.json's config and the
     snapshot; `poses_ngp`: cameras in Instant-NGP's frame, OpenGL axes (turned into its own, y and z flipped)."""
     encoding = {"otype": "HashGrid", "n_levels": network.levels, "n_features_per_level": network.features,
@@ -706,7 +709,8 @@ def ngp_snapshot(network: IngpNetwork, params: np.ndarray, poses_ngp: list[np.nd
     half = 0.5 * min(network.aabb_scale, 128)
     xforms = [{"start": (pose[:3] * np.array([1.0, -1.0, -1.0, 1.0])).tolist(),
                "end": (pose[:3] * np.array([1.0, -1.0, -1.0, 1.0])).tolist()} for pose in poses_ngp]
-    metadata = [{"focal_length": [size * 1.1, size * 1.1], "principal_point": [0.5, 0.5], "resolution": [size, size],
+    focal = focal or size * 1.1
+    metadata = [{"focal_length": [focal, focal], "principal_point": [0.5, 0.5], "resolution": [size, size],
                  "rolling_shutter": [0.0, 0.0, 0.0, 0.0], "lens": lens} for _ in poses_ngp]
     return {
         "loss": {"otype": "Huber"}, "optimizer": {"otype": "Ema", "decay": 0.95},
@@ -766,3 +770,33 @@ def ngp_spec_field(network: IngpNetwork, params: np.ndarray, points: np.ndarray,
     widths = (network.width,) * network.colour_layers + (3,)
     raw_rgb, _ = tcnn_mlp(flat[used:], colour_in, widths, 1.0)
     return 1 / (1 + np.exp(-raw_rgb)), np.exp(density[:, 0])
+
+
+def scene_snapshot(scene) -> tuple[dict, IngpNetwork, np.ndarray]:
+    """A hash-grid scene fitted with FitConfig.tcnn_layout (Instant-NGP's own network) written as Instant-NGP's
+    snapshot: its box [−h, h]³ as Instant-NGP's with aabb_scale 2h (scale 1, offset 0.5), its MLPs as tiny-cuda-nn's
+    matrices (the density MLP's copy of the raw density dropped, the colour MLP's columns as [density outputs ‖
+    SH], outputs padded to 16), its table as the grid; its cameras (square, centred). -> (snapshot, network,
+    params)."""
+    config = scene.config.coarse
+    weights = {name.split(".", 1)[1]: value for name, value in scene.weight_arrays().items()}
+    half = config.aabb[3]
+    assert config.aabb == (-half,) * 3 + (half,) * 3 and float(2 * half).is_integer() and config.geo_features == 16
+    network = IngpNetwork(config.levels, config.features, config.log2_table, config.base_resolution, int(2 * half),
+                          config.density_hidden, config.colour_layers, np.float32(config.per_level_scale).item())
+    density1 = weights["density_linears.1.weight"]
+    assert np.array_equal(density1[0], density1[1])
+    colour0 = weights["colour_linears.0.weight"]
+    last = weights[f"colour_linears.{config.colour_layers}.weight"]
+    matrices = [weights["density_linears.0.weight"], density1[1:], np.concatenate([colour0[:, 16:], colour0[:, :16]], 1),
+                *(weights[f"colour_linears.{i}.weight"] for i in range(1, config.colour_layers)),
+                np.concatenate([last, np.zeros((13, last.shape[1]), np.float32)])]
+    params = np.concatenate([m.ravel() for m in matrices] + [weights["table"].ravel()]).astype(np.float16)
+    poses = []
+    for camera in scene.config.cameras:
+        pose = camera.matrix().astype(np.float64)
+        pose[:3, 3] += 0.5  # Instant-NGP's offset
+        poses.append(pose)
+    first = scene.config.cameras[0]
+    assert first.width == first.height and first.cx == first.width / 2
+    return ngp_snapshot(network, params, poses, first.width, focal=first.fx), network, params

@@ -139,6 +139,52 @@ def test_the_capture_gives_the_cameras_moved_into_instant_ngps_frame(tmp_path, c
         assert np.allclose(a["c2w"], b["c2w"], atol=1e-9) and np.allclose([a["fx"], a["cx"]], [b["fx"], b["cx"]])
 
 
+def test_a_lego_fit_written_as_a_snapshot_imports_and_hides_exactly(shared_data, tmp_path, capfd):
+    """`noisenerf fit`'s code fits lego (32 px, 400 steps: 25 dB) with Instant-NGP's own network
+    (FitConfig.tcnn_layout: 8 levels x 4 features, no biases, the colour MLP reading all 16 density outputs); written
+    as a snapshot
+    (float16, Instant-NGP's frame), it imports to Instant-NGP's field evaluated independently, renders what the
+    fit renders (its weights rounded to float16), and hides a photo exactly."""
+    import dataclasses
+
+    import torch
+
+    from helpers import scene_snapshot
+    from noisenerf.train.scene.datasets import load_dataset
+    from noisenerf.train.scene.fit import PRESETS, Budget, fit
+    from noisenerf.train.scene.hashgrid import HashGridConfig
+    from noisenerf.train.scene.occupancy import OccupancyConfig
+    from noisenerf.train.scene.scene import load_scene
+
+    config = dataclasses.replace(PRESETS["hashgrid"], field=HashGridConfig(levels=8, features=4, log2_table=15,
+                                                                            geo_features=16), tcnn_layout=True,
+                                 occupancy=OccupancyConfig(warmup_steps=20), render_samples=None)
+    dataset = load_dataset(shared_data / "scenes" / "blender" / "lego", resolution=32)
+    report = fit(dataset, tmp_path / "fit", config, Budget(iters=400), torch.device("cpu"), curve_seconds=0)
+    assert report["test"]["psnr"] > 22
+    fitted = load_scene(tmp_path / "fit")
+    snapshot, network, params = scene_snapshot(fitted)
+    path = write_ingp(tmp_path / "lego.ingp", snapshot)
+    result = run_main(main, ["import-ingp", path, "-o", tmp_path / "scene"], capfd)
+    assert result.code in (0, None), result.err
+    assert main(["export", str(tmp_path / "scene"), "-o", str(tmp_path / "model.onnx")]) in (0, None)
+    model = load_model(tmp_path / "model.onnx")
+    aabb = (-1.0, -1.0, -1.0, 2.0, 2.0, 2.0)
+    assert model.grid.aabb.tolist() == list(aabb)
+    points, directions = field_points(aabb, 3000, 5)
+    rgb, sigma = model.field(points, directions)
+    want_rgb, want_sigma = ngp_spec_field(network, params, points, directions, aabb)
+    assert np.abs(rgb - want_rgb).max() < 2e-5 and np.allclose(np.ravel(sigma), want_sigma, rtol=2e-4, atol=1e-9)
+    with torch.no_grad():
+        fit_rgb, fit_sigma = fitted.render_field(torch.from_numpy(points - 0.5), torch.from_numpy(directions))
+    assert np.abs(rgb - fit_rgb.numpy()).max() < 0.02  # the same field, weights rounded to float16
+    secret = write_png(tmp_path / "secret.png", np.random.default_rng(2).integers(0, 256, (8, 10, 3), dtype=np.uint8))
+    result = run_main(main, ["hide", tmp_path / "scene", secret, "-o", tmp_path / "s.nnrf", "--view", "3"], capfd)
+    assert result.code in (0, None), result.err
+    revealed = run_reveal(tmp_path / "model.onnx", tmp_path / "s.nnrf", "-o", tmp_path / "out.png")
+    assert revealed.returncode == 0 and "exact" in revealed.stdout, revealed.stdout + revealed.stderr
+
+
 def hostile(tmp_path, case):
     snapshot, _ = snapshot_of(SMALL, seed=8)
     inner = snapshot["snapshot"]

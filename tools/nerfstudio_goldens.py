@@ -88,7 +88,9 @@ LENS_NOTES = [
 ]
 
 
-def _safe_globals():
+def safe_globals():
+    """The numpy names ``torch.load(weights_only=True)`` must allow (torch >= 2.6) in a nerfstudio
+    checkpoint's optimizer/scheduler state."""
     import numpy as np
 
     names = []
@@ -101,6 +103,136 @@ def _safe_globals():
     names.append(np.dtype)
     names.append(type(np.dtype(np.float64)))  # numpy.dtypes.Float64DType
     return names
+
+
+def load_run(run_dir: Path):
+    """nerfstudio's own ``eval_setup`` of RUN_DIR/config.yml (test mode, model in eval mode) and the raw
+    checkpoint (``torch.load`` with ``weights_only=True``, ``safe_globals()`` allowed).
+    Returns config, pipeline, checkpoint path, step, raw checkpoint."""
+    import torch
+    from nerfstudio.utils.eval_utils import eval_setup
+
+    with torch.serialization.safe_globals(safe_globals()):
+        config, pipeline, ckpt_path, step = eval_setup(run_dir / "config.yml", test_mode="test")
+        raw = torch.load(ckpt_path, map_location="cpu", weights_only=True)
+    pipeline.model.eval()
+    return config, pipeline, ckpt_path, step, raw
+
+
+def save_checkpoint_tensors(raw: dict, prefixes: tuple[str, ...], path: Path, dtype=None):
+    """The checkpoint's ``pipeline`` tensors whose keys start with one of ``prefixes`` (exact keys), cast to
+    ``dtype`` if one is given, saved to ``path`` with their original dtypes in the metadata
+    ``original_dtypes``.  Returns the tensors and the original dtypes."""
+    from safetensors.torch import save_file
+
+    weights, orig_dtypes = {}, {}
+    for k, v in raw["pipeline"].items():
+        if k.startswith(prefixes):
+            orig_dtypes[k] = str(v.dtype).replace("torch.", "")
+            v = v.detach() if dtype is None else v.detach().to(dtype)
+            weights[k] = v.contiguous().clone()
+    save_file(weights, str(path), metadata={"original_dtypes": json.dumps(orig_dtypes)})
+    return weights, orig_dtypes
+
+
+def copy_run_files(run_dir: Path, config, out_dir: Path) -> tuple[Path, Path]:
+    """Copy the run's config.yml and dataparser_transforms.json and its dataset's transforms.json into
+    ``out_dir``.  Returns the dataset path and its transforms.json."""
+    shutil.copy(run_dir / "config.yml", out_dir / "config.yml")
+    shutil.copy(run_dir / "dataparser_transforms.json", out_dir / "dataparser_transforms.json")
+    data_path = Path(config.pipeline.datamanager.dataparser.data)
+    tj = data_path if data_path.suffix == ".json" else data_path / "transforms.json"
+    shutil.copy(tj, out_dir / "transforms.json")
+    return data_path, tj
+
+
+def seeded_points(gen):
+    """``N_POINTS`` points and unit directions drawn from the torch generator ``gen`` (float32), and the
+    layout text for golden.json: points near the object, inside the box, between the box and the
+    contraction's edge, far away."""
+    import torch
+
+    n_in, n_mid = 24, 24
+    n_far = N_POINTS - n_in - n_mid
+    p_in = torch.rand(n_in, 3, generator=gen) * 2.0 - 1.0
+    p_in[: n_in // 2] *= 0.3  # half of them near the object (lego spans ~±0.25 after the dataparser)
+    v = torch.randn(n_mid, 3, generator=gen)
+    v = v / v.abs().amax(dim=-1, keepdim=True)  # on the inf-norm unit sphere
+    p_mid = v * (1.0 + 3.0 * torch.rand(n_mid, 1, generator=gen))  # inf-norm in [1, 4)
+    u = torch.randn(n_far, 3, generator=gen)
+    u = u / u.norm(dim=-1, keepdim=True)
+    p_far = u * (10.0 ** (1.0 + 2.0 * torch.rand(n_far, 1, generator=gen)))  # |p| in [10, 1000)
+    points = torch.cat([p_in, p_mid, p_far]).float()
+    dirs = torch.randn(N_POINTS, 3, generator=gen)
+    dirs = (dirs / dirs.norm(dim=-1, keepdim=True)).float()
+    layout = (
+        f"{n_in // 2} in [-0.3,0.3]^3, {n_in - n_in // 2} in [-1,1]^3, {n_mid} with inf-norm in [1,4), "
+        f"{n_far} with |p| in [10,1000)"
+    )
+    return points, dirs, layout
+
+
+def field_outputs_at(field, points, dirs):
+    """nerfstudio's ``field.forward`` (no normals) at ``points`` seen along ``dirs``: zero-length ray samples,
+    pixel area 1, camera index 0."""
+    import torch
+    from nerfstudio.cameras.rays import Frustums, RaySamples
+
+    n = points.shape[0]
+    rs = RaySamples(
+        frustums=Frustums(
+            origins=points,
+            directions=dirs,
+            starts=torch.zeros(n, 1),
+            ends=torch.zeros(n, 1),
+            pixel_area=torch.ones(n, 1),
+        ),
+        camera_indices=torch.zeros(n, 1, dtype=torch.long),
+    )
+    return field.forward(rs, compute_normals=False)
+
+
+def field_stages(field, points, dirs, hash_after_mlp: bool = False) -> dict:
+    """Intermediate values of a nerfacto field (``NerfactoField``, torch) at ``points``, from its own
+    sub-modules: the contraction ((p + 2) / 4, zeroed outside the open (0,1)^3), the hash features
+    (when the base MLP exposes its encoding), the base MLP's density before activation and geometric
+    features, the SH direction encoding.  ``hash_after_mlp`` lists the hash features after the MLP's
+    outputs (the order the ngp_torch golden has them in)."""
+    from nerfstudio.fields.base_field import get_normalized_directions
+
+    contracted = (field.spatial_distortion(points) + 2.0) / 4.0
+    selector = ((contracted > 0.0) & (contracted < 1.0)).all(dim=-1)
+    contracted = contracted * selector[..., None]
+    out = {"points_contracted": contracted.float(), "points_selector": selector.long()}
+    enc = field.mlp_base.model[0] if hasattr(field.mlp_base, "model") else None
+    hash_features = {"points_field_hash_features": enc(contracted).float()} if enc is not None else {}
+    h = field.mlp_base(contracted)
+    mlp = {
+        "points_field_density_before_activation": h[..., :1].float(),
+        "points_field_geo_features": h[..., 1:].float(),
+    }
+    out.update({**mlp, **hash_features} if hash_after_mlp else {**hash_features, **mlp})
+    out["points_field_sh"] = field.direction_encoding(get_normalized_directions(dirs)).float()
+    return out
+
+
+def save_golden_tensors(g: dict, out_dir: Path) -> dict:
+    """Write ``g`` (float32 and int64 tensors only) as OUT_DIR/golden.safetensors; returns the saved copies."""
+    import torch
+    from safetensors.torch import save_file
+
+    g = {k: v.detach().contiguous().clone() for k, v in g.items()}
+    for k, v in g.items():
+        assert v.dtype in (torch.float32, torch.int64), (k, v.dtype)
+    save_file(g, str(out_dir / "golden.safetensors"))
+    return g
+
+
+def write_golden_json(info: dict, out_dir: Path) -> None:
+    """Write OUT_DIR/golden.json and make every file in OUT_DIR mode 0644."""
+    (out_dir / "golden.json").write_text(json.dumps(info, indent=1, default=str) + "\n")
+    for f in out_dir.iterdir():
+        f.chmod(0o644)
 
 
 LENS_PIXELS_YX = [(0, 0), (0, 63), (63, 0), (63, 63), (32, 32)]
@@ -210,7 +342,6 @@ def _lens_check(cameras, idx: int, transforms: dict):
 def main() -> None:
     import numpy as np
     import torch
-    from safetensors.torch import save_file
 
     args = _parse_args()
     run_dir = args.run_dir.resolve()
@@ -220,33 +351,20 @@ def main() -> None:
     torch.set_num_threads(nerfstudio_train_tiny.NUM_THREADS)
 
     import nerfstudio
-    from nerfstudio.cameras.rays import Frustums, RaySamples
     from nerfstudio.field_components.field_heads import FieldHeadNames
-    from nerfstudio.utils.eval_utils import eval_setup
 
-    with torch.serialization.safe_globals(_safe_globals()):
-        config, pipeline, ckpt_path, step = eval_setup(run_dir / "config.yml", test_mode="test")
-        raw = torch.load(ckpt_path, map_location="cpu", weights_only=True)
+    config, pipeline, ckpt_path, step, raw = load_run(run_dir)
     model = pipeline.model
-    model.eval()
     dm = pipeline.datamanager
     mcfg = config.pipeline.model
 
     # ---- 1. weights ---------------------------------------------------------------------------
-    weights = {}
-    orig_dtypes = {}
-    for k, v in raw["pipeline"].items():
-        if k.startswith("_model.field.") or k.startswith("_model.proposal_networks."):
-            orig_dtypes[k] = str(v.dtype).replace("torch.", "")
-            weights[k] = v.detach().to(torch.float32).contiguous().clone()
-    save_file(weights, str(out_dir / "weights.safetensors"), metadata={"original_dtypes": json.dumps(orig_dtypes)})
+    weights, orig_dtypes = save_checkpoint_tensors(
+        raw, ("_model.field.", "_model.proposal_networks."), out_dir / "weights.safetensors", dtype=torch.float32
+    )
 
     # ---- 2. copies ------------------------------------------------------------------------------
-    shutil.copy(run_dir / "config.yml", out_dir / "config.yml")
-    shutil.copy(run_dir / "dataparser_transforms.json", out_dir / "dataparser_transforms.json")
-    data_path = Path(config.pipeline.datamanager.dataparser.data)
-    tj = data_path if data_path.suffix == ".json" else data_path / "transforms.json"
-    shutil.copy(tj, out_dir / "transforms.json")
+    data_path, tj = copy_run_files(run_dir, config, out_dir)
 
     # ---- 3. goldens -----------------------------------------------------------------------------
     g: dict[str, torch.Tensor] = {}
@@ -334,59 +452,21 @@ def main() -> None:
 
     # ---- field outputs at random points ---------------------------------------------------------
     gen = torch.Generator().manual_seed(POINT_SEED)
-    n_in, n_mid = 24, 24
-    n_far = N_POINTS - n_in - n_mid
-    p_in = torch.rand(n_in, 3, generator=gen) * 2.0 - 1.0
-    p_in[: n_in // 2] *= 0.3  # half of them near the object (lego spans ~±0.25 after the dataparser)
-    v = torch.randn(n_mid, 3, generator=gen)
-    v = v / v.abs().amax(dim=-1, keepdim=True)  # on the inf-norm unit sphere
-    p_mid = v * (1.0 + 3.0 * torch.rand(n_mid, 1, generator=gen))  # inf-norm in [1, 4)
-    u = torch.randn(n_far, 3, generator=gen)
-    u = u / u.norm(dim=-1, keepdim=True)
-    p_far = u * (10.0 ** (1.0 + 2.0 * torch.rand(n_far, 1, generator=gen)))  # |p| in [10, 1000)
-    points = torch.cat([p_in, p_mid, p_far]).float()
-    dirs = torch.randn(N_POINTS, 3, generator=gen)
-    dirs = (dirs / dirs.norm(dim=-1, keepdim=True)).float()
+    points, dirs, layout = seeded_points(gen)
     g["points"] = points
     g["points_directions"] = dirs
     with torch.no_grad():
-        rs = RaySamples(
-            frustums=Frustums(
-                origins=points,
-                directions=dirs,
-                starts=torch.zeros(N_POINTS, 1),
-                ends=torch.zeros(N_POINTS, 1),
-                pixel_area=torch.ones(N_POINTS, 1),
-            ),
-            camera_indices=torch.zeros(N_POINTS, 1, dtype=torch.long),
-        )
-        fo = model.field.forward(rs, compute_normals=False)
+        fo = field_outputs_at(model.field, points, dirs)
         g["points_density"] = fo[FieldHeadNames.DENSITY].float()
         g["points_rgb"] = fo[FieldHeadNames.RGB].float()
         for i, fn in enumerate(model.density_fns):
             g[f"points_prop{i}_density"] = fn(points).float()
         # intermediate values of the nerfacto field, from its own sub-modules
         field = model.field
-        contracted = (field.spatial_distortion(points) + 2.0) / 4.0
-        selector = ((contracted > 0.0) & (contracted < 1.0)).all(dim=-1)
-        contracted = contracted * selector[..., None]
-        g["points_contracted"] = contracted.float()
-        g["points_selector"] = selector.long()
-        enc = field.mlp_base.model[0] if hasattr(field.mlp_base, "model") else None
-        if enc is not None:
-            g["points_field_hash_features"] = enc(contracted).float()
-        h = field.mlp_base(contracted)
-        g["points_field_density_before_activation"] = h[..., :1].float()
-        g["points_field_geo_features"] = h[..., 1:].float()
-        from nerfstudio.fields.base_field import get_normalized_directions
-
-        g["points_field_sh"] = field.direction_encoding(get_normalized_directions(dirs)).float()
+        g.update(field_stages(field, points, dirs))
         g["field_mean_appearance_embedding"] = field.embedding_appearance.mean(dim=0).float()
 
-    g = {k: (v.detach().contiguous().clone()) for k, v in g.items()}
-    for k, v in g.items():
-        assert v.dtype in (torch.float32, torch.int64), (k, v.dtype)
-    save_file(g, str(out_dir / "golden.safetensors"))
+    g = save_golden_tensors(g, out_dir)
 
     # ---- golden.json -----------------------------------------------------------------------------
     import nerfacc
@@ -469,16 +549,14 @@ def main() -> None:
             "max_abs_diff_vs_full_render": rays_vs_render,
         },
         "points": {
-            "layout": f"{n_in // 2} in [-0.3,0.3]^3, {n_in - n_in // 2} in [-1,1]^3, {n_mid} with inf-norm in [1,4), {n_far} with |p| in [10,1000)",
+            "layout": layout,
             "appearance": "eval mode: mean of the train appearance embeddings",
         },
         **({"lens": lens_info} if lens_info else {}),
         "tensors": {k: {"shape": list(v.shape), "dtype": str(v.dtype).replace("torch.", "")} for k, v in g.items()},
         "weights": {k: {"shape": list(v.shape), "original_dtype": orig_dtypes[k]} for k, v in weights.items()},
     }
-    (out_dir / "golden.json").write_text(json.dumps(info, indent=1, default=str) + "\n")
-    for f in out_dir.iterdir():
-        f.chmod(0o644)
+    write_golden_json(info, out_dir)
     print(json.dumps({"cameras": cam_info, "rays": info["rays"], "lens": lens_info}, indent=1))
 
 

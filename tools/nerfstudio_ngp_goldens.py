@@ -49,16 +49,15 @@ from __future__ import annotations
 
 import argparse
 import json
-import shutil
 import sys
 import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
+import nerfstudio_goldens  # noqa: E402  (shared with the nerfacto goldens)
 import nerfstudio_train_tiny  # noqa: E402  (installs the import-time stand-ins)
 
-POINT_SEED = 1234
-N_POINTS = 64
+POINT_SEED = nerfstudio_goldens.POINT_SEED  # the points are the nerfacto goldens' (seeded_points)
 HASH_SEED = 5  # --hash-table-scale: torch.Generator seed of the re-drawn hash table
 OCC_UPDATE_SEED = 7  # torch seed right before the occupancy update (its per-cell jitter)
 OCC_SAMPLE_SEED = 99  # which cells' update samples are kept in the golden
@@ -72,65 +71,26 @@ TIMESTAMP = "2026-01-01_000000"
 def _ngp_method_config():
     """nerfstudio 1.1.5's ``method_configs["instant-ngp"]`` (configs/method_configs.py:251-273),
     built from nerfstudio's own classes with the same values."""
-    from nerfstudio.configs.base_config import ViewerConfig
     from nerfstudio.data.datamanagers.base_datamanager import VanillaDataManagerConfig
-    from nerfstudio.data.dataparsers.nerfstudio_dataparser import NerfstudioDataParserConfig
-    from nerfstudio.engine.optimizers import AdamOptimizerConfig
-    from nerfstudio.engine.schedulers import ExponentialDecaySchedulerConfig
-    from nerfstudio.engine.trainer import TrainerConfig
     from nerfstudio.models.instant_ngp import InstantNGPModelConfig
     from nerfstudio.pipelines.dynamic_batch import DynamicBatchPipelineConfig
 
-    return TrainerConfig(
-        method_name="instant-ngp",
-        steps_per_eval_batch=500,
-        steps_per_save=2000,
-        max_num_iterations=30000,
-        mixed_precision=True,
-        pipeline=DynamicBatchPipelineConfig(
-            datamanager=VanillaDataManagerConfig(
-                dataparser=NerfstudioDataParserConfig(),
-                train_num_rays_per_batch=4096,
-                eval_num_rays_per_batch=4096,
-            ),
-            model=InstantNGPModelConfig(eval_num_rays_per_chunk=8192),
-        ),
-        optimizers={
-            "fields": {
-                "optimizer": AdamOptimizerConfig(lr=1e-2, eps=1e-15),
-                "scheduler": ExponentialDecaySchedulerConfig(lr_final=0.0001, max_steps=200000),
-            }
-        },
-        viewer=ViewerConfig(num_rays_per_chunk=1 << 12),
-        vis="viewer",
+    return nerfstudio_train_tiny.method_config(
+        "instant-ngp",
+        DynamicBatchPipelineConfig,
+        VanillaDataManagerConfig,
+        InstantNGPModelConfig(eval_num_rays_per_chunk=8192),
+        {"fields": nerfstudio_train_tiny.adam_exponential(1e-2, 0.0001, 200000)},
+        1 << 12,
     )
 
 
 def _add_ngp_to_method_table() -> None:
-    import tyro
-
     mc = sys.modules["nerfstudio.configs.method_configs"]
     if "instant-ngp" not in mc.method_configs:
         mc.method_configs["instant-ngp"] = _ngp_method_config()
         mc.descriptions["instant-ngp"] = "Implementation of Instant-NGP. Recommended real-time model for unbounded scenes."
-        mc.AnnotatedBaseConfigUnion = tyro.conf.SuppressFixed[
-            tyro.conf.FlagConversionOff[
-                tyro.extras.subcommand_type_from_defaults(defaults=mc.method_configs, descriptions=mc.descriptions)
-            ]
-        ]
-
-
-def _safe_globals():
-    import numpy as np
-
-    names = []
-    for modname in ("numpy._core.multiarray", "numpy.core.multiarray"):
-        try:
-            names.append(__import__(modname, fromlist=["scalar"]).scalar)
-        except Exception:  # pragma: no cover
-            pass
-    names += [np.dtype, type(np.dtype(np.float64))]
-    return names
+        mc.AnnotatedBaseConfigUnion = nerfstudio_train_tiny.method_union(mc.method_configs, mc.descriptions)
 
 
 def make_run(args) -> tuple[Path, list[str], dict]:
@@ -211,28 +171,6 @@ def make_run(args) -> tuple[Path, list[str], dict]:
     return base_dir, ns_args, update
 
 
-def _points(gen):
-    import torch
-
-    n_in, n_mid = 24, 24
-    n_far = N_POINTS - n_in - n_mid
-    p_in = torch.rand(n_in, 3, generator=gen) * 2.0 - 1.0
-    p_in[: n_in // 2] *= 0.3
-    v = torch.randn(n_mid, 3, generator=gen)
-    v = v / v.abs().amax(dim=-1, keepdim=True)
-    p_mid = v * (1.0 + 3.0 * torch.rand(n_mid, 1, generator=gen))
-    u = torch.randn(n_far, 3, generator=gen)
-    u = u / u.norm(dim=-1, keepdim=True)
-    p_far = u * (10.0 ** (1.0 + 2.0 * torch.rand(n_far, 1, generator=gen)))
-    dirs = torch.randn(N_POINTS, 3, generator=gen)
-    dirs = dirs / dirs.norm(dim=-1, keepdim=True)
-    layout = (
-        f"{n_in // 2} in [-0.3,0.3]^3, {n_in - n_in // 2} in [-1,1]^3, {n_mid} with inf-norm in [1,4), "
-        f"{n_far} with |p| in [10,1000)"
-    )
-    return torch.cat([p_in, p_mid, p_far]).float(), dirs.float(), layout
-
-
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("out_dir", type=Path)
@@ -257,7 +195,6 @@ def main() -> None:
 
     import numpy as np
     import torch
-    from safetensors.torch import save_file
 
     torch.set_num_threads(nerfstudio_train_tiny.NUM_THREADS)
     t_start = time.time()
@@ -269,24 +206,17 @@ def main() -> None:
     from nerfacc.volrend import render_visibility_from_density, render_weight_from_density
     from nerfstudio.cameras.rays import Frustums, RaySamples
     from nerfstudio.field_components.field_heads import FieldHeadNames
-    from nerfstudio.utils.eval_utils import eval_setup
 
-    with torch.serialization.safe_globals(_safe_globals()):
-        config, pipeline, ckpt_path, step = eval_setup(run_dir / "config.yml", test_mode="test")
-        raw = torch.load(ckpt_path, map_location="cpu", weights_only=True)
+    config, pipeline, ckpt_path, step, raw = nerfstudio_goldens.load_run(run_dir)
     model = pipeline.model
-    model.eval()
     mcfg = config.pipeline.model
     field = model.field
     grid = model.occupancy_grid
 
     # ---- 1. weights (exact dtypes) --------------------------------------------------------------
-    weights, orig_dtypes = {}, {}
-    for k, v in raw["pipeline"].items():
-        if k.startswith("_model.field.") or k.startswith("_model.occupancy_grid."):
-            orig_dtypes[k] = str(v.dtype).replace("torch.", "")
-            weights[k] = v.detach().contiguous().clone()
-    save_file(weights, str(out_dir / "weights.safetensors"), metadata={"original_dtypes": json.dumps(orig_dtypes)})
+    weights, orig_dtypes = nerfstudio_goldens.save_checkpoint_tensors(
+        raw, ("_model.field.", "_model.occupancy_grid."), out_dir / "weights.safetensors"
+    )
     other_keys = sorted(k for k in raw["pipeline"] if k not in weights)
     other_keys_summary = sorted({".".join(k.split(".")[:2]) for k in other_keys})
 
@@ -298,47 +228,21 @@ def main() -> None:
     )
 
     # ---- 2. copies --------------------------------------------------------------------------------
-    shutil.copy(run_dir / "config.yml", out_dir / "config.yml")
-    shutil.copy(run_dir / "dataparser_transforms.json", out_dir / "dataparser_transforms.json")
-    data_path = Path(config.pipeline.datamanager.dataparser.data)
-    tj = data_path if data_path.suffix == ".json" else data_path / "transforms.json"
-    shutil.copy(tj, out_dir / "transforms.json")
+    nerfstudio_goldens.copy_run_files(run_dir, config, out_dir)
 
     g: dict[str, torch.Tensor] = {}
 
     # ---- 3. field at seeded points ----------------------------------------------------------------
     gen = torch.Generator().manual_seed(POINT_SEED)
-    points, dirs, layout = _points(gen)
+    points, dirs, layout = nerfstudio_goldens.seeded_points(gen)
     g["points"] = points
     g["points_directions"] = dirs
     with torch.no_grad():
-        rs = RaySamples(
-            frustums=Frustums(
-                origins=points,
-                directions=dirs,
-                starts=torch.zeros(N_POINTS, 1),
-                ends=torch.zeros(N_POINTS, 1),
-                pixel_area=torch.ones(N_POINTS, 1),
-            ),
-            camera_indices=torch.zeros(N_POINTS, 1, dtype=torch.long),
-        )
-        fo = field.forward(rs, compute_normals=False)
+        fo = nerfstudio_goldens.field_outputs_at(field, points, dirs)
         g["points_density"] = fo[FieldHeadNames.DENSITY].float()
         g["points_rgb"] = fo[FieldHeadNames.RGB].float()
         g["points_density_fn"] = field.density_fn(points).float()  # what the occupancy update evaluates
-        contracted = (field.spatial_distortion(points) + 2.0) / 4.0
-        selector = ((contracted > 0.0) & (contracted < 1.0)).all(dim=-1)
-        contracted = contracted * selector[..., None]
-        g["points_contracted"] = contracted.float()
-        g["points_selector"] = selector.long()
-        h = field.mlp_base(contracted)
-        g["points_field_density_before_activation"] = h[..., :1].float()
-        g["points_field_geo_features"] = h[..., 1:].float()
-        if hasattr(field.mlp_base, "model"):
-            g["points_field_hash_features"] = field.mlp_base.model[0](contracted).float()
-        from nerfstudio.fields.base_field import get_normalized_directions
-
-        g["points_field_sh"] = field.direction_encoding(get_normalized_directions(dirs)).float()
+        g.update(nerfstudio_goldens.field_stages(field, points, dirs, hash_after_mlp=True))
         # occupancy lookup of the points with nerfacc's own (torch) grid query
         occ_q, occ_sel = _query(points, grid.binaries.float(), grid.aabbs[0])
         g["points_occupancy_query"] = occ_q.float()
@@ -436,10 +340,7 @@ def main() -> None:
         except Exception as e:  # noqa: BLE001
             eval_path[name] = f"fails: {type(e).__name__}: {str(e).splitlines()[0][:160]}"
 
-    g = {k: v.detach().contiguous().clone() for k, v in g.items()}
-    for k, v in g.items():
-        assert v.dtype in (torch.float32, torch.int64), (k, v.dtype)
-    save_file(g, str(out_dir / "golden.safetensors"))
+    g = nerfstudio_goldens.save_golden_tensors(g, out_dir)
 
     # ---- golden.json --------------------------------------------------------------------------------
     import torchmetrics
@@ -568,9 +469,7 @@ def main() -> None:
         "tensors": {k: {"shape": list(v.shape), "dtype": str(v.dtype).replace("torch.", "")} for k, v in g.items()},
         "weights": {k: {"shape": list(v.shape), "dtype": orig_dtypes[k]} for k, v in weights.items()},
     }
-    (out_dir / "golden.json").write_text(json.dumps(info, indent=1, default=str) + "\n")
-    for f in out_dir.iterdir():
-        f.chmod(0o644)
+    nerfstudio_goldens.write_golden_json(info, out_dir)
     print(json.dumps({k: info[k] for k in ("model", "cpu_eval_path", "timings_s", "reload_max_abs_diff")}, indent=1, default=str))
 
 

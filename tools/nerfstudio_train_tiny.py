@@ -111,53 +111,79 @@ def _alexnet_features_random():
     )
 
 
-def _nerfacto_method_configs():
-    """nerfstudio 1.1.5's ``method_configs["nerfacto"]`` (configs/method_configs.py),
-    built from nerfstudio's own classes with the same values."""
-    from nerfstudio.cameras.camera_optimizers import CameraOptimizerConfig
-    from nerfstudio.configs.base_config import ViewerConfig
-    from nerfstudio.data.datamanagers.parallel_datamanager import ParallelDataManagerConfig
-    from nerfstudio.data.dataparsers.nerfstudio_dataparser import NerfstudioDataParserConfig
+def adam_exponential(lr: float, lr_final: float, max_steps: int) -> dict:
+    """One ``optimizers`` entry of nerfstudio 1.1.5's method configs: Adam (eps 1e-15), exponential decay."""
     from nerfstudio.engine.optimizers import AdamOptimizerConfig
     from nerfstudio.engine.schedulers import ExponentialDecaySchedulerConfig
-    from nerfstudio.engine.trainer import TrainerConfig
-    from nerfstudio.models.nerfacto import NerfactoModelConfig
-    from nerfstudio.pipelines.base_pipeline import VanillaPipelineConfig
 
-    nerfacto = TrainerConfig(
-        method_name="nerfacto",
+    return {
+        "optimizer": AdamOptimizerConfig(lr=lr, eps=1e-15),
+        "scheduler": ExponentialDecaySchedulerConfig(lr_final=lr_final, max_steps=max_steps),
+    }
+
+
+def method_config(method_name: str, pipeline_cls, datamanager_cls, model, optimizers: dict, viewer_rays: int):
+    """The ``TrainerConfig`` that nerfstudio 1.1.5's configs/method_configs.py writes for ``nerfacto`` and
+    ``instant-ngp`` (the values the two share fixed; the pipeline and datamanager classes, the model
+    config, the optimizers and the viewer's rays per chunk given), built from nerfstudio's own classes."""
+    from nerfstudio.configs.base_config import ViewerConfig
+    from nerfstudio.data.dataparsers.nerfstudio_dataparser import NerfstudioDataParserConfig
+    from nerfstudio.engine.trainer import TrainerConfig
+
+    return TrainerConfig(
+        method_name=method_name,
         steps_per_eval_batch=500,
         steps_per_save=2000,
         max_num_iterations=30000,
         mixed_precision=True,
-        pipeline=VanillaPipelineConfig(
-            datamanager=ParallelDataManagerConfig(
+        pipeline=pipeline_cls(
+            datamanager=datamanager_cls(
                 dataparser=NerfstudioDataParserConfig(),
                 train_num_rays_per_batch=4096,
                 eval_num_rays_per_batch=4096,
             ),
-            model=NerfactoModelConfig(
-                eval_num_rays_per_chunk=1 << 15,
-                average_init_density=0.01,
-                camera_optimizer=CameraOptimizerConfig(mode="SO3xR3"),
-            ),
+            model=model,
         ),
-        optimizers={
-            "proposal_networks": {
-                "optimizer": AdamOptimizerConfig(lr=1e-2, eps=1e-15),
-                "scheduler": ExponentialDecaySchedulerConfig(lr_final=0.0001, max_steps=200000),
-            },
-            "fields": {
-                "optimizer": AdamOptimizerConfig(lr=1e-2, eps=1e-15),
-                "scheduler": ExponentialDecaySchedulerConfig(lr_final=0.0001, max_steps=200000),
-            },
-            "camera_opt": {
-                "optimizer": AdamOptimizerConfig(lr=1e-3, eps=1e-15),
-                "scheduler": ExponentialDecaySchedulerConfig(lr_final=1e-4, max_steps=5000),
-            },
-        },
-        viewer=ViewerConfig(num_rays_per_chunk=1 << 15),
+        optimizers=optimizers,
+        viewer=ViewerConfig(num_rays_per_chunk=viewer_rays),
         vis="viewer",
+    )
+
+
+def method_union(methods: dict, descriptions: dict):
+    """``AnnotatedBaseConfigUnion`` of a method table, as nerfstudio's configs/method_configs.py builds it."""
+    import tyro
+
+    return tyro.conf.SuppressFixed[
+        tyro.conf.FlagConversionOff[
+            tyro.extras.subcommand_type_from_defaults(defaults=methods, descriptions=descriptions)
+        ]
+    ]
+
+
+def _nerfacto_method_configs():
+    """nerfstudio 1.1.5's ``method_configs["nerfacto"]`` (configs/method_configs.py),
+    built from nerfstudio's own classes with the same values."""
+    from nerfstudio.cameras.camera_optimizers import CameraOptimizerConfig
+    from nerfstudio.data.datamanagers.parallel_datamanager import ParallelDataManagerConfig
+    from nerfstudio.models.nerfacto import NerfactoModelConfig
+    from nerfstudio.pipelines.base_pipeline import VanillaPipelineConfig
+
+    nerfacto = method_config(
+        "nerfacto",
+        VanillaPipelineConfig,
+        ParallelDataManagerConfig,
+        NerfactoModelConfig(
+            eval_num_rays_per_chunk=1 << 15,
+            average_init_density=0.01,
+            camera_optimizer=CameraOptimizerConfig(mode="SO3xR3"),
+        ),
+        {
+            "proposal_networks": adam_exponential(1e-2, 0.0001, 200000),
+            "fields": adam_exponential(1e-2, 0.0001, 200000),
+            "camera_opt": adam_exponential(1e-3, 1e-4, 5000),
+        },
+        1 << 15,
     )
     return {"nerfacto": nerfacto}, {
         "nerfacto": "Recommended real-time model tuned for real captures. This model will be continually updated."
@@ -209,19 +235,13 @@ def install_standins() -> None:
 
     # method_configs stand-in: only nerfacto.
     if "nerfstudio.configs.method_configs" not in sys.modules:
-        import tyro
-
         mc = _stub_module("nerfstudio.configs.method_configs")
         methods, descriptions = _nerfacto_method_configs()
         mc.method_configs = methods
         mc.descriptions = descriptions
         mc.all_methods = methods
         mc.all_descriptions = descriptions
-        mc.AnnotatedBaseConfigUnion = tyro.conf.SuppressFixed[
-            tyro.conf.FlagConversionOff[
-                tyro.extras.subcommand_type_from_defaults(defaults=methods, descriptions=descriptions)
-            ]
-        ]
+        mc.AnnotatedBaseConfigUnion = method_union(methods, descriptions)
         import nerfstudio.configs as ns_configs
 
         ns_configs.method_configs = mc

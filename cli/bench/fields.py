@@ -84,6 +84,23 @@ def hide_rows(context: BenchContext, preset: str, views: tuple[int, ...]) -> tup
     return rows, bundles
 
 
+def imported_hides(context: BenchContext, folder: Path, preset: str) -> tuple[BenchContext, list[dict]]:
+    """An imported scene (folder/scene, folder/model.onnx) as the bench's context, its photos (nerfstudio_width
+    wide) hidden at a third and two thirds round its cameras and revealed through onnxruntime and the page.
+    -> that context, the hide rows."""
+    from noisenerf.runtime.model import load_model
+    from noisenerf.train.scene.scene import load_scene
+
+    scene_context = dataclasses.replace(context, scene=load_scene(folder / "scene"), model_path=folder / "model.onnx",
+                                        model=load_model(folder / "model.onnx"),
+                                        config=dataclasses.replace(context.config, view_width=context.config.nerfstudio_width))
+    cameras = len(scene_context.scene.config.cameras)
+    hides, bundles = hide_rows(scene_context, preset, (cameras // 3, 2 * cameras // 3))
+    in_browser = browser_results(scene_context, bundles)
+    return scene_context, [{**row, "browser_seconds": None, "browser_exact": None, **in_browser.get(row["name"], {})}
+                           for row in hides]
+
+
 def browser_results(context: BenchContext, bundles: dict[str, Path]) -> dict[str, dict]:
     """Each bundle revealed in the single-file page at its default workers: by bundle name, its seconds and
     whether the page found it exact (the revealed pixels' digest is the bundle's); empty where the browser or

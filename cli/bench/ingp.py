@@ -11,17 +11,14 @@ the fields experiment's).
 
 from __future__ import annotations
 
-import dataclasses
 import time
 from pathlib import Path
 
 
 from noisenerf.runtime.api import render
-from noisenerf.runtime.model import load_model
-from noisenerf.train.scene.scene import load_scene
 
 from noisenerf.cli.bench.context import BenchContext, Measured
-from noisenerf.cli.bench.fields import browser_results, hide_rows, median_of
+from noisenerf.cli.bench.fields import imported_hides, median_of
 
 
 def measure_ingp(context: BenchContext) -> Measured:
@@ -47,14 +44,7 @@ def measure_ingp(context: BenchContext) -> Measured:
              "parameters": sum(array.size for array in scene.weight_arrays().values()),
              "snapshot_bytes": Path(config.ingp_snapshot).stat().st_size,
              "model_bytes": (folder / "model.onnx").stat().st_size, "cameras": len(scene.config.cameras)}]
-    scene_context = dataclasses.replace(context, scene=load_scene(folder / "scene"), model_path=folder / "model.onnx",
-                                        model=load_model(folder / "model.onnx"),
-                                        config=dataclasses.replace(config, view_width=config.nerfstudio_width))
-    cameras = len(scene_context.scene.config.cameras)
-    hides, bundles = hide_rows(scene_context, "ingp", (cameras // 3, 2 * cameras // 3))
-    in_browser = browser_results(scene_context, bundles)
-    rows += [{**row, "browser_seconds": None, "browser_exact": None, **in_browser.get(row["name"], {})} for row in hides]
-    return Measured(rows)
+    return Measured(rows + imported_hides(context, folder, "ingp")[1])
 
 
 def describe_ingp(context: BenchContext, measured: Measured) -> list[str]:

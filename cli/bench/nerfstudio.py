@@ -10,7 +10,6 @@ difference from nerfstudio's), "hide" (one photo at one view, as the fields expe
 
 from __future__ import annotations
 
-import dataclasses
 import json
 import time
 from pathlib import Path
@@ -18,12 +17,10 @@ from pathlib import Path
 import numpy as np
 
 from noisenerf.runtime.api import render
-from noisenerf.runtime.model import load_model
-from noisenerf.train.scene.scene import load_scene
 
 from noisenerf.cli.bench import coverage
 from noisenerf.cli.bench.context import BenchContext, Measured
-from noisenerf.cli.bench.fields import browser_results, hide_rows, median_of
+from noisenerf.cli.bench.fields import imported_hides, median_of
 
 RENDER_GOAL = 1e-3  # our ordinary render's largest difference from nerfstudio's eval render (float32 noise)
 
@@ -64,13 +61,9 @@ def measure_nerfstudio(context: BenchContext) -> Measured:
                          "psnr_vs_nerfstudio": float(-10 * np.log10(max(float((difference ** 2).mean()), 1e-30))),
                          "equal_8bit": float((np.floor(result.image * 255 + 0.5) == np.floor(theirs * 255 + 0.5)).mean()),
                          "render_seconds": result.timings["render"]})
-    scene_context = dataclasses.replace(context, scene=load_scene(folder / "scene"), model_path=folder / "model.onnx",
-                                        model=load_model(folder / "model.onnx"),
-                                        config=dataclasses.replace(config, view_width=config.nerfstudio_width))
+    scene_context, hides = imported_hides(context, folder, "nerfacto")
+    rows += hides
     cameras = len(scene_context.scene.config.cameras)
-    hides, bundles = hide_rows(scene_context, "nerfacto", (cameras // 3, 2 * cameras // 3))
-    in_browser = browser_results(scene_context, bundles)
-    rows += [{**row, "browser_seconds": None, "browser_exact": None, **in_browser.get(row["name"], {})} for row in hides]
     secrets = coverage.hard_secrets(config.coverage_size, scene_context.scene.config.render.background, seed=config.seed)
     mosaic = {"every hard secret": np.concatenate(list(secrets.values()), axis=1)}
     rows += [{"row": "coverage", **row} for row in coverage.sweep(scene_context, mosaic, range(cameras), "nerfacto run")]

@@ -41,7 +41,7 @@ from noisenerf.runtime.sampling import SamplingConfig, jitter_positions, sample_
 from noisenerf.train.scene.datasets import view_rays
 from noisenerf.train.scene.field import MlpConfig
 from noisenerf.train.scene.field_kinds import FieldConfigs
-from noisenerf.train.scene.hashgrid import HashGridConfig
+from noisenerf.train.scene.hashgrid import HashGridConfig, HashGridField
 from noisenerf.train.scene.occupancy import OccupancyConfig, OccupancyTracker, build_occupancy_grid, carve, cell_points
 from noisenerf.train.scene.render import TorchRays, numpy_field, render_hierarchical, render_rays, skip_mask
 from noisenerf.train.scene.scene import (Scene, SceneConfig, build_fields, field_weights, named_fields, render_field,
@@ -83,6 +83,10 @@ class FitConfig:
     # uniform samples per ray of the saved scene's renders (None: n_samples): rendering a field fitted
     # with jittered samples on a finer step integrates it more closely than its training step did
     render_samples: int | None = None
+    # a hash grid with tiny-cuda-nn's MLPs: no biases, the colour MLP reading the raw density among the geometric
+    # features (geo_features = 16, the first a copy of the raw density): Instant-NGP's own network, kept so after
+    # every step (tie_tcnn_layout); a scene fitted so can be written as an Instant-NGP snapshot
+    tcnn_layout: bool = False
     seed: int = 0
 
     def to_dict(self) -> dict:
@@ -160,6 +164,8 @@ class Fitter:
                                 early_stop=config.early_stop),
             aabb=dataset.aabb, grid_resolution=config.occupancy.saved_resolution, cameras=dataset.cameras)
         self.coarse, self.fine = (f.to(device) if f is not None else None for f in build_fields(self.scene_config))
+        if config.tcnn_layout:
+            tie_tcnn_layout(self.coarse)
         groups = self.coarse.parameter_groups() + (self.fine.parameter_groups() if self.fine else [])
         self.optimizer = torch.optim.Adam(groups, lr=config.lr, **self.coarse.adam)
         self.step, self.seconds = 0, 0.0
@@ -223,6 +229,8 @@ class Fitter:
         self.optimizer.zero_grad(set_to_none=True)
         loss.backward()
         self.optimizer.step()
+        if config.tcnn_layout:
+            tie_tcnn_layout(self.coarse)
         self.step += 1
         return float(fine_loss.detach())
 
@@ -293,6 +301,20 @@ class Fitter:
         self.step, self.seconds = int(meta["step"]), float(meta["seconds"])
         self.samples_evaluated = int(meta["samples_evaluated"])
         return True
+
+
+def tie_tcnn_layout(field) -> None:
+    """Project a hash-grid field onto Instant-NGP's network (FitConfig.tcnn_layout): every bias 0 and frozen, the
+    density MLP's second output row (the first geometric feature) equal to its first (the raw density): both
+    become their mean."""
+    if not (isinstance(field, HashGridField) and field.config.geo_features >= 1):
+        raise UserError("a tiny-cuda-nn layout needs a hash-grid field with a geometric feature")
+    with torch.no_grad():
+        for layer in [*field.density_linears, *field.colour_linears]:
+            layer.bias.zero_()
+            layer.bias.requires_grad_(False)
+        weight = field.density_linears[1].weight
+        weight[:2] = weight[:2].mean(0)
 
 
 def held_out_quality(scene: Scene, dataset: Dataset, views: list[int], skipping: bool = True) -> dict:
