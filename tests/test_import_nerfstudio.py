@@ -207,7 +207,8 @@ def test_a_config_that_would_run_code_runs_nothing(tmp_path, capfd):
     ("not a dict", "not a nerfstudio checkpoint (no pipeline state dict)"),
     ("length", "field.mlp_base.model.params holds"),
     ("shape", "the config implies"),
-    ("method", "a nerfacto-huge run"),
+    ("method", "a nerfacto-huge run; only nerfacto and instant-ngp runs can be imported"),
+    ("splatfacto", "a splatfacto run; only nerfacto and instant-ngp runs can be imported"),
     ("old keys", "a nerfstudio 0.3 checkpoint"),
     ("oldest keys", "a nerfstudio 0.1–0.2 checkpoint"),
     ("folding lens", "its distortion folds over inside it"),
@@ -228,7 +229,8 @@ def test_hostile_and_unsupported_runs_are_refused_in_one_line(tmp_path, capfd, c
         shapes = {"field.mlp_base_grid.tcnn_encoding.params": (8,), "field.mlp_base_mlp.tcnn_encoding.params": (8,)}
     if case == "oldest keys":
         shapes = {"field.mlp_base.params": (8,), "field.mlp_head.params": (8,)}
-    extra = {"method": {"method": "nerfacto-huge", "model": "other.BigModel"}}.get(case, {})
+    extra = {"method": {"method": "nerfacto-huge", "model": "other.BigModel"},
+             "splatfacto": {"method": "splatfacto", "model": "nerfstudio.models.splatfacto.SplatfactoModel"}}.get(case, {})
     run, data = write_nerfstudio_run(tmp_path, implementation, shapes=shapes, **extra)
     checkpoint = run / "nerfstudio_models" / "step-000000099.ckpt"
     if case == "pickle":
