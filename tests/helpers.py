@@ -586,23 +586,30 @@ NERFSTUDIO_RUNS = tuple(NERFSTUDIO_GOLDENS.parent / name for name in ("nerfacto_
 NGP_GOLDENS = NERFSTUDIO_GOLDENS.parent / "ngp_torch"
 
 
+def assert_hides_exactly(folder: Path, secret: Path, view: int, capfd) -> Path:
+    """`noisenerf hide` of the image `secret` in folder/scene at `view` succeeds, and `noisenerf-reveal` of its
+    bundle through folder/model.onnx says it is exact. -> the bundle (beside the secret)."""
+    from noisenerf.cli.main import main
+
+    bundle = secret.with_suffix(".bundle")
+    result = run_main(main, ["hide", folder / "scene", secret, "-o", bundle, "--view", view], capfd)
+    assert result.code in (0, None), result.err
+    revealed = run_reveal(folder / "model.onnx", bundle, "-o", secret.with_name(f"{secret.stem}_out.png"))
+    assert revealed.returncode == 0 and "exact" in revealed.stdout, revealed.stdout + revealed.stderr
+    return bundle
+
+
 def assert_photos_hide_exactly(folder: Path, photos, views, tmp_path: Path, capfd) -> None:
     """Each photo (40 px wide) hidden with `noisenerf hide` in folder/scene at its view reveals exactly through
     folder/model.onnx: `noisenerf-reveal` says so, and `noisenerf.reveal` gives the photo's pixels."""
     import noisenerf
-    from noisenerf.cli.main import main
     from noisenerf.runtime.images import load_secret
 
     for photo, view in zip(photos, views, strict=True):
         pixels = load_secret(photo)[0]
         step = max(1, pixels.shape[1] // 40)
         secret = write_png(tmp_path / f"{view}.png", np.ascontiguousarray(pixels[::step, ::step][:40, :40]))
-        bundle = tmp_path / f"{view}.bundle"
-        result = run_main(main, ["hide", folder / "scene", secret, "-o", bundle, "--view", view], capfd)
-        assert result.code in (0, None), result.err
-        revealed = run_reveal(folder / "model.onnx", bundle, "-o", tmp_path / f"{view}_out.png")
-        assert revealed.returncode == 0 and "exact" in revealed.stdout, revealed.stdout + revealed.stderr
-        through_api = noisenerf.reveal(folder / "model.onnx", bundle)
+        through_api = noisenerf.reveal(folder / "model.onnx", assert_hides_exactly(folder, secret, view, capfd))
         assert through_api.exact and np.array_equal(through_api.pixels, load_secret(secret)[0])
 
 

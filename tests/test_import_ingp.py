@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from helpers import (
-    IngpNetwork, assert_refused, look_at_cameras, ngp_parameters, ngp_snapshot, ngp_spec_field, run_main, run_reveal,
+    IngpNetwork, assert_hides_exactly, assert_refused, look_at_cameras, ngp_parameters, ngp_snapshot, ngp_spec_field, run_main,
     write_ingp, write_png,
 )
 from noisenerf.cli.main import main
@@ -107,10 +107,7 @@ def test_a_photo_hidden_in_a_snapshot_reveals_exactly(small_import, tmp_path, ca
     folder, _, _ = small_import
     rng = np.random.default_rng(5)
     secret = write_png(tmp_path / "secret.png", rng.integers(0, 256, (8, 9, 3), dtype=np.uint8))
-    result = run_main(main, ["hide", folder / "scene", secret, "-o", tmp_path / "secret.nnrf", "--view", "2"], capfd)
-    assert result.code in (0, None), result.err
-    revealed = run_reveal(folder / "model.onnx", tmp_path / "secret.nnrf", "-o", tmp_path / "out.png")
-    assert revealed.returncode == 0 and "exact" in revealed.stdout, revealed.stdout + revealed.stderr
+    assert_hides_exactly(folder, secret, 2, capfd)
 
 
 def test_the_capture_gives_the_cameras_moved_into_instant_ngps_frame(tmp_path, capfd):
@@ -179,10 +176,7 @@ def test_a_lego_fit_written_as_a_snapshot_imports_and_hides_exactly(shared_data,
         fit_rgb, fit_sigma = fitted.render_field(torch.from_numpy(points - 0.5), torch.from_numpy(directions))
     assert np.abs(rgb - fit_rgb.numpy()).max() < 0.02  # the same field, weights rounded to float16
     secret = write_png(tmp_path / "secret.png", np.random.default_rng(2).integers(0, 256, (8, 10, 3), dtype=np.uint8))
-    result = run_main(main, ["hide", tmp_path / "scene", secret, "-o", tmp_path / "s.nnrf", "--view", "3"], capfd)
-    assert result.code in (0, None), result.err
-    revealed = run_reveal(tmp_path / "model.onnx", tmp_path / "s.nnrf", "-o", tmp_path / "out.png")
-    assert revealed.returncode == 0 and "exact" in revealed.stdout, revealed.stdout + revealed.stderr
+    assert_hides_exactly(tmp_path, secret, 3, capfd)
 
 
 def hostile(tmp_path, case):

@@ -13,7 +13,7 @@ import pytest
 import torch
 
 from helpers import (
-    NERFSTUDIO_RUNS, assert_photos_hide_exactly, assert_refused, nerfstudio_layout, nerfstudio_run_from_goldens, run_main, run_reveal, spec_grid, tcnn_mlp, tcnn_sh, write_nerfstudio_run, write_png,
+    NERFSTUDIO_RUNS, assert_hides_exactly, assert_photos_hide_exactly, assert_refused, nerfstudio_layout, nerfstudio_run_from_goldens, run_main, run_reveal, spec_grid, tcnn_mlp, tcnn_sh, write_nerfstudio_run, write_png,
 )
 from noisenerf.cli.main import main
 from noisenerf.runtime.model import load_model
@@ -167,10 +167,7 @@ def test_a_photo_hidden_in_an_imported_run_reveals_exactly(imported, tmp_path, c
     _, _, _, folder = imported
     rng = np.random.default_rng(5)
     secret = write_png(tmp_path / "secret.png", rng.integers(0, 256, (6, 7, 3), dtype=np.uint8))
-    result = run_main(main, ["hide", folder / "scene", secret, "-o", tmp_path / "secret.nnrf", "--view", "4"], capfd)
-    assert result.code in (0, None), result.err
-    revealed = run_reveal(folder / "model.onnx", tmp_path / "secret.nnrf", "-o", tmp_path / "out.png")
-    assert revealed.returncode == 0 and "exact" in revealed.stdout, revealed.stdout + revealed.stderr
+    assert_hides_exactly(folder, secret, 4, capfd)
 
 
 # ---- hostile and unsupported run directories ---------------------------------------------------------
