@@ -47,11 +47,14 @@ def resolve_device(name: str):
 
 def fit(data: PathLike, output: PathLike, *, field: str | None = None, preset: str | None = None,
         resolution: int | None = None, minutes: float | None = None, iters: int | None = None,
-        seed: int | None = None, skip: bool = True, device: str = "auto", progress: ProgressFn | None = None) -> dict:
+        seed: int | None = None, skip: bool = True, appearance: bool = False, device: str = "auto",
+        progress: ProgressFn | None = None) -> dict:
     """Fit a scene to the dataset at `data` (NeRF-Synthetic, LLFF or a capture's transforms.json) into the
     folder `output`, for exactly one of `minutes` or `iters`; run again to resume from its checkpoint. field:
     the kind (`mlp`, `hashgrid`), fitted with its default preset unless `preset` names another of its kind;
-    neither: the `hashgrid` preset (presets.DEFAULT_FIELD). -> fit's report (test PSNR under test.psnr)."""
+    neither: the `hashgrid` preset (presets.DEFAULT_FIELD). appearance: a nerfacto fit learns a per-image appearance
+    embedding (for photos whose exposure differs), its mean folded into the saved field. -> fit's report (test PSNR
+    under test.psnr)."""
     data, output, progress = checked_path(data, "data"), checked_path(output, "output"), \
         optional(checked_callback, progress, "progress")
     field, preset, device = optional(checked_text, field, "field"), optional(checked_text, preset, "preset"), \
@@ -59,6 +62,7 @@ def fit(data: PathLike, output: PathLike, *, field: str | None = None, preset: s
     resolution, iters, seed = (optional(checked_int, value, name) for value, name in
                                ((resolution, "resolution"), (iters, "iters"), (seed, "seed")))
     minutes, skip = optional(checked_number, minutes, "minutes"), checked_flag(skip, "skip")
+    appearance = checked_flag(appearance, "appearance")
 
     from noisenerf.runtime.files import check_output_directory
     from noisenerf.train.scene.presets import DEFAULT_FIELD, DEFAULT_PRESETS, PRESET_KINDS
@@ -75,14 +79,19 @@ def fit(data: PathLike, output: PathLike, *, field: str | None = None, preset: s
     if field is not None and PRESET_KINDS[preset] != field:
         raise UserError(f"preset {preset} fits the {PRESET_KINDS[preset]} kind, not {field}")
     from noisenerf.train.scene.datasets import load_dataset
-    from noisenerf.train.scene.fit import PRESETS, Budget, fit as fit_scene
+    from noisenerf.train.scene.fit import APPEARANCE_DIM, PRESETS, Budget, fit as fit_scene
 
     torch_device = resolve_device(device)
     check_output_directory(output)
     config = PRESETS[preset]
+    if appearance and config.proposal is None:
+        raise UserError(f"--appearance is for nerfacto fits; preset {preset} fits the {PRESET_KINDS[preset]} kind")
     if seed is not None or not skip:
         config = dataclasses.replace(config, seed=config.seed if seed is None else seed,
                                      skipping=config.skipping and skip)
+    if appearance:
+        config = dataclasses.replace(config, proposal=dataclasses.replace(config.proposal,
+                                                                          appearance_dim=APPEARANCE_DIM))
     dataset = load_dataset(data, resolution=resolution)
     return fit_scene(dataset, Path(output), config, Budget(iters, minutes), torch_device, progress=progress)
 

@@ -33,6 +33,16 @@ def size_argument(text: str, flag: str) -> tuple[int, int]:
     return int(match[1]), int(match[2])
 
 
+def fields_presets(text: str) -> tuple[str, ...]:
+    """--fields-presets: fit presets by name, comma-separated, each known and named once."""
+    names = tuple(text.split(","))
+    unknown = [name for name in names if name not in PRESET_KINDS]
+    if unknown or not names or len(set(names)) != len(names):
+        raise UserError(f"--fields-presets takes distinct presets from {', '.join(PRESET_KINDS)}, comma-separated; "
+                        f"got {text!r:.60}")
+    return names
+
+
 def emit(report: dict, as_json: bool, lines: list[str]) -> None:
     """The result: one JSON object on stdout with --json, else readable lines."""
     if as_json:
@@ -47,6 +57,7 @@ def cmd_fit(args) -> None:
     with TerminalProgress(quiet=args.quiet) as bar:
         report = api.fit(args.data_dir, args.output, field=args.field, preset=args.preset, resolution=args.resolution,
                          minutes=args.minutes, iters=args.iters, seed=args.seed, skip=not args.no_skip,
+                         appearance=args.appearance,
                          device=args.device, progress=bar)
     test = report["test"]
     emit(report, args.json, [f"scene: {report['scene']}", f"steps: {report['steps']} in {report['seconds']} s",
@@ -157,6 +168,7 @@ def cmd_bench(args) -> None:
                          cluster_tile=args.cluster_tile, cluster_photo=size_argument(args.cluster_photo, "--cluster-photo"),
                          big_secret=size_argument(args.big_secret, "--big-secret"),
                          fields_minutes=args.fields_minutes, fields_resolution=args.fields_resolution,
+                         fields_presets=fields_presets(args.fields_presets),
                          nerfstudio_run=args.nerfstudio_run, nerfstudio_data=args.nerfstudio_data,
                          nerfstudio_golden=args.nerfstudio_golden, ingp_snapshot=args.ingp_snapshot,
                          device=str(resolve_device(args.device)),
@@ -192,6 +204,9 @@ def fit_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--iters", type=int, help="step budget (deterministic for a seed on CPU)")
     p.add_argument("--seed", type=int)
     p.add_argument("--no-skip", action="store_true", help="no occupancy grid or early termination (comparison)")
+    p.add_argument("--appearance", action="store_true",
+                   help="nerfacto: learn a per-image appearance embedding (photos whose exposure differs), its mean "
+                        "folded into the saved field")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     device_argument(p)
 
@@ -291,6 +306,8 @@ def bench_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--big-secret", default="7680x4320", help="WxH of the secret the big_secret experiment hides and reveals")
     p.add_argument("--fields-minutes", type=float, default=15.0, help="fields: each field kind's fit, in minutes")
     p.add_argument("--fields-resolution", type=int, default=200, help="fields: the width the kinds are fitted at")
+    p.add_argument("--fields-presets", default="small,hashgrid,nerfacto",
+                   help="fields: the fit presets compared, comma-separated")
     p.add_argument("--nerfstudio-run", help="nerfstudio: a nerfacto or instant-ngp run directory to import")
     p.add_argument("--nerfstudio-data", help="nerfstudio: its dataset folder (transforms.json)")
     p.add_argument("--nerfstudio-golden", help="nerfstudio: tools/nerfstudio_goldens.py's folder for that run")

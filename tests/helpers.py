@@ -94,10 +94,15 @@ def flip_first_float32(data: bytes) -> bytes:
 
 def tiny_fit(kind: str):
     """A fit config of `kind` ("mlp": the small preset, "hashgrid": its preset with the tiny random scenes'
-    SMALL_HASHGRID) cut down for tests: few rays and samples, a 16³ occupancy grid."""
-    from noisenerf.train.scene.fit import PRESETS
+    SMALL_HASHGRID, "nerfacto": its CPU preset with small tables, levels and sample counts) cut down for tests:
+    few rays and samples, a 16³ occupancy grid."""
+    from noisenerf.train.scene.fit import PRESETS, ProposalTraining, nerfacto_preset
     from noisenerf.train.scene.occupancy import OccupancyConfig
     from noisenerf.train.scene.random_scene import SMALL_HASHGRID
+
+    if kind == "nerfacto":
+        preset = nerfacto_preset("nerfacto", 12, 128, (32, 16), 16, 256)
+        return dataclasses.replace(preset, proposal=ProposalTraining(anneal_steps=50, update_warmup=50))
 
     preset = PRESETS["small"] if kind == "mlp" else dataclasses.replace(PRESETS["hashgrid"], field=SMALL_HASHGRID)
     return dataclasses.replace(preset, batch_rays=256, n_samples=32, render_samples=None, warmup_rays=128,

@@ -14,6 +14,7 @@ from helpers import assert_refused, tiny_fit
 from noisenerf.runtime.errors import UserError
 from noisenerf.train.scene.datasets import load_dataset
 from noisenerf.train.scene.fit import Budget, Fitter, fit
+from noisenerf.train.scene.fit_proposal import ProposalFitter
 from noisenerf.train.scene.occupancy import carve
 from noisenerf.train.scene.procedural import write_procedural_dataset
 from noisenerf.train.scene.random_scene import SMALL_HASHGRID
@@ -22,6 +23,11 @@ from noisenerf.train.scene.scene import load_scene
 CPU = torch.device("cpu")
 TINY, TINY_HASHGRID = tiny_fit("mlp"), tiny_fit("hashgrid")
 BOTH_KINDS = pytest.mark.parametrize("config", [TINY, TINY_HASHGRID], ids=["mlp", "hashgrid"])
+TINY_NERFACTO = tiny_fit("nerfacto")
+EVERY_KIND = pytest.mark.parametrize("config", [
+    TINY, TINY_HASHGRID, dataclasses.replace(TINY_NERFACTO, proposal=dataclasses.replace(TINY_NERFACTO.proposal,
+                                                                                         appearance_dim=8))],
+    ids=["mlp", "hashgrid", "nerfacto with appearance"])
 
 
 @pytest.fixture(scope="module")
@@ -46,21 +52,22 @@ def test_fit_learns_and_skips(dataset, tmp_path, config):
     assert 0.0 < scene.grid.occupancy_fraction() < 0.9
 
 
-@BOTH_KINDS
+@EVERY_KIND
 def test_resume_after_interruption_gives_identical_weights(dataset, tmp_path, monkeypatch, config):
     whole = quiet_fit(dataset, tmp_path / "whole", 40, config)
-    step = Fitter.train_step
+    fitter = ProposalFitter if config.proposal else Fitter
+    step = fitter.train_step
 
     def interrupted(self, lr):
         if self.step == 25:
             raise KeyboardInterrupt
         return step(self, lr)
 
-    monkeypatch.setattr(Fitter, "train_step", interrupted)
+    monkeypatch.setattr(fitter, "train_step", interrupted)
     with pytest.raises(KeyboardInterrupt):
         fit(dataset, tmp_path / "resumed", config, Budget(iters=40), CPU, checkpoint_seconds=0, curve_seconds=0)
     assert not (tmp_path / "resumed" / "scene.json").exists()
-    monkeypatch.setattr(Fitter, "train_step", step)
+    monkeypatch.setattr(fitter, "train_step", step)
     resumed = quiet_fit(dataset, tmp_path / "resumed", 40, config)
     assert resumed["resumed"] and resumed["steps"] == 40
     assert resumed["fingerprint"] == whole["fingerprint"]
@@ -82,6 +89,8 @@ def run_cli(*args):
     (["hide", "{out}", "{data}/x.png", "-o", "{out}/s.bundle"], "not a scene directory"),
     (["fit", "{data}", "-o", "{out}", "--iters", "1", "--field", "hashgrid", "--preset", "small"],
      "preset small fits the mlp kind, not hashgrid"),
+    (["fit", "{data}", "-o", "{out}", "--iters", "1", "--field", "nerfacto", "--preset", "hashgrid"],
+     "preset hashgrid fits the hashgrid kind, not nerfacto"),
 ])
 def test_cli_bad_input_is_one_line_and_exit_2(dataset, tmp_path, args, message):
     data = tmp_path / "data"

@@ -104,7 +104,7 @@ def imported(request, tmp_path_factory):
 def test_layout_figures_of_nerfactos_defaults():
     """The research notes' parameter counts: the default field's 12,199,312 (tcnn), its proposals' grids."""
     from noisenerf.runtime.fields.nerfacto import grid_layout
-    from noisenerf.train.scene.import_nerfstudio import grid_scales
+    from noisenerf.train.scene.nerfacto import grid_scales
     field = grid_layout("tcnn", grid_scales("tcnn", 16, 16, 2048), 19)
     assert field.total_rows * 2 + 64 * 32 + 16 * 64 == 12_199_312
     assert field.dense.tolist() == [1] * 5 + [0] * 11 and field.resolution[:5].tolist() == [16, 23, 31, 43, 59]

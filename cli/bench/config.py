@@ -50,6 +50,7 @@ class BenchConfig:
     fields_resolution: int = 200  # px wide: the fields experiment fits each kind on `data` at this width
     fields_minutes: float = 15.0  # each kind's fit, in training minutes
     fields_curve_seconds: float = 60.0  # a test-PSNR point every this many seconds of it
+    fields_presets: tuple[str, ...] = ("small", "hashgrid", "nerfacto")  # the fit presets it compares
     nerfstudio_run: str | None = None  # the nerfstudio experiment's nerfacto run directory
     nerfstudio_data: str | None = None  # its dataset (transforms.json)
     nerfstudio_golden: str | None = None  # tools/nerfstudio_goldens.py's folder for that run: nerfstudio's renders

@@ -69,7 +69,7 @@ REGISTRY = (
     Experiment("cluster", "Hiding on Ray", cluster.measure_cluster, cluster.describe_cluster),
     Experiment("big_secret", "An 8K secret, and the memory it takes", big_secret.measure_big_secret,
                big_secret.describe_big_secret),
-    Experiment("fields", "Field kinds: the MLP and the hash grid, fitted alike, hidden in alike", fields.measure_fields,
+    Experiment("fields", "Field kinds: the MLP, the hash grid and nerfacto, fitted alike, hidden in alike", fields.measure_fields,
                fields.describe_fields, fields.plot_fields),
     Experiment("nerfstudio", "A nerfstudio run imported: its renders against nerfstudio's, secrets hidden in it",
                nerfstudio.measure_nerfstudio, nerfstudio.describe_nerfstudio),

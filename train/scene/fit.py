@@ -42,6 +42,7 @@ from noisenerf.train.scene.datasets import view_rays
 from noisenerf.train.scene.field import MlpConfig
 from noisenerf.train.scene.field_kinds import FieldConfigs
 from noisenerf.train.scene.hashgrid import HashGridConfig, HashGridField
+from noisenerf.train.scene.nerfacto import NerfactoConfig, ProposalConfig, SamplerConfig, grid_scales
 from noisenerf.train.scene.occupancy import OccupancyConfig, OccupancyTracker, build_occupancy_grid, carve, cell_points
 from noisenerf.train.scene.render import TorchRays, numpy_field, render_hierarchical, render_rays, skip_mask
 from noisenerf.train.scene.scene import (Scene, SceneConfig, build_fields, field_weights, named_fields, render_field,
@@ -52,6 +53,26 @@ if TYPE_CHECKING:
 
 
 CURVE_RAYS = 4096  # pixels per view behind each point of the progress curve
+
+
+APPEARANCE_DIM = 32  # nerfstudio's appearance embedding width, what `fit --appearance` learns
+
+
+@dataclass(frozen=True)
+class ProposalTraining:
+    """How a nerfacto field and its proposal networks are fitted (train.scene.fit_proposal), nerfstudio's
+    nerfacto defaults but the appearance embedding: the loss weights, the proposal weights' annealed exponent, and
+    how often the proposal networks take a gradient once warmed up (they only steer samples; the field's colour
+    loss needs every step). Without `fit --appearance` there is no per-image embedding (0 wide): on fern it cost
+    1.4 dB on held-out frames, which render with the mean, and it leaves some secrets inexact (docs/field-kinds.md)."""
+
+    appearance_dim: int = 0
+    interlevel_weight: float = 1.0
+    distortion_weight: float = 0.002
+    anneal_steps: int = 1000
+    anneal_slope: float = 10.0
+    update_every: int = 5
+    update_warmup: int = 5000
 
 
 @dataclass(frozen=True)
@@ -87,10 +108,27 @@ class FitConfig:
     # features (geo_features = 16, the first a copy of the raw density): Instant-NGP's own network, kept so after
     # every step (tie_tcnn_layout); a scene fitted so can be written as an Instant-NGP snapshot
     tcnn_layout: bool = False
+    proposal: ProposalTraining | None = None  # a nerfacto field: fitted by its proposal sampler (fit_proposal)
     seed: int = 0
 
     def to_dict(self) -> dict:
         return dataclasses.asdict(self)
+
+
+def nerfacto_preset(name: str, log2_table: int, max_resolution: int, proposal_samples: tuple[int, int], samples: int,
+                    batch_rays: int) -> FitConfig:
+    """A nerfacto preset: nerfstudio's nerfacto (16 levels × 2 features from 16, 64-wide MLPs, SH degree 4, two
+    proposal networks of 5 levels to 128 and 256 px, 2^17 rows, 16 wide; piecewise spacing from 0.05 to 1000,
+    histogram padding 0.01; Adam at 1e-2, ε 1e-15) at the table size, finest level, samples and rays given."""
+    field = NerfactoConfig(
+        implementation="tcnn", features=2, log2_table=log2_table, scales=grid_scales("tcnn", 16, 16, max_resolution),
+        density_hidden=64, geo_features=15, sh_degree=4, colour_hidden=64, colour_layers=2, density_scale=1.0,
+        proposals=tuple(ProposalConfig(features=2, log2_table=17, scales=grid_scales("tcnn", 5, 16, top), hidden=16)
+                        for top in (128, 256)),
+        sampler=SamplerConfig(proposal_samples, samples, 0.01, 0.05, 1000.0))
+    return FitConfig(preset=name, field=field, fine=None, n_samples=samples, n_coarse=0, n_importance=0,
+                     batch_rays=batch_rays, lr=1e-2, lr_final=1e-3, skipping=False, precrop_steps=0,
+                     proposal=ProposalTraining())
 
 
 PRESETS = {
@@ -102,6 +140,9 @@ PRESETS = {
     "hashgrid": FitConfig(preset="hashgrid", field=HashGridConfig(), fine=None, n_samples=128, n_coarse=0,
                           n_importance=0, batch_rays=1024, lr=1e-2, lr_final=1e-3, render_samples=256,
                           occupancy=OccupancyConfig(warmup_steps=100, final_resolution=128)),
+    # sized for 2 CPU cores (docs/field-kinds.md has the sweep); nerfacto-big is nerfstudio's own, for a GPU
+    "nerfacto": nerfacto_preset("nerfacto", 17, 1024, (128, 64), 32, 1024),
+    "nerfacto-big": nerfacto_preset("nerfacto-big", 19, 2048, (256, 96), 48, 4096),
 }
 
 
@@ -124,12 +165,13 @@ class TrainingRays:
     rays: TorchRays
     colors: torch.Tensor
     central: torch.Tensor  # indices of pixels in the centre crop
+    views: torch.Tensor  # (n,) each pixel's image, its position among the training views
 
 
 def training_rays(dataset: Dataset, render: RenderConfig, config: FitConfig, device) -> TrainingRays:
-    origins, directions, viewdirs, colors, central = [], [], [], [], []
+    origins, directions, viewdirs, colors, central, views = [], [], [], [], [], []
     offset = 0
-    for index in dataset.splits["train"]:
+    for position, index in enumerate(dataset.splits["train"]):
         camera = dataset.cameras[index]
         batch = field_space_rays(render, *view_rays(dataset.cameras[index], render.pixel_center))
         origins.append(batch.origins)
@@ -137,10 +179,11 @@ def training_rays(dataset: Dataset, render: RenderConfig, config: FitConfig, dev
         viewdirs.append(batch.viewdirs)
         colors.append(dataset.images[index].reshape(-1, 3))
         central.append(offset + _central_pixels(camera.width, camera.height, config.precrop_fraction))
+        views.append(np.full(camera.width * camera.height, position, np.int64))
         offset += camera.width * camera.height
     as_tensor = lambda parts: torch.from_numpy(np.concatenate(parts)).to(device)  # noqa: E731
     return TrainingRays(TorchRays(as_tensor(origins), as_tensor(directions), as_tensor(viewdirs)),
-                        as_tensor(colors), torch.from_numpy(np.concatenate(central)))
+                        as_tensor(colors), torch.from_numpy(np.concatenate(central)), as_tensor(views))
 
 
 def _central_pixels(width: int, height: int, fraction: float) -> np.ndarray:
@@ -262,10 +305,7 @@ class Fitter:
 
     # checkpoints: tensors in safetensors, the rest in JSON (never pickle)
     def save_checkpoint(self, directory: Path) -> None:
-        tensors = field_weights(named_fields(self.coarse, self.fine))
-        optimizer = self.optimizer.state_dict()
-        for pid, state in optimizer["state"].items():
-            tensors.update({f"optimizer.{pid}.{k}": torch.as_tensor(v) for k, v in state.items()})
+        tensors = {**field_weights(named_fields(self.coarse, self.fine)), **optimizer_tensors(self.optimizer)}
         tensors["tracker.density"] = torch.from_numpy(self.tracker.density)
         tensors["generator"] = self.generator.get_state()
         tensors = {k: v.detach().cpu().contiguous() for k, v in tensors.items()}
@@ -274,26 +314,18 @@ class Fitter:
             "fit": self.config.to_dict(), "step": self.step, "seconds": self.seconds,
             "samples_evaluated": self.samples_evaluated,
             "rng": self.rng.bit_generator.state, "tracker_rng": self.tracker.rng.bit_generator.state,
-            "param_groups": optimizer["param_groups"],
+            "param_groups": self.optimizer.state_dict()["param_groups"],
         })
 
     def load_checkpoint(self, directory: Path) -> bool:
         """Resume from directory's checkpoint if there is one made with the same config."""
-        if not (directory / "checkpoint.json").is_file():
+        found = read_checkpoint(directory, self.config)
+        if found is None:
             return False
-        meta = read_json(directory / "checkpoint.json", "checkpoint")
-        if meta["fit"] != json.loads(json.dumps(self.config.to_dict())):
-            raise UserError(f"{directory} holds a checkpoint of a different fit; remove "
-                            f"{directory / 'checkpoint.json'} to start over")
-        tensors = load_file(str(directory / "checkpoint.safetensors"))
+        meta, tensors = found
         for network, field in named_fields(self.coarse, self.fine).items():
             field.load_state_dict(weights_of(network, tensors))
-        state: dict[int, dict] = {}
-        for key, value in tensors.items():
-            if key.startswith("optimizer."):
-                _, pid, name = key.split(".")
-                state.setdefault(int(pid), {})[name] = value
-        self.optimizer.load_state_dict({"state": state, "param_groups": meta["param_groups"]})
+        load_optimizer(self.optimizer, tensors, meta["param_groups"])
         self.tracker.density[:] = tensors["tracker.density"].numpy()
         self.generator.set_state(tensors["generator"])
         self.rng.bit_generator.state = meta["rng"]
@@ -301,6 +333,33 @@ class Fitter:
         self.step, self.seconds = int(meta["step"]), float(meta["seconds"])
         self.samples_evaluated = int(meta["samples_evaluated"])
         return True
+
+
+def read_checkpoint(directory: Path, config: FitConfig) -> tuple[dict, dict[str, torch.Tensor]] | None:
+    """directory's checkpoint (its JSON, its tensors), None where there is none; refused where another fit made it."""
+    if not (directory / "checkpoint.json").is_file():
+        return None
+    meta = read_json(directory / "checkpoint.json", "checkpoint")
+    if meta["fit"] != json.loads(json.dumps(config.to_dict())):
+        raise UserError(f"{directory} holds a checkpoint of a different fit; remove "
+                        f"{directory / 'checkpoint.json'} to start over")
+    return meta, load_file(str(directory / "checkpoint.safetensors"))
+
+
+def optimizer_tensors(optimizer: torch.optim.Optimizer) -> dict[str, torch.Tensor]:
+    """The optimizer's state as named tensors (a checkpoint's safetensors; its param groups go to JSON)."""
+    return {f"optimizer.{pid}.{name}": torch.as_tensor(value)
+            for pid, state in optimizer.state_dict()["state"].items() for name, value in state.items()}
+
+
+def load_optimizer(optimizer: torch.optim.Optimizer, tensors: dict[str, torch.Tensor], groups: list) -> None:
+    """The optimizer's state from a checkpoint's tensors (optimizer_tensors) and param groups."""
+    state: dict[int, dict] = {}
+    for key, value in tensors.items():
+        if key.startswith("optimizer."):
+            _, pid, name = key.split(".")
+            state.setdefault(int(pid), {})[name] = value
+    optimizer.load_state_dict({"state": state, "param_groups": groups})
 
 
 def tie_tcnn_layout(field) -> None:
@@ -348,6 +407,15 @@ def curve_psnr(scene: Scene, dataset: Dataset, views: list[int], rays_per_view: 
     return float(-10 * np.log10(max(np.mean(np.concatenate(errors)), 1e-10)))
 
 
+def new_fitter(dataset: Dataset, config: FitConfig, device: torch.device):
+    """The fitter of the config's field: a nerfacto field's with its proposal sampler in the contraction's frame
+    (train.scene.fit_proposal), else the skipping or hierarchical one."""
+    if config.proposal is None:
+        return Fitter(dataset, config, device)
+    from noisenerf.train.scene.fit_proposal import ProposalFitter, contraction_frame
+    return ProposalFitter(contraction_frame(dataset), config, device)
+
+
 def fit(dataset: Dataset, out_dir: Path, config: FitConfig, budget: Budget, device: torch.device,
         checkpoint_seconds: float = 60.0, curve_seconds: float = 120.0, curve_views: int = 3,
         progress: ProgressFn | None = None) -> dict:
@@ -355,7 +423,8 @@ def fit(dataset: Dataset, out_dir: Path, config: FitConfig, budget: Budget, devi
     is created only once the data has given a fitter, so input the fitter refuses leaves no empty folder.
     progress: told of the steps (an iteration budget) or seconds (a time budget) done, and the loss."""
     out_dir = check_output_directory(out_dir)
-    fitter = Fitter(dataset, config, device)
+    fitter = new_fitter(dataset, config, device)
+    dataset = fitter.dataset
     out_dir.mkdir(exist_ok=True)
     resumed = fitter.load_checkpoint(out_dir)
     test_views = list(dataset.splits.get("test") or dataset.splits["train"])

@@ -49,22 +49,19 @@ from noisenerf.runtime.camera import Camera
 from noisenerf.runtime.errors import UserError
 from noisenerf.runtime.fields.nerfacto import grid_layout
 from noisenerf.runtime.files import parse_json
-from noisenerf.runtime.occupancy import OccupancyGrid
 from noisenerf.runtime.render import RenderConfig
 from noisenerf.runtime.sampling import SamplingConfig
 from noisenerf.train.scene.captures import read_capture
 from noisenerf.train.scene.nerfacto import (
-    GridSamplerConfig, NerfactoConfig, NerfactoField, ProposalConfig, SamplerConfig,
+    GridSamplerConfig, NerfactoConfig, NerfactoField, ProposalConfig, SamplerConfig, grid_scales,
 )
-from noisenerf.train.scene.scene import Scene, SceneConfig, check_scene_output
+from noisenerf.train.scene.scene import Scene, check_scene_output, own_sampler_scene
 
 MAX_CONFIG_BYTES = 1 << 20
 TCNN_ALIGNMENT = 16  # tiny-cuda-nn pads MLP inputs and outputs to multiples of this
 # secret views sample uniformly along depth (runtime.sampling): from nerfacto's training near plane to a
 # depth that leaves nerfstudio's auto-scaled scene (cameras within the unit cube) behind
 SECRET_NEAR, SECRET_FAR = 0.05, 4.0
-# the occupancy grid an imported scene carries rules nothing out: nerfacto renders with its proposal sampler
-GRID_BOX = 1e6
 NUMPY_SCALAR_GLOBALS = ("numpy._core.multiarray.scalar", "numpy.core.multiarray.scalar")
 COLMAP_APPLIED = [[0, 1, 0, 0], [1, 0, 0, 0], [0, 0, -1, 0]]  # nerfstudio's applied_transform for COLMAP data
 
@@ -223,22 +220,6 @@ def nerfacto_settings(config: dict, source: str) -> NerfactoSettings:
             average_init_density=float(get("average_init_density")))
     except (TypeError, ValueError) as error:
         raise UserError(f"{source}: malformed nerfacto settings ({error})") from None
-
-
-def growth_factor(num_levels: int, base_res: int, max_res: int) -> float:
-    """nerfstudio's per-level scale b = exp((ln max_res − ln base_res)/(L − 1)), numpy float64."""
-    return float(np.exp((np.log(max_res) - np.log(base_res)) / (num_levels - 1))) if num_levels > 1 else 1.0
-
-
-def grid_scales(implementation: str, num_levels: int, base_res: int, max_res: int) -> tuple[float, ...]:
-    """Per-level float32 scales as each implementation computes them: nerfstudio's torch grid
-    floor(base_res·b^l) with b^l a float32 torch power; tiny-cuda-nn's exp2(l·log2 b)·N_min − 1 in float32."""
-    b = growth_factor(num_levels, base_res, max_res)
-    if implementation == "torch":
-        return tuple(float(v) for v in torch.floor(base_res * b ** torch.arange(num_levels)).tolist())
-    levels = np.arange(num_levels, dtype=np.float32)
-    scales = np.exp2(levels * np.log2(np.float32(b))) * np.float32(base_res) - np.float32(1)
-    return tuple(float(v) for v in scales.astype(np.float32))
 
 
 def field_config(settings: NerfactoSettings, sampler: GridSamplerConfig | None = None) -> NerfactoConfig:
@@ -560,10 +541,7 @@ def import_nerfstudio(run_dir: Path, out_dir: Path, data: Path | None = None, fo
     cameras = dataset_cameras(data_directory(config, run_dir, data), transform, scale,
                               int(downscale) if downscale else None)
     check_within_reach(cameras, field_settings.sampler.far, run_dir / "dataparser_transforms.json", scale)
-    box = (-GRID_BOX,) * 3 + (GRID_BOX,) * 3
     render = RenderConfig(SamplingConfig(SECRET_NEAR, SECRET_FAR, 128), background=(1.0, 1.0, 1.0), pixel_center=0.5)
-    scene_config = SceneConfig(coarse=field_settings, fine=None, n_coarse=0, n_importance=0, render=render, aabb=box,
-                               grid_resolution=1, cameras=cameras, source="nerfstudio")
-    scene = Scene(scene_config, field, None, OccupancyGrid(box, np.ones((1, 1, 1), bool)))
+    scene = own_sampler_scene(field, cameras, render, "nerfstudio")
     scene.publish(out_dir, source=checkpoint, force=force)
     return scene

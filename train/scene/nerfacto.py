@@ -16,6 +16,7 @@ import math
 from dataclasses import dataclass
 from typing import ClassVar
 
+import numpy as np
 import torch
 from torch import nn
 
@@ -103,6 +104,22 @@ class NerfactoConfig(GridFieldDims):
             "sampler": (SamplerConfig if checked["proposals"] else GridSamplerConfig)(**tuples(checked["sampler"]))})
 
 
+def growth_factor(num_levels: int, base_res: int, max_res: int) -> float:
+    """nerfstudio's per-level scale b = exp((ln max_res − ln base_res)/(L − 1)), numpy float64."""
+    return float(np.exp((np.log(max_res) - np.log(base_res)) / (num_levels - 1))) if num_levels > 1 else 1.0
+
+
+def grid_scales(implementation: str, num_levels: int, base_res: int, max_res: int) -> tuple[float, ...]:
+    """Per-level float32 scales as each implementation computes them: nerfstudio's torch grid
+    floor(base_res·b^l) with b^l a float32 torch power; tiny-cuda-nn's exp2(l·log2 b)·N_min − 1 in float32."""
+    b = growth_factor(num_levels, base_res, max_res)
+    if implementation == "torch":
+        return tuple(float(v) for v in torch.floor(base_res * b ** torch.arange(num_levels)).tolist())
+    levels = np.arange(num_levels, dtype=np.float32)
+    scales = np.exp2(levels * np.log2(np.float32(b))) * np.float32(base_res) - np.float32(1)
+    return tuple(float(v) for v in scales.astype(np.float32))
+
+
 def contracted_unit(points: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """runtime.fields.nerfacto.contracted_unit: the grid input (n, 3) and the selector (n, 1)."""
     norm = points.abs().amax(-1, keepdim=True)
@@ -169,3 +186,21 @@ class NerfactoField(HashGridField):
 
     def density(self, points: torch.Tensor) -> torch.Tensor:
         return super().density(points) * contracted_unit(points)[1][:, 0]
+
+    def appearance_forward(self, points: torch.Tensor, viewdirs: torch.Tensor, appearance: torch.Tensor
+                           ) -> tuple[torch.Tensor, torch.Tensor]:
+        """rgb (n, 3) and σ (n,) with a per-image appearance term (n, colour_hidden) added to the colour MLP's first
+        pre-activation: nerfacto's appearance embedding through its share of that layer's weight, as fitting
+        trains it (`fold_appearance` makes it part of the bias for good)."""
+        raw_density, feature = self.trunk_outputs(self.grid_features(points))
+        h = torch.cat([self.spherical_harmonics(viewdirs), feature], -1)
+        for index, layer in enumerate(self.colour_linears[:-1]):
+            h = torch.relu(layer(h) + appearance if index == 0 else layer(h))
+        rgb = torch.sigmoid(self.colour_linears[-1](h))
+        return rgb, self.density_of(raw_density) * contracted_unit(points)[1][:, 0]
+
+    def fold_appearance(self, appearance: torch.Tensor) -> None:
+        """Add a fixed appearance term (colour_hidden,) to the colour MLP's first bias: the eval render's (the mean
+        embedding's, as nerfstudio renders held-out views and the import folds it)."""
+        with torch.no_grad():
+            self.colour_linears[0].bias += appearance.to(self.colour_linears[0].bias)

@@ -167,6 +167,19 @@ class Scene:
         return Path(directory)
 
 
+# a scene whose field kind brings its own sampler (nerfacto's proposals or grid) carries an occupancy grid that rules
+# nothing out: one occupied cell over a box no camera leaves
+OWN_SAMPLER_BOX = (-1e6,) * 3 + (1e6,) * 3
+
+
+def own_sampler_scene(field: Field, cameras: tuple[Camera, ...], render: RenderConfig, source: str) -> Scene:
+    """A scene of one network (a nerfacto field, imported or fitted) rendered by its own sampler; `render` holds
+    only what secret views use (their uniform sampling, the background, pixel centres)."""
+    config = SceneConfig(coarse=field.config, fine=None, n_coarse=0, n_importance=0, render=render,
+                         aabb=OWN_SAMPLER_BOX, grid_resolution=1, cameras=cameras, source=source)
+    return Scene(config, field, None, OccupancyGrid(OWN_SAMPLER_BOX, np.ones((1, 1, 1), bool)))
+
+
 def build_fields(config: SceneConfig) -> tuple[Field, Field | None]:
     return build_field(config.coarse), build_field(config.fine) if config.fine is not None else None
 
