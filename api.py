@@ -52,7 +52,8 @@ def fit(data: PathLike, output: PathLike, *, field: str | None = None, preset: s
     """Fit a scene to the dataset at `data` (NeRF-Synthetic, LLFF or a capture's transforms.json) into the
     folder `output`, for exactly one of `minutes` or `iters`; run again to resume from its checkpoint. field:
     the kind (`mlp`, `hashgrid`), fitted with its default preset unless `preset` names another of its kind;
-    neither: the `hashgrid` preset (presets.DEFAULT_FIELD). appearance: a nerfacto fit learns a per-image appearance
+    neither: the dataset kind's (presets.DEFAULT_FIELDS: `hashgrid` for NeRF-Synthetic, `nerfacto` for LLFF and
+    captures). appearance: a nerfacto fit learns a per-image appearance
     embedding (for photos whose exposure differs), its mean folded into the saved field. -> fit's report (test PSNR
     under test.psnr)."""
     data, output, progress = checked_path(data, "data"), checked_path(output, "output"), \
@@ -65,7 +66,7 @@ def fit(data: PathLike, output: PathLike, *, field: str | None = None, preset: s
     appearance = checked_flag(appearance, "appearance")
 
     from noisenerf.runtime.files import check_output_directory
-    from noisenerf.train.scene.presets import DEFAULT_FIELD, DEFAULT_PRESETS, PRESET_KINDS
+    from noisenerf.train.scene.presets import DEFAULT_FIELDS, DEFAULT_PRESETS, PRESET_KINDS
 
     if (minutes is None) == (iters is None):
         raise UserError("give exactly one of --minutes M or --iters N")
@@ -73,26 +74,29 @@ def fit(data: PathLike, output: PathLike, *, field: str | None = None, preset: s
         raise UserError("--minutes and --iters must be positive")
     if field is not None and field not in DEFAULT_PRESETS:
         raise UserError(f"unknown field kind {field!r:.40} (expected one of {', '.join(DEFAULT_PRESETS)})")
-    preset = preset or DEFAULT_PRESETS[field or DEFAULT_FIELD]
-    if preset not in PRESET_KINDS:
+    if preset is not None and preset not in PRESET_KINDS:
         raise UserError(f"unknown preset {preset!r:.40} (expected one of {', '.join(PRESET_KINDS)})")
-    if field is not None and PRESET_KINDS[preset] != field:
+    if field is not None and preset is not None and PRESET_KINDS[preset] != field:
         raise UserError(f"preset {preset} fits the {PRESET_KINDS[preset]} kind, not {field}")
+    if appearance and (field or (preset and PRESET_KINDS[preset])) not in (None, "nerfacto"):
+        raise UserError(f"--appearance is for nerfacto fits, not {field or PRESET_KINDS[preset]}")
     from noisenerf.train.scene.datasets import load_dataset
     from noisenerf.train.scene.fit import APPEARANCE_DIM, PRESETS, Budget, fit as fit_scene
 
     torch_device = resolve_device(device)
     check_output_directory(output)
+    dataset = load_dataset(data, resolution=resolution)
+    preset = preset or DEFAULT_PRESETS[field or DEFAULT_FIELDS[dataset.kind]]
     config = PRESETS[preset]
     if appearance and config.proposal is None:
-        raise UserError(f"--appearance is for nerfacto fits; preset {preset} fits the {PRESET_KINDS[preset]} kind")
+        raise UserError(f"--appearance is for nerfacto fits; a {dataset.kind} dataset fits the "
+                        f"{PRESET_KINDS[preset]} kind unless --field nerfacto")
     if seed is not None or not skip:
         config = dataclasses.replace(config, seed=config.seed if seed is None else seed,
                                      skipping=config.skipping and skip)
     if appearance:
         config = dataclasses.replace(config, proposal=dataclasses.replace(config.proposal,
                                                                           appearance_dim=APPEARANCE_DIM))
-    dataset = load_dataset(data, resolution=resolution)
     return fit_scene(dataset, Path(output), config, Budget(iters, minutes), torch_device, progress=progress)
 
 

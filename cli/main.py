@@ -195,10 +195,10 @@ def fit_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("data_dir")
     p.add_argument("-o", "--output", required=True, help="scene directory to write (resumes if it holds a checkpoint)")
     p.add_argument("--field", choices=tuple(DEFAULT_PRESETS),
-                   help="field kind: hashgrid (Instant-NGP's hash grid, the default) or mlp (the standard NeRF MLP, "
-                        "preset small)")
+                   help="field kind: hashgrid (Instant-NGP's hash grid, NeRF-Synthetic's default), nerfacto (nerfstudio's, "
+                        "LLFF's and captures' default) or mlp (the standard NeRF MLP, preset small)")
     p.add_argument("--preset", choices=tuple(PRESET_KINDS),
-                   help="small or paper (mlp kind), hashgrid (default: the field kind's)")
+                   help="small or paper (mlp kind), hashgrid, nerfacto or nerfacto-big (default: the field kind's)")
     p.add_argument("--resolution", type=int, help="image width in pixels (default: the dataset's)")
     p.add_argument("--minutes", type=float, help="training wall-time budget (progress-curve renders excluded)")
     p.add_argument("--iters", type=int, help="step budget (deterministic for a seed on CPU)")

@@ -13,7 +13,7 @@ import pytest
 
 from noisenerf.cli.main import build_parser
 from noisenerf.runtime.fields import FieldKind, field_kinds
-from noisenerf.train.scene.presets import DEFAULT_FIELD, DEFAULT_PRESETS, PRESET_KINDS
+from noisenerf.train.scene.presets import DEFAULT_FIELDS, DEFAULT_PRESETS, PRESET_KINDS
 
 WEB = Path(__file__).resolve().parents[1] / "web"
 
@@ -50,7 +50,7 @@ def test_the_presets_are_fits_and_the_command_lines_choices():
     from noisenerf.train.scene.fit import PRESETS
 
     assert {name: config.field.kind for name, config in PRESETS.items()} == PRESET_KINDS
-    assert set(PRESET_KINDS.values()) <= set(field_kinds()) and DEFAULT_FIELD in DEFAULT_PRESETS
+    assert set(PRESET_KINDS.values()) <= set(field_kinds()) and set(DEFAULT_FIELDS.values()) <= set(DEFAULT_PRESETS)
     assert all(PRESET_KINDS[preset] == kind for kind, preset in DEFAULT_PRESETS.items())
     fit = build_parser()._subparsers._group_actions[0].choices["fit"]
     choices = {action.dest: action.choices for action in fit._actions if action.choices}

@@ -1,6 +1,6 @@
 """`noisenerf fit`: fit a NeRF to a dataset on a CPU (or GPU), with skipping, checkpoints and resume.
 
-Presets (`--field` picks a kind's default preset; without either, `hashgrid`: presets.DEFAULT_FIELD):
+Presets (`--field` picks a kind's default preset; without either, the dataset kind's: presets.DEFAULT_FIELDS):
 - `small` (the `mlp` kind's default): one 6×128 MLP (nerf-pytorch compatible: netdepth 6, netwidth 128,
   skip at 4), 128 uniform samples per ray of which only those in occupied grid cells and before the ray
   turns opaque are evaluated. Chosen for 2 CPU cores: several times the training throughput of 8×256.
@@ -11,6 +11,9 @@ Presets (`--field` picks a kind's default preset; without either, `hashgrid`: pr
   the MLPs only) at its learning rate 1e-2, decaying to 1e-3 (the best of the variants measured:
   docs/field-kinds.md). Its scene renders with 256 samples per ray through a 128³ grid built at the end: the
   fitted field is sharper than 128 jittered samples and a 64³ grid of 4 points per cell resolve.
+- `nerfacto` (the `nerfacto` kind's) and `nerfacto-big`: nerfstudio's nerfacto field and proposal networks, trained
+  with its proposal sampler and losses in a contracted frame (train.scene.fit_proposal), no occupancy grid; sized
+  for 2 CPU cores (128 → 64 → 32 samples, 1,024 rays) and nerfstudio's own sizes for a GPU.
 
 The learning rate decays exponentially from `lr` to `lr_final` over the run (by steps with --iters,
 by wall time with --minutes, so that a time-boxed run still anneals). With --iters the result is a

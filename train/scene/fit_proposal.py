@@ -30,7 +30,7 @@ from noisenerf.train.scene.hashgrid import TABLE_INIT
 from noisenerf.train.scene.nerfacto import NerfactoField
 from noisenerf.train.scene.proposal import (distortion_loss, euclidean_bins, interlevel_loss, midpoints,
                                             proposal_stages)
-from noisenerf.train.scene.render import TorchRays, render_weights
+from noisenerf.train.scene.render import TorchRays, composite, render_weights
 from noisenerf.train.scene.scene import Scene, field_weights, own_sampler_scene, weights_of
 
 SECRET_SAMPLES = 128  # uniform samples per ray of a secret view, as an imported nerfacto scene's
@@ -128,7 +128,7 @@ class ProposalFitter:
             term = self.appearance(self.rays.views[index])[:, None, :].expand(n, m, -1).reshape(n * m, -1)
             rgb, sigma = self.field.appearance_forward(points.reshape(-1, 3), viewdirs, term)
         rgbs, weights = rgb.reshape(n, m, 3), render_weights(sigma.reshape(n, m), deltas)
-        colours = torch.einsum("rs,rsc->rc", weights, rgbs) + rgbs[:, -1] * (1 - weights.sum(-1, keepdim=True))
+        colours = composite(weights, rgbs, rgbs[:, -1])  # nerfstudio's last_sample background
         colour_loss = torch.mean((colours - self.rays.colors[index]) ** 2)
         loss = (colour_loss + training.distortion_weight * distortion_loss(bins, weights)
                 + (training.interlevel_weight * interlevel_loss(bins, weights, stages) if updating else 0))

@@ -5,7 +5,8 @@ holds the two equal, and each kind to one runtime.fields registers)."""
 PRESET_KINDS = {"small": "mlp", "paper": "mlp", "hashgrid": "hashgrid", "nerfacto": "nerfacto",
                 "nerfacto-big": "nerfacto"}  # preset -> the field kind it fits
 DEFAULT_PRESETS = {"mlp": "small", "hashgrid": "hashgrid", "nerfacto": "nerfacto"}  # the preset `--field KIND` fits with: the kinds fitted
-# the kind new fits take without --field or --preset: in the same minutes it fits better than the small
-# preset, its keys are no larger and every camera takes every hard secret (docs/field-kinds.md has the
-# figures); the MLP stays the choice for a smaller model file and faster reveals
-DEFAULT_FIELD = "hashgrid"
+# the kind new fits take without --field or --preset, by the dataset's kind. NeRF-Synthetic: the hash grid, which in
+# the same minutes fits better than the small preset, its keys no larger, every camera taking every hard secret; LLFF
+# and captures (photos of real, unbounded scenes): nerfacto, 6.5 dB above the hash grid on fern in the same 15
+# minutes (docs/field-kinds.md has the figures); the MLP stays the choice for a smaller model file and faster reveals
+DEFAULT_FIELDS = {"blender": "hashgrid", "llff": "nerfacto", "capture": "nerfacto"}

@@ -43,7 +43,7 @@ def render_weights(sigmas: torch.Tensor, deltas: torch.Tensor) -> torch.Tensor:
 
 def composite(weights: torch.Tensor, rgbs: torch.Tensor, background: torch.Tensor) -> torch.Tensor:
     """Ĉ = Σ w_i c_i + (1 − Σ w_i)·background. weights (n_rays, n_samples), rgbs (n_rays, n_samples, 3),
-    background (3,) -> (n_rays, 3)."""
+    background (3,) or one per ray (n_rays, 3) -> (n_rays, 3)."""
     color = torch.einsum("rs,rsc->rc", weights, rgbs)
     return color + (1.0 - weights.sum(dim=1, keepdim=True)) * background
 
