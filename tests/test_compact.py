@@ -288,3 +288,15 @@ def test_hostile_compact_bundle_is_one_line(demo, case):
     rewrite_bundle(folder / "compact.bundle", folder / "bad.bundle", edit, model)
     with pytest.raises(UserError, match=message):
         hidden_bundle(folder / "bad.bundle", model)
+
+
+def test_a_space_from_no_solved_pixel_is_zero_not_nan():
+    """A sample none of whose pixels the solver reached (a barely fitted fog) gives the zero offset and basis: the
+    tile's own solve then reports the pixels it cannot reach (exit 3), where a mean of nothing made the offset NaN
+    and the hide stopped on its own bundle."""
+    from noisenerf.train.hide.compact import principal_basis
+
+    offset, basis = principal_basis(torch.zeros(0, 6), 3)
+    assert torch.equal(offset, torch.zeros(6)) and torch.equal(basis, torch.zeros(6, 3))
+    offset, basis = principal_basis(torch.tensor([[1.0, 2.0], [3.0, 2.0]]), 2)
+    assert torch.equal(offset, torch.tensor([2.0, 2.0])) and torch.equal(basis[:, 0].abs(), torch.tensor([1.0, 0.0]))

@@ -50,8 +50,12 @@ def in_basis(exact: ExactSettings, settings: CompactSettings) -> ExactSettings:
 
 def principal_basis(noise: torch.Tensor, k: int) -> tuple[torch.Tensor, torch.Tensor]:
     """Mean and top-k principal directions of noise vectors, signs fixed (largest entry positive) so the
-    basis is a function of the noise alone; zero columns where fewer than k vectors span fewer directions.
+    basis is a function of the noise alone; zero columns where fewer than k vectors span fewer directions, and the
+    zero offset and basis where there are none (a sample none of whose pixels the solver could bring to their
+    colours: the tile's own solve then reports the pixels it cannot reach, rather than a space of NaN).
     noise: (s, dims) -> offset (dims,), basis (dims, k) with orthonormal (or zero) columns."""
+    if len(noise) == 0:
+        return noise.new_zeros(noise.shape[1]), noise.new_zeros(noise.shape[1], k)
     offset = noise.mean(0)
     _, _, vh = torch.linalg.svd((noise - offset).double(), full_matrices=False)
     basis = torch.zeros(noise.shape[1], k, dtype=torch.float64, device=noise.device)
@@ -122,8 +126,8 @@ def tile_space(secret_view: SecretView, pixels: torch.Tensor, settings: CompactS
             space, index, noise = direction_basis(branch, pixels[sample], xyz_noise, settings, exact, generator)
             return stepped(branch, space, settings.step_bins, storage, index, noise)
     solved = solve_exact(ExactProblem(secret_view, sample, pixels[sample], NoiseSpace(torch.float32), exact, generator))
-    offset, basis = principal_basis(solved.params, settings.coefficients)
     index = solved.done.nonzero()[:, 0]
+    offset, basis = principal_basis(solved.params[index], settings.coefficients)  # pixels left unsolved never count
     return stepped(part, NoiseSpace(torch.float32, basis, offset), settings.step_bins, storage, index,
                    solved.params[index])
 
