@@ -78,8 +78,9 @@ def fit(data: PathLike, output: PathLike, *, field: str | None = None, preset: s
         raise UserError(f"unknown preset {preset!r:.40} (expected one of {', '.join(PRESET_KINDS)})")
     if field is not None and preset is not None and PRESET_KINDS[preset] != field:
         raise UserError(f"preset {preset} fits the {PRESET_KINDS[preset]} kind, not {field}")
-    if appearance and (field or (preset and PRESET_KINDS[preset])) not in (None, "nerfacto"):
-        raise UserError(f"--appearance is for nerfacto fits, not {field or PRESET_KINDS[preset]}")
+    chosen_kind = field or (PRESET_KINDS[preset] if preset else None)  # None: the dataset's kind decides, below
+    if appearance and chosen_kind not in (None, "nerfacto"):
+        raise UserError(f"--appearance is for nerfacto fits, not {chosen_kind}")
     from noisenerf.train.scene.datasets import load_dataset
     from noisenerf.train.scene.fit import APPEARANCE_DIM, PRESETS, Budget, fit as fit_scene
 

@@ -1,8 +1,9 @@
 """Write a NeRF-Synthetic scene's training frames as a capture: the one transforms.json that nerfstudio's
 ns-process-data writes (PINHOLE, fl_x/fl_y/cx/cy/w/h, OpenGL transform matrices) beside RGB photos composited
-on white, no alpha, no splits: what `noisenerf fit` reads from a phone capture, 360° round its subject. The
-fields bench fits it (`--data`) where no phone capture is at hand; it is not a phone capture (no lens, exposure
-or background clutter), and the report must say so.
+on white, no alpha, no splits: what `noisenerf fit` reads from a phone capture, 360° round its subject, for
+comparing the field kinds (`fit`, or the fields bench's `--data`) where no phone capture is at hand. It is not a
+phone capture (no lens, exposure
+or background clutter), and any figure from it must say so.
 
     python tools/blender_as_capture.py ../shared/data/scenes/blender/lego -o /tmp/lego_capture
 """

@@ -14,6 +14,7 @@ from __future__ import annotations
 import copy
 import dataclasses
 from pathlib import Path
+
 import numpy as np
 import torch
 from safetensors.torch import save
@@ -22,10 +23,10 @@ from torch import nn
 from noisenerf.runtime.camera import Camera
 from noisenerf.runtime.files import write_bytes, write_json
 from noisenerf.runtime.proposal import ProposalSampling
-from noisenerf.train.scene.datasets import LLFF_BD_FACTOR, Dataset, farthest_corner
-from noisenerf.train.scene.fit import FitConfig, load_optimizer, optimizer_tensors, read_checkpoint, training_rays
 from noisenerf.runtime.render import RenderConfig
 from noisenerf.runtime.sampling import SamplingConfig
+from noisenerf.train.scene.datasets import LLFF_BD_FACTOR, Dataset, farthest_corner
+from noisenerf.train.scene.fit import FitConfig, load_optimizer, optimizer_tensors, read_checkpoint, training_rays
 from noisenerf.train.scene.hashgrid import TABLE_INIT
 from noisenerf.train.scene.nerfacto import NerfactoField
 from noisenerf.train.scene.proposal import (distortion_loss, euclidean_bins, interlevel_loss, midpoints,
@@ -39,9 +40,9 @@ SECRET_SAMPLES = 128  # uniform samples per ray of a secret view, as an imported
 def contraction_frame(dataset: Dataset) -> Dataset:
     """The dataset in the field's frame: its box (for LLFF, ±the nearest content's distance round the recentred
     cameras, which llff_c2w puts at 1/bd_factor) moved and scaled onto [-1, 1]³; world rays, no NDC. Rays start at
-    the dataset's own near plane (a capture's nerfstudio's 0.05, NeRF-Synthetic's 2, LLFF's NDC plane at 1), so
-    no camera can paint its view on a film just in front of itself, and end at the farthest corner of the cube seen
-    from a camera (what a secret view samples)."""
+    the dataset's own near plane (NeRF-Synthetic's 2, LLFF's NDC plane at 1, where no camera can paint its view on a
+    film just in front of itself; a capture's nerfstudio's 0.05, where on lego one did: docs/field-kinds.md), and
+    end at the farthest corner of the cube seen from a camera (what a secret view samples)."""
     if dataset.ndc is not None:
         centre, half, near = np.zeros(3), 1.0 / LLFF_BD_FACTOR, dataset.ndc.near_plane
     else:
