@@ -33,6 +33,13 @@ def size_argument(text: str, flag: str) -> tuple[int, int]:
     return int(match[1]), int(match[2])
 
 
+def view_argument(text: str) -> int:
+    """--paper-scene's VIEW: a camera index, 0 to 99999."""
+    if re.fullmatch(r"[0-9]{1,5}", text) is None:
+        raise UserError(f"--paper-scene takes a scene directory and a camera index; got view {text!r:.40}")
+    return int(text)
+
+
 def fields_presets(text: str) -> tuple[str, ...]:
     """--fields-presets: fit presets by name, comma-separated, each known and named once."""
     names = tuple(text.split(","))
@@ -163,7 +170,9 @@ def cmd_bench(args) -> None:
         raise UserError("--payload-bytes must be 0 or more")
     config = BenchConfig(scene=args.scene, secret=args.secret, data=args.data, photos=tuple(args.photos),
                          view=args.view, small_width=args.small_width, twok_rows=args.twok_rows,
-                         paper_width=args.paper_width, paper_iters=args.paper_iters, speed_width=args.speed_width, payload_bytes=args.payload_bytes,
+                         paper_width=args.paper_width, paper_iters=args.paper_iters,
+                         paper_scenes=tuple((folder, view_argument(view)) for folder, view in args.paper_scene),
+                         paper_secrets=tuple(args.paper_secrets), speed_width=args.speed_width, payload_bytes=args.payload_bytes,
                          browser_size=args.browser_size, cluster_size=args.cluster_size,
                          cluster_tile=args.cluster_tile, cluster_photo=size_argument(args.cluster_photo, "--cluster-photo"),
                          big_secret=size_argument(args.big_secret, "--big-secret"),
@@ -297,6 +306,11 @@ def bench_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--speed-width", type=int, default=64,
                    help="paper_speed: the width of the square secrets hidden with and without skipping")
     p.add_argument("--paper-iters", type=int, default=300, help="paper-mode iterations (the paper's 300)")
+    p.add_argument("--paper-scene", nargs=2, action="append", default=[], metavar=("SCENE", "VIEW"),
+                   help="paper_quality, paper_changes: a scene and the view its secrets are hidden at (repeat it; "
+                        "default: --scene at --view)")
+    p.add_argument("--paper-secrets", nargs="*", default=[],
+                   help="paper_quality, paper_changes: the photos hidden (default: the first three --photos)")
     p.add_argument("--twok-rows", type=int, default=1, help="tile rows of the 2048² secret actually hidden (1-4)")
     p.add_argument("--payload-bytes", type=int, default=1 << 20, help="size of the payload experiment's file")
     p.add_argument("--browser-size", type=int, default=2048, help="side of the browser experiment's tiled secret")

@@ -21,6 +21,7 @@ from noisenerf.cli.bench import (EXPERIMENTS, REGISTRY, BenchConfig, BenchContex
 from noisenerf.cli.bench.browser import RUNS, browser_missing
 from noisenerf.cli.bench.context import Measured
 from noisenerf.cli.bench.keys import far_views
+from noisenerf.cli.bench.paper import PAPER_CHANGES, paper_goal_line
 from noisenerf.cli.bench.registry import selected
 from noisenerf.cli.bench.report import verdict
 from noisenerf.cli.bench.run import stress_section
@@ -217,6 +218,36 @@ def test_field_flops_counts_linear_layers():
     scene = make_tiny_scene(seed=0, width=32, depth=3)
     # 63->32, (32+63)->32 (skip after layer 1), 32->32, feature 32->32, alpha 32->1, views (32+27)->16, rgb 16->3
     assert field_flops(scene.render_field) == 2 * (63 * 32 + 95 * 32 + 32 * 32 + 32 * 32 + 32 + 59 * 16 + 16 * 3)
+
+
+def test_paper_changes_switch_each_change_off_alone_on_the_same_photos(report):
+    _, sections = report
+    rows, quality = sections["paper_changes"].rows, sections["paper_quality"].rows
+    assert [row["variant"] for row in rows] == ["all changes", *PAPER_CHANGES]
+    assert {row["photo"] for row in rows} == {"secret.png"} and {row["scene"] for row in rows} == {"scene"}
+    assert rows[0]["ssim"] == [row for row in quality if row["iteration"] == 60][0]["ssim"]  # paper_quality's run
+    text = "\n".join(sections["paper_changes"].lines)
+    assert all(f"| {variant} | scene |" in text for variant in PAPER_CHANGES)
+    assert "(goal: ≥ 0.9913, the paper's Table 1 for NeRF-Synthetic, none under 0.98: not met)" in "\n".join(
+        sections["paper_quality"].lines)  # a 12 px secret after 60 iterations of 3 samples
+
+
+def test_a_scene_meets_the_papers_figure_only_with_no_photo_under_the_floor():
+    finals = [{"ssim": 0.999, "ssim_authors": 0.999, "seconds": 1.0}, {"ssim": 0.985, "ssim_authors": 0.99, "seconds": 3.0}]
+    assert paper_goal_line("fern", "LLFF", finals, 300).endswith("none under 0.98: met).")
+    finals[1]["ssim"] = 0.979
+    assert "mean SSIM after 300 iterations over 2 photos **0.9890**, lowest 0.9790, authors' SSIM 0.9945, 2.0 s a " \
+           "secret (goal: ≥ 0.9847, the paper's Table 1 for LLFF, none under 0.98: not met)." in paper_goal_line(
+               "fern", "LLFF", finals, 300)
+
+
+def test_a_paper_scene_with_a_view_that_is_no_camera_index_is_refused(tmp_path):
+    result = subprocess.run([sys.executable, "-m", "noisenerf.cli.main", "bench", "--scene", "x", "--secret", "y",
+                             "--paper-scene", "x", "7a", "-o", str(tmp_path / "out")], capture_output=True, text=True,
+                            timeout=120)
+    assert result.returncode == 2 and result.stderr.count("\n") == 1, result.stderr
+    assert result.stderr.strip().endswith("error: --paper-scene takes a scene directory and a camera index; got view '7a'")
+    assert not (tmp_path / "out").exists()
 
 
 def test_a_goal_reached_exactly_is_met():

@@ -7,11 +7,11 @@ from helpers import interrupted_after_saves
 from noisenerf.runtime.errors import UserError
 from noisenerf.runtime.images import to_uint8
 from noisenerf.runtime.metrics import ssim
-from noisenerf.train.hide.paper import (gradient_samples, learning_rate, revival_noise, solve_block, solve_blocks,
-                                          start_noise, survey)
+from noisenerf.train.hide.paper import (OCCLUDED_TRANSMITTANCE, BlockProblem, gradient_samples, learning_rate, occluded, revival_noise,
+                                          solve_block, solve_blocks, start_noise, survey)
 from noisenerf.train.hide.plan import HideConfig, plan
 from noisenerf.train.hide.secret_view import SecretView
-from noisenerf.train.hide.settings import NO_SKIP, recipe
+from noisenerf.train.hide.settings import NO_SKIP, PaperSettings, recipe
 from noisenerf.train.scene.procedural import procedural_secret
 
 CPU = torch.device("cpu")
@@ -88,12 +88,37 @@ def test_recipes_follow_their_schedules():
     assert learning_rate(paper, 300) == pytest.approx(1e-2 * 0.3)
     assert paper.pixel_perturbation and paper.adaptive_selection and paper.weight_decay == 0
     assert not authors.pixel_perturbation and not authors.adaptive_selection and authors.weight_decay == 0.8
+    assert recipe("noisenerf") == PaperSettings()  # the default, the authors' without weight decay, stepping at 250
+    assert [learning_rate(PaperSettings(), t) for t in (250, 251)] == [0.1, 0.01] and PaperSettings().weight_decay == 0
     with pytest.raises(UserError, match="revival"):
         recipe("authors", revival="some")
     with pytest.raises(UserError, match="--iters"):
         recipe("authors", iters=0)
     with pytest.raises(UserError, match="recheck_every"):
         recipe("authors", recheck_every=0)
+
+
+def test_occluded_samples_are_those_behind_all_but_a_sliver_of_transmittance():
+    deltas = torch.ones(3, 4)
+    density = torch.tensor([[0.0, 10.0, 0.0, 5.0],  # opaque at the second sample: the two behind it are left out
+                            [0.0, 0.0, 0.0, 0.0],  # empty: nothing is
+                            [1.0, 1.0, 1.0, 1.0]])  # T = e^-3 ≈ 0.05 at the last sample: above the bound, kept
+    assert occluded(density, deltas).tolist() == [[False, False, True, True], [False] * 4, [False] * 4]
+    edge = -torch.log(torch.tensor(OCCLUDED_TRANSMITTANCE))  # optical depth whose transmittance is the bound
+    assert occluded(torch.tensor([[edge * 0.999, 0.0], [edge * 1.001, 0.0]]), torch.ones(2, 2)).tolist() == [
+        [False, False], [False, True]]
+
+
+def test_skipping_occluded_samples_leaves_out_the_live_ones_behind_the_opacity(view):
+    index = torch.arange(view.n_rays)
+    noise = torch.zeros(view.n_rays, view.n_samples, view.noise_dims)
+    problems = {skip: BlockProblem(view, index, recipe("authors", skip_occluded=skip)) for skip in (False, True)}
+    for problem in problems.values():
+        problem.check(noise)
+    behind = occluded(view.field.density_of(problems[True].checked_density), view.deltas) & (problems[True].checked_density > 0)
+    assert behind.any()  # the demo view has live samples behind opaque ones
+    assert problems[False].active[behind].all() and not problems[True].active[behind].any()
+    assert torch.equal(problems[False].active & ~behind, problems[True].active)
 
 
 def test_gradient_samples_are_the_live_ones_and_a_dead_rays_densest():
@@ -118,7 +143,7 @@ def test_skipping_dead_samples_with_a_check_every_iteration_gives_identical_nois
     clean = survey(view, 1 << 12)
     blocks = {label: next(solve_blocks(view, pixels, 16 if layout == "sample" else 1,
                                        recipe(name, iters=60, record_at=(30, 60), **over), clean, torch.float32))
-              for label, over in (("as written", NO_SKIP), ("exact skip", {"recheck_every": 1}))}
+              for label, over in (("as written", NO_SKIP), ("exact skip", {"recheck_every": 1, "skip_occluded": False}))}
     written, skipped = blocks["as written"], blocks["exact skip"]
     assert torch.equal(skipped.noise, written.noise) and torch.equal(skipped.colors, written.colors)
     sample_iterations = view.n_rays * view.n_samples * 60
@@ -133,7 +158,7 @@ def test_paper_mode_reaches_an_ssim_the_old_solver_missed(demo_scene, secret, vi
     pixels = torch.from_numpy(secret.reshape(-1, 3).copy())
     clean = survey(view, 1 << 12)
     scores = {}
-    for name, settings in (("old", recipe("paper", revival="off", record_at=())), ("default", recipe("authors", record_at=()))):
+    for name, settings in (("old", recipe("paper", revival="off", record_at=())), ("default", recipe("noisenerf", record_at=()))):
         block = next(solve_blocks(view, pixels, 16, settings, clean, torch.float32))
         colors = view.render(block.index, block.noise)
         scores[name] = ssim(to_uint8(colors.numpy()).reshape(secret.shape) / 255.0, secret / 255.0)

@@ -18,9 +18,13 @@ class BenchConfig:
     small_width: int = 48  # secret width for the curves that include the paper's method on a CPU
     paper_samples: int = 64
     paper_iters: int = 300  # the paper's iteration count (lower only to test the bench quickly)
-    paper_recipe: str = "authors"
+    paper_recipe: str = "noisenerf"
     paper_width: int | None = None  # paper-quality secrets (square): None = 400 (the paper's) on CUDA, small_width on CPU
     paper_photos: int = 3
+    # paper_quality and paper_changes: (scene directory, view) pairs, each scene fitted as the README says; (): the
+    # bench's scene at its view
+    paper_scenes: tuple[tuple[str, int], ...] = ()
+    paper_secrets: tuple[str, ...] = ()  # the photos they hide; (): the first paper_photos of photos
     speed_width: int = 64  # the paper_speed experiment's secrets (square), hidden with and without skipping
     ablation_samples: int = 64
     ablation_width: int | None = None  # None = 100 (the authors' secret) on CUDA, small_width on CPU

@@ -38,6 +38,8 @@ class Experiment:
 REGISTRY = (
     Experiment("paper_quality", "The paper's method at the paper's scale", paper.measure_paper_quality,
                paper.describe_paper_quality, paper.plot_paper_quality),
+    Experiment("paper_changes", "The paper's method: our changes to its recipe, each switched off",
+               paper.measure_paper_changes, paper.describe_paper_changes, needs=("paper_quality",)),
     Experiment("error_vs_time", "Run time against error: paper vs exact", paper.measure_error_vs_time,
                paper.describe_error_vs_time, paper.plot_error_vs_time),
     Experiment("ablation", "The paper's Table 3 ablation (paper mode)", paper.measure_ablation, paper.describe_ablation,

@@ -51,7 +51,7 @@ def paper_flags(parser: argparse.ArgumentParser) -> None:
     """The paper method's flags on `noisenerf hide`: its recipe and the recipe's overrides."""
     paper = PaperSettings()
     parser.add_argument("--recipe", choices=tuple(RECIPES), default=paper.recipe,
-                        help=f"paper method: the authors' public code or the paper's text (default {paper.recipe})")
+                        help=f"paper method: ours, the authors' public code or the paper's text (default {paper.recipe})")
     parser.add_argument("--iters", type=int, help=f"paper method: optimisation iterations (default {paper.iters})")
     parser.add_argument("--revival", choices=REVIVALS,
                         help=f"paper method: which rays start from a colour donor (default {paper.revival})")

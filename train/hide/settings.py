@@ -86,18 +86,19 @@ REVIVALS = ("all", "dead", "off")  # which rays start from a colour donor (paper
 
 @dataclass(frozen=True)
 class PaperSettings:
-    """One paper-mode run; RECIPES holds the two named presets, the ablation switches the strategies."""
+    """One paper-mode run; RECIPES holds the named presets (these defaults are `noisenerf`'s), the ablation switches
+    the strategies."""
 
     key: ClassVar[str] = "paper"  # where bundles record these settings
 
-    recipe: str = "authors"  # the preset these settings started from (recorded in the bundle)
+    recipe: str = "noisenerf"  # the preset these settings started from (recorded in the bundle)
     iters: int = 300
     lr: float = 0.1
     lr_schedule: str = "step"  # step: lr for t ≤ lr_step_at, then lr_after; exponential: lr·lr_decay^(t/iters)
     lr_decay: float = 0.3
-    lr_step_at: int = 50
+    lr_step_at: int = 250
     lr_after: float = 0.01
-    weight_decay: float = 0.8  # decoupled (AdamW), on the encoded input γ + δ, times weight_decay_decay^(t/iters)
+    weight_decay: float = 0.0  # decoupled (AdamW), on the encoded input γ + δ, times weight_decay_decay^(t/iters)
     weight_decay_decay: float = 0.3
     pixel_perturbation: bool = False  # eq. 7–8 for t ≤ mu
     mu: int = 50
@@ -112,6 +113,7 @@ class PaperSettings:
     pass_samples: int = 1 << 16  # samples per forward/backward pass (memory bound, not a result)
     record_at: tuple[int, ...] = (50, 200, 300)
     skip_dead: bool = True  # exact: dead samples skip the colour branch and the backward pass (see the module docstring)
+    skip_occluded: bool = True  # approximate: samples behind the ray's opacity (paper.occluded) skip like dead ones
     recheck_every: int = 10  # sample layout: a dead sample is evaluated again every this many iterations (1: exact)
     tf32: bool = True  # CUDA matmuls in TF32: ~3× faster on Ampere and later; this method is approximate anyway
 
@@ -127,11 +129,12 @@ class PaperSettings:
 RECIPES = {
     "paper": PaperSettings(recipe="paper", lr=1e-2, lr_schedule="exponential", weight_decay=0.0,
                            pixel_perturbation=True, adaptive_selection=True),
-    "authors": PaperSettings(recipe="authors"),
+    "authors": PaperSettings(recipe="authors", lr_step_at=50, weight_decay=0.8),
+    "noisenerf": PaperSettings(),
 }
 
 
-NO_SKIP = {"skip_dead": False, "recheck_every": 1}  # `--no-skip`: every sample of every ray, every iteration
+NO_SKIP = {"skip_dead": False, "skip_occluded": False, "recheck_every": 1}  # `--no-skip`: every sample of every ray, every iteration
 
 
 def recipe(name: str, **overrides) -> PaperSettings:
