@@ -7,8 +7,8 @@ from helpers import interrupted_after_saves
 from noisenerf.runtime.errors import UserError
 from noisenerf.runtime.images import to_uint8
 from noisenerf.runtime.metrics import ssim
-from noisenerf.train.hide.paper import (OCCLUDED_TRANSMITTANCE, BlockProblem, gradient_samples, learning_rate, occluded, revival_noise,
-                                          solve_block, solve_blocks, start_noise, survey)
+from noisenerf.train.hide.paper import (gradient_samples, learning_rate, revival_noise, solve_block, solve_blocks,
+                                          start_noise, survey)
 from noisenerf.train.hide.plan import HideConfig, plan
 from noisenerf.train.hide.secret_view import SecretView
 from noisenerf.train.hide.settings import NO_SKIP, PaperSettings, recipe
@@ -98,29 +98,6 @@ def test_recipes_follow_their_schedules():
         recipe("authors", recheck_every=0)
 
 
-def test_occluded_samples_are_those_behind_all_but_a_sliver_of_transmittance():
-    deltas = torch.ones(3, 4)
-    density = torch.tensor([[0.0, 10.0, 0.0, 5.0],  # opaque at the second sample: the two behind it are left out
-                            [0.0, 0.0, 0.0, 0.0],  # empty: nothing is
-                            [1.0, 1.0, 1.0, 1.0]])  # T = e^-3 ≈ 0.05 at the last sample: above the bound, kept
-    assert occluded(density, deltas).tolist() == [[False, False, True, True], [False] * 4, [False] * 4]
-    edge = -torch.log(torch.tensor(OCCLUDED_TRANSMITTANCE))  # optical depth whose transmittance is the bound
-    assert occluded(torch.tensor([[edge * 0.999, 0.0], [edge * 1.001, 0.0]]), torch.ones(2, 2)).tolist() == [
-        [False, False], [False, True]]
-
-
-def test_skipping_occluded_samples_leaves_out_the_live_ones_behind_the_opacity(view):
-    index = torch.arange(view.n_rays)
-    noise = torch.zeros(view.n_rays, view.n_samples, view.noise_dims)
-    problems = {skip: BlockProblem(view, index, recipe("authors", skip_occluded=skip)) for skip in (False, True)}
-    for problem in problems.values():
-        problem.check(noise)
-    behind = occluded(view.field.density_of(problems[True].checked_density), view.deltas) & (problems[True].checked_density > 0)
-    assert behind.any()  # the demo view has live samples behind opaque ones
-    assert problems[False].active[behind].all() and not problems[True].active[behind].any()
-    assert torch.equal(problems[False].active & ~behind, problems[True].active)
-
-
 def test_gradient_samples_are_the_live_ones_and_a_dead_rays_densest():
     raw_density = torch.tensor([[-1.0, 0.5, 0.0, 2.0],    # live: two samples
                                 [-3.0, -0.5, -2.0, -0.5],  # dead: its densest (a tie) takes the floor term
@@ -143,7 +120,7 @@ def test_skipping_dead_samples_with_a_check_every_iteration_gives_identical_nois
     clean = survey(view, 1 << 12)
     blocks = {label: next(solve_blocks(view, pixels, 16 if layout == "sample" else 1,
                                        recipe(name, iters=60, record_at=(30, 60), **over), clean, torch.float32))
-              for label, over in (("as written", NO_SKIP), ("exact skip", {"recheck_every": 1, "skip_occluded": False}))}
+              for label, over in (("as written", NO_SKIP), ("exact skip", {"recheck_every": 1}))}
     written, skipped = blocks["as written"], blocks["exact skip"]
     assert torch.equal(skipped.noise, written.noise) and torch.equal(skipped.colors, written.colors)
     sample_iterations = view.n_rays * view.n_samples * 60

@@ -67,9 +67,6 @@ import torch
 
 from noisenerf.train.hide.secret_view import SecretView, pass_slices
 from noisenerf.train.hide.settings import PaperSettings
-from noisenerf.train.scene.render import optical_depths, transmittance
-
-OCCLUDED_TRANSMITTANCE = 0.5 / 255  # transmittance under which a ray's remaining samples are left out (occluded)
 
 
 def floor_weight(settings: PaperSettings) -> float:
@@ -113,14 +110,6 @@ def gradient_samples(raw_density: torch.Tensor, dead: torch.Tensor, floor: float
         densest = raw_density.amax(-1, keepdim=True)
         active |= (raw_density == densest) & (densest < floor)
     return active
-
-
-def occluded(density: torch.Tensor, deltas: torch.Tensor) -> torch.Tensor:
-    """Samples behind so much opacity that together they weigh under OCCLUDED_TRANSMITTANCE in eq. 2: the
-    weights from sample i on sum to at most T_i (eq. 2), so T_i below it bounds all of them. Left out (their
-    density kept, their colour the stand-in 0.5), they move the ray's colour by under a quarter of an 8-bit step.
-    density, deltas: (m, n_samples) -> bool, same shape."""
-    return transmittance(optical_depths(density, deltas)) < OCCLUDED_TRANSMITTANCE
 
 
 def learning_rate(settings: PaperSettings, t: int) -> float:
@@ -256,11 +245,8 @@ class BlockProblem:
         """Every sample's raw density with noise (m, k, dims): which samples the next passes evaluate."""
         with torch.no_grad():
             self.checked_density = torch.cat([self.secret_view.raw_density(self.index[p], noise[p]) for p in self.parts])
-        field, deltas = self.secret_view.field, self.secret_view.deltas[self.index]
-        left_out = field.negligible(self.checked_density, deltas)
-        if self.settings.skip_occluded:
-            left_out |= occluded(field.density_of(self.checked_density), deltas)
-        self.active = gradient_samples(self.checked_density, left_out, self.floor)
+        self.active = gradient_samples(self.checked_density, self.secret_view.field.negligible(
+            self.checked_density, self.secret_view.deltas[self.index]), self.floor)
         self.work[1] += self.checked_density.numel()
 
     def losses_and_grad(self, noise: torch.Tensor, loss: Loss, t: int) -> tuple[torch.Tensor, torch.Tensor]:

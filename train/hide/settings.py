@@ -113,7 +113,6 @@ class PaperSettings:
     pass_samples: int = 1 << 16  # samples per forward/backward pass (memory bound, not a result)
     record_at: tuple[int, ...] = (50, 200, 300)
     skip_dead: bool = True  # exact: dead samples skip the colour branch and the backward pass (see the module docstring)
-    skip_occluded: bool = True  # approximate: samples behind the ray's opacity (paper.occluded) skip like dead ones
     recheck_every: int = 10  # sample layout: a dead sample is evaluated again every this many iterations (1: exact)
     tf32: bool = True  # CUDA matmuls in TF32: ~3× faster on Ampere and later; this method is approximate anyway
 
@@ -134,7 +133,7 @@ RECIPES = {
 }
 
 
-NO_SKIP = {"skip_dead": False, "skip_occluded": False, "recheck_every": 1}  # `--no-skip`: every sample of every ray, every iteration
+NO_SKIP = {"skip_dead": False, "recheck_every": 1}  # `--no-skip`: every sample of every ray, every iteration
 
 
 def recipe(name: str, **overrides) -> PaperSettings:
