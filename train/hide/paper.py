@@ -10,7 +10,7 @@ Three recipes are settings of one solver (settings.RECIPES):
 - `noisenerf` (the default): the authors' without weight decay, lr 0.1 until iteration 250 (docs/methods.md
   says why; the bench's paper_changes measures each).
 
-Both stream the secret view through the solver in contiguous blocks of `block_pixels` pixels (the
+All three stream the secret view through the solver in contiguous blocks of `block_pixels` pixels (the
 authors' 6,144), each optimised for all its iterations before the next starts, and evaluate a block in
 passes of at most `pass_samples` samples (gradients summed over passes: each pixel's loss depends on its
 own noise only, so this is exact), so memory is bounded by the block and the pass, not the view.
