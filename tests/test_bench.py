@@ -204,7 +204,8 @@ def test_paper_speed_runs_each_secret_as_written_and_skipping(report):
     assert [r["run"] for r in rows] == ["no skip", "skip"]
     written, skipping = rows
     assert (written["skipped_samples"], written["checked_samples"]) == (0.0, 0.0)
-    assert skipping["skipped_samples"] > 0 and skipping["checked_samples"] == pytest.approx(0.1)  # every 10th of 60
+    # checks every 10th of 60 iterations of the open pixels, and retiring's one render of each finished pixel
+    assert skipping["skipped_samples"] > 0 and 0 < skipping["checked_samples"] <= 0.1 + 1 / 60
     assert all(r["seconds"] > 0 and r["gflops"] > 0 for r in rows)
 
 

@@ -7,7 +7,8 @@ from helpers import interrupted_after_saves
 from noisenerf.runtime.errors import UserError
 from noisenerf.runtime.images import to_uint8
 from noisenerf.runtime.metrics import ssim
-from noisenerf.train.hide.paper import (gradient_samples, learning_rate, revival_noise, solve_block, solve_blocks,
+from noisenerf.train.hide.paper import (BlockProblem, OpenPixels, confirmed, finished_pixels, gradient_samples, iteration,
+                                          learning_rate, revival_noise, saturation_excess, solve_block, solve_blocks,
                                           start_noise, survey)
 from noisenerf.train.hide.plan import HideConfig, plan
 from noisenerf.train.hide.secret_view import SecretView
@@ -96,6 +97,8 @@ def test_recipes_follow_their_schedules():
         recipe("authors", iters=0)
     with pytest.raises(UserError, match="recheck_every"):
         recipe("authors", recheck_every=0)
+    with pytest.raises(UserError, match=r"finish_within must be in \[0, 0.5\) levels"):
+        recipe("noisenerf", finish_within=0.5)
 
 
 def test_gradient_samples_are_the_live_ones_and_a_dead_rays_densest():
@@ -120,13 +123,110 @@ def test_skipping_dead_samples_with_a_check_every_iteration_gives_identical_nois
     clean = survey(view, 1 << 12)
     blocks = {label: next(solve_blocks(view, pixels, 16 if layout == "sample" else 1,
                                        recipe(name, iters=60, record_at=(30, 60), **over), clean, torch.float32))
-              for label, over in (("as written", NO_SKIP), ("exact skip", {"recheck_every": 1}))}
+              for label, over in (("as written", NO_SKIP), ("exact skip", {"recheck_every": 1, "finish_within": None}))}
     written, skipped = blocks["as written"], blocks["exact skip"]
     assert torch.equal(skipped.noise, written.noise) and torch.equal(skipped.colors, written.colors)
     sample_iterations = view.n_rays * view.n_samples * 60
     assert written.work.tolist() == [sample_iterations, 0, 0]
     evaluated, checked, idle = skipped.work.tolist()
-    assert checked == sample_iterations and 0 < evaluated < 0.3 * sample_iterations
+    assert 0 < evaluated < 0.3 * sample_iterations
+    if recipe(name).weight_decay:  # every row moves: every sample is checked
+        assert checked == sample_iterations
+    elif layout == "sample":  # only the rows a gradient has reached (in the ray layout here, every ray)
+        assert sample_iterations / 60 < checked < 0.5 * sample_iterations
+
+
+def test_saturation_excess_counts_visible_raw_colours_past_the_bound():
+    raw_rgb = torch.tensor([[[8.0, 0.0, -9.5], [20.0, 20.0, 20.0], [7.0, -7.0, 6.9]]])
+    weights = torch.tensor([[0.5, 0.0, 0.5]], requires_grad=True)  # the second sample is invisible
+    assert saturation_excess(raw_rgb, weights, 7.0).tolist() == [0.5 * (1.0 + 2.5)]
+    assert saturation_excess(raw_rgb, weights, float("inf")).tolist() == [0.0]
+    assert not saturation_excess(raw_rgb, weights, 7.0).requires_grad  # the weights are held constant
+
+
+def test_a_finished_pixel_is_within_its_bound_on_every_channel():
+    levels = torch.tensor([[10.0, 200.0, 0.0]] * 4)
+    offsets = torch.tensor([[0.4, -0.4, 0.0], [0.41, 0.0, 0.0], [0.0, 0.0, -0.45], [0.0, -0.3999, 0.3999]])
+    assert finished_pixels((levels + offsets) / 255, levels, 0.4).tolist() == [True, False, False, True]
+
+
+@pytest.mark.parametrize("name", ["noisenerf", "paper", "authors"])
+def test_a_retired_pixel_keeps_its_colour_and_the_rest_run_on_less_work(view, secret, name):
+    """With a check every iteration (colours exact), a pixel within 0.4 levels of its target at one record
+    stops there: from then on its colour does not change by a bit, whatever the others do (with APS and the
+    authors' weight decay too), and retiring (here at once, retire_share 0) leaves its pixels idle."""
+    pixels = torch.from_numpy(secret.reshape(-1, 3).copy())
+    clean = survey(view, 1 << 12)
+    points = (60, 120, 200, 300)
+    runs = {within: next(solve_blocks(view, pixels, 16, recipe(name, recheck_every=1, finish_within=within,
+                                                               retire_share=0.0, record_at=points), clean, torch.float32))
+            for within in (0.4, None)}
+    retired = runs[0.4]
+    finished = [finished_pixels(colors, pixels.float(), 0.4) for colors in retired.colors]
+    assert 0 < int(finished[-2].sum()) <= int(finished[-1].sum())  # some by iteration 200
+    for i in range(len(points) - 1):
+        assert bool(finished[i + 1][finished[i]].all())  # once finished, finished for good
+        assert torch.equal(retired.colors[-1][finished[i]], retired.colors[i + 1][finished[i]])
+    (evaluated, _, idle), (unretired_evaluated, _, unretired_idle) = retired.work.tolist(), runs[None].work.tolist()
+    assert idle > unretired_idle
+    # under the authors' weight decay a finished pixel left running loses its samples to the decay anyway
+    assert evaluated < unretired_evaluated or name == "authors"
+
+
+def test_a_pixel_that_finishes_stops_at_once_and_retires_only_on_a_render_of_every_sample(view, secret):
+    """The iteration in which a pixel first renders within its bound leaves its noise and Adam's state as
+    they were; the others move. Retiring renders every sample: not the ones the last check found live."""
+    pixels = torch.from_numpy(secret.reshape(-1, 3).copy())
+    clean, index = survey(view, 1 << 12), torch.arange(view.n_rays)
+    settings = recipe("authors", record_at=())  # the weight decay moves every row that is not frozen
+    noise = start_noise(view, index, pixels, 16, clean, settings)
+    colors = view.render(index, noise)
+    state = OpenPixels.start(noise.clone(), pixels.float() / 255, clean.colors, view.encodings(index))
+    finishing = torch.arange(view.n_rays) % 3 == 0
+    state.levels[finishing] = colors[finishing] * 255 + 0.3  # within 0.4 of every channel
+    problem = BlockProblem(view, index, settings)
+    after = iteration(problem, state, 1, settings)
+    assert torch.equal(after.frozen, finishing)
+    assert torch.equal(after.noise[finishing], noise[finishing]) and not bool(after.first[finishing].any())
+    assert bool((after.noise[~finishing] != noise[~finishing]).flatten(1).any(1).all())
+    # a stale check: every sample dead. Retiring still renders them all, so the frozen pixels are confirmed
+    problem.active.zero_()
+    problem.checked_density.fill_(-1.0)
+    assert torch.equal(confirmed(problem, after, 0.4), finishing)
+    after.levels[finishing] += 0.2  # now 0.5 off: not finished when rendered, so not confirmed
+    assert not bool(confirmed(problem, after, 0.4).any())
+
+
+@pytest.mark.parametrize("layout", ["sample", "ray"])
+def test_a_check_that_evaluates_only_moved_rows_finds_every_density_a_full_check_does(demo_scene, secret, layout):
+    """Without weight decay Adam moves only the rows a gradient has reached, so a check evaluates only those;
+    the densities it keeps must be the ones every sample has now."""
+    config = HideConfig(method="paper", layout=layout, n_samples=16, tile_size=16)
+    view = SecretView(demo_scene.coarse, plan(demo_scene, secret, config).tiles[0], demo_scene.config.render, CPU)
+    pixels = torch.from_numpy(secret.reshape(-1, 3).copy())
+    clean, index = survey(view, 1 << 12), torch.arange(view.n_rays)
+    settings = recipe("noisenerf", finish_within=None, record_at=())
+    noise = start_noise(view, index, pixels, 16 if layout == "sample" else 1, clean, settings)
+    state = OpenPixels.start(noise.clone(), pixels.float() / 255, clean.colors, view.encodings(index))
+    problem = BlockProblem(view, index, settings)
+    for t in range(1, 31):
+        state = iteration(problem, state, t, settings)
+    full = view.raw_density(index, state.noise)
+    # a check of some rows: those are evaluated (and counted), the others keep what the last check found
+    before, work_before = problem.checked_density.clone(), int(problem.work[1])
+    some = state.touched & (index % 2 == 0)[:, None]
+    problem.check(state.noise, some)
+    some = some.expand(-1, view.n_samples)
+    assert int(problem.work[1]) - work_before == int(some.sum()) > 0
+    torch.testing.assert_close(problem.checked_density[some], full[some], rtol=0, atol=1e-5)
+    assert torch.equal(problem.checked_density[~some], before[~some])
+    # the rows a gradient has reached are every row that moved: the check finds every density now
+    problem.check(state.noise, state.touched)
+    torch.testing.assert_close(problem.checked_density, full, rtol=0, atol=1e-5)
+    if layout == "sample":  # most samples never live: never moved, never evaluated again
+        moved = state.touched.expand(-1, view.n_samples)
+        assert 0 < int(moved.sum()) < moved.numel() // 2
+        assert torch.equal(problem.checked_density[~moved], view.raw_density(index, noise)[~moved])
 
 
 def test_paper_mode_reaches_an_ssim_the_old_solver_missed(demo_scene, secret, view):

@@ -56,9 +56,9 @@ def paper_flags(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--revival", choices=REVIVALS,
                         help=f"paper method: which rays start from a colour donor (default {paper.revival})")
     parser.add_argument("--no-skip", action="store_true",
-                        help="paper method: every sample of every ray through every iteration, the method as written "
-                        f"(by default dead samples are skipped, and checked again every {paper.recheck_every} "
-                        "iterations)")
+                        help="paper method: every sample of every pixel through every iteration, the method as written "
+                        f"(by default dead samples are skipped and checked again every {paper.recheck_every} "
+                        f"iterations, and a pixel within {paper.finish_within} levels of its target retires)")
 
 
 def paper_arguments(args: argparse.Namespace, device_type: str) -> tuple:

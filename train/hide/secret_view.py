@@ -108,6 +108,15 @@ class SecretView:
             return self.cached[index[samples // self.n_samples], samples % self.n_samples]
         return self.encode(index).flatten(0, 1)[samples]
 
+    def raw_density_of(self, index: torch.Tensor, noise_rows: torch.Tensor, samples: torch.Tensor, fill: torch.Tensor
+                       ) -> torch.Tensor:
+        """As raw_density, evaluating only `samples` (s,), positions in the flattened (m, n_samples) of rays
+        `index` (m,), with their noise rows (s, dims); the others keep their density in fill (m, n_samples)."""
+        encoded = (self.sample_encodings(index, samples) + noise_rows)[:, :self.field.config.position_dims]
+        density = torch.cat([self.field.raw_density(encoded[start:start + CACHE_ROWS])
+                             for start in range(0, len(encoded), CACHE_ROWS)]) if len(encoded) else encoded.new_zeros(0)
+        return fill.flatten().index_put((samples,), density).reshape(fill.shape)
+
     def raw_of(self, index: torch.Tensor, noise_rows: torch.Tensor, samples: torch.Tensor, fill: torch.Tensor
                ) -> tuple[torch.Tensor, torch.Tensor]:
         """As raw, evaluating only `samples` (s,), positions in the flattened (m, n_samples) of rays `index`

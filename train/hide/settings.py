@@ -109,11 +109,14 @@ class PaperSettings:
     revival: str = "all"  # off | dead | all: which rays start from a colour donor's encodings
     floor_weight: float = 0.1  # weight of revival's density floor term, see density_shortfall
     density_floor: float = 1.0
+    saturation_bound: float = 7.0  # revival's colour term: raw colours past ±this are pulled back (paper.saturation_excess)
     block_pixels: int = 6144  # pixels optimised together (the authors' block)
     pass_samples: int = 1 << 16  # samples per forward/backward pass (memory bound, not a result)
     record_at: tuple[int, ...] = (50, 200, 300)
     skip_dead: bool = True  # exact: dead samples skip the colour branch and the backward pass (see the module docstring)
     recheck_every: int = 10  # sample layout: a dead sample is evaluated again every this many iterations (1: exact)
+    finish_within: float | None = 0.4  # a pixel within this many 8-bit levels of its target stops (None: never; paper.py)
+    retire_share: float = 0.05  # finished pixels retire at a check once this share of the open ones has (copies cost)
     tf32: bool = True  # CUDA matmuls in TF32: ~3× faster on Ampere and later; this method is approximate anyway
 
     def __post_init__(self):
@@ -121,6 +124,13 @@ class PaperSettings:
             raise UserError(f"unknown lr schedule {self.lr_schedule!r}")
         if self.revival not in REVIVALS:
             raise UserError(f"unknown revival {self.revival!r} (off, dead or all)")
+        if self.finish_within is not None and not 0 <= self.finish_within < 0.5:
+            raise UserError(f"finish_within must be in [0, 0.5) levels (a pixel within it rounds to its target), "
+                            f"got {self.finish_within}")
+        if not 0 <= self.retire_share <= 1:
+            raise UserError(f"retire_share must be in [0, 1], got {self.retire_share}")
+        if not self.saturation_bound > 0:
+            raise UserError(f"saturation_bound must be positive, got {self.saturation_bound}")
         if self.iters < 1 or self.block_pixels < 1 or self.pass_samples < 1 or self.recheck_every < 1:
             raise UserError("--iters, block_pixels, pass_samples and recheck_every must be positive")
 
@@ -133,7 +143,8 @@ RECIPES = {
 }
 
 
-NO_SKIP = {"skip_dead": False, "recheck_every": 1}  # `--no-skip`: every sample of every ray, every iteration
+# `--no-skip`: every sample of every ray, every iteration, finished pixels too
+NO_SKIP = {"skip_dead": False, "recheck_every": 1, "finish_within": None}
 
 
 def recipe(name: str, **overrides) -> PaperSettings:
