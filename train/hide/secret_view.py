@@ -97,9 +97,7 @@ class SecretView:
         """Pre-activation density (m, n_samples) of rays `index` (m,) with noise (m, 1 or n_samples, dims),
         without the colour branch."""
         encoded = self.noisy_encodings(index, noise)[..., :self.field.config.position_dims]
-        rows = encoded.reshape(-1, encoded.shape[-1])
-        return torch.cat([self.field.raw_density(rows[start:start + CACHE_ROWS])
-                          for start in range(0, len(rows), CACHE_ROWS)]).reshape(encoded.shape[:2])
+        return self.densities(encoded.reshape(-1, encoded.shape[-1])).reshape(encoded.shape[:2])
 
     def sample_encodings(self, index: torch.Tensor, samples: torch.Tensor) -> torch.Tensor:
         """The clean encodings of `samples` (s,), positions in the flattened (m, n_samples) of rays `index`
@@ -113,9 +111,12 @@ class SecretView:
         """As raw_density, evaluating only `samples` (s,), positions in the flattened (m, n_samples) of rays
         `index` (m,), with their noise rows (s, dims); the others keep their density in fill (m, n_samples)."""
         encoded = (self.sample_encodings(index, samples) + noise_rows)[:, :self.field.config.position_dims]
-        density = torch.cat([self.field.raw_density(encoded[start:start + CACHE_ROWS])
-                             for start in range(0, len(encoded), CACHE_ROWS)]) if len(encoded) else encoded.new_zeros(0)
-        return fill.flatten().index_put((samples,), density).reshape(fill.shape)
+        return fill.flatten().index_put((samples,), self.densities(encoded)).reshape(fill.shape)
+
+    def densities(self, encoded_xyz: torch.Tensor) -> torch.Tensor:
+        """The field's raw density of rows (n, position_dims), CACHE_ROWS at a time -> (n,)."""
+        return torch.cat([self.field.raw_density(encoded_xyz[start:start + CACHE_ROWS])
+                          for start in range(0, len(encoded_xyz), CACHE_ROWS)] or [encoded_xyz.new_zeros(0)])
 
     def raw_of(self, index: torch.Tensor, noise_rows: torch.Tensor, samples: torch.Tensor, fill: torch.Tensor
                ) -> tuple[torch.Tensor, torch.Tensor]:
