@@ -66,9 +66,11 @@ def cmd_fit(args) -> None:
                          minutes=args.minutes, iters=args.iters, seed=args.seed, skip=not args.no_skip,
                          appearance=args.appearance,
                          device=args.device, progress=bar)
-    test = report["test"]
+    test, skipped = report["test"], report["skipped_frames"]
     emit(report, args.json, [f"scene: {report['scene']}", f"steps: {report['steps']} in {report['seconds']} s",
-                             f"test PSNR {test['psnr']:.2f} dB, SSIM {test['ssim']:.4f} over {test['views']} views"])
+                             f"test PSNR {test['psnr']:.2f} dB, SSIM {test['ssim']:.4f} over {test['views']} views"]
+         + ([f"left out {len(skipped)} frames whose images are missing ({', '.join(skipped[:3])}"
+             f"{', …' if len(skipped) > 3 else ''})"] if skipped else []))
 
 
 def cmd_import(args) -> None:

@@ -393,7 +393,9 @@ def edit_capture(edit):
     (edit_capture(lambda d: d.update(k2=float("inf"))), "'k2' must be a finite number"),
     (edit_capture(lambda d: d.update(camera_model="PINHOLE")), "camera_model PINHOLE has no distortion, yet k1"),
     (edit_capture(lambda d: d.update(aabb_scale=0.5)), "'aabb_scale' must be a finite number in \\[1.0, 128"),
-    (edit_capture(lambda d: d.update(frames=d["frames"][:1])), "needs at least two frames"),
+    (edit_capture(lambda d: d.update(frames=d["frames"][:1])), "needs at least two frames with images .*got 1$"),
+    (lambda f: [p.unlink() for p in sorted((f / "images").iterdir())[1:]],
+     r"needs at least two frames with images .*got 1 \(2 of 3 images missing, the first images/frame_0000[12].png\)"),
     (edit_capture(lambda d: [f["transform_matrix"][r].__setitem__(3, 1.0) for f in d["frames"] for r in range(3)]),
      "all cameras stand at one point"),
 ])
@@ -402,6 +404,27 @@ def test_bad_capture_input_is_one_user_error(tmp_path, break_it, message):
     break_it(folder)
     with pytest.raises(UserError, match=message):
         load_dataset(folder)
+
+
+def test_frames_whose_images_are_missing_are_left_out_and_said(tmp_path, capfd):
+    """As Instant-NGP's fox: colmap2nerf.py's transforms.json lists frames whose images were since removed; both
+    tools leave them out. The held-out split is every 8th of the frames left, and the fit says what it left out."""
+    folder = write_capture(tmp_path / "data", n=10)
+    for k in (2, 7):
+        (folder / "images" / f"frame_{k:05d}.png").unlink()
+    dataset = load_dataset(folder, resolution=4)
+    assert dataset.skipped == ("images/frame_00002.png", "images/frame_00007.png")
+    assert len(dataset.cameras) == 8 and dataset.splits == {"train": (1, 2, 3, 4, 5, 6, 7), "val": (0,), "test": (0,)}
+    np.testing.assert_allclose(dataset.images[:, 0, 0, 0], np.array([0, 1, 3, 4, 5, 6, 8, 9]) * 20 / 255, atol=1e-6)
+    folder = write_procedural_dataset(tmp_path / "procedural", size=32, n_train=7, n_val=0, n_test=2, format="capture")
+    removed = sorted(json.loads((folder / "transforms.json").read_text())["frames"], key=lambda f: f["file_path"])[3:5]
+    for frame in removed:
+        (folder / frame["file_path"]).unlink()
+    result = run_main(main, ["fit", folder, "-o", tmp_path / "scene", "--iters", "2", "--resolution", "24",
+                             "--quiet", "--device", "cpu"], capfd)
+    assert result.code == 0, result.err
+    names = ", ".join(frame["file_path"] for frame in removed)
+    assert f"left out 2 frames whose images are missing ({names})" in result.out
 
 
 def test_fit_refuses_a_fisheye_capture_in_one_line(tmp_path, capfd):

@@ -50,6 +50,7 @@ class Dataset:
     background: tuple[float, float, float]
     aabb: tuple[float, ...]  # (xmin, ymin, zmin, xmax, ymax, zmax) in the field's space
     alphas: np.ndarray | None = None  # (n, H, W) float32 coverage of RGBA datasets (space carving); else None
+    skipped: tuple[str, ...] = ()  # a capture's frames left out, as its file names them: their images are missing
 
 
 def load_dataset(data_dir, resolution: int | None = None, with_images: bool = True,
@@ -399,8 +400,10 @@ def load_capture(data_dir: Path, resolution: int | None, with_images: bool,
     """One transforms.json, as Instant-NGP's colmap2nerf.py and nerfstudio's ns-process-data write it, read and
     checked by `read_capture` (train.scene.captures: what is accepted).
 
-    Frames (file_path relative to the folder) are sorted by image file, then every 8th from the first is
-    held out as test (and val), LLFF's convention (`holdout_splits`): a capture has no test split of its own.
+    Frames whose image file is missing are left out (`Dataset.skipped`), as Instant-NGP does for a file that
+    states sharpness (colmap2nerf.py's) and nerfstudio's instant-ngp dataparser does for any: colmap2nerf.py's
+    capture of Instant-NGP's fox lists 67 frames beside 50 images. The others (file_path relative to the folder)
+    are sorted by image file, then every 8th from the first is held out as test (and val), LLFF's convention (`holdout_splits`): a capture has no test split of its own.
     Intrinsics are each frame's (`fit_lens`), scaled with the image to `resolution` (`capture_camera`).
     Poses are normalised as nerfstudio's dataparser does (`normalized_poses`), so the cameras span [-1, 1]^3;
     the box is [-aabb_scale, aabb_scale]^3: Instant-NGP's aabb_scale (default 1) extends it beyond the cameras
@@ -411,10 +414,12 @@ def load_capture(data_dir: Path, resolution: int | None, with_images: bool,
     applied_scale change nothing here: the normalisation orients, centres and scales the poses as saved.
     """
     capture = read_capture(data_dir)
-    if len(capture.frames) < 2:
-        raise UserError(f"{capture.path}: needs at least two frames (one is held out for testing), "
-                        f"got {len(capture.frames)}")
-    frames = sorted(capture.frames, key=lambda frame: str(frame.path))
+    frames = sorted((frame for frame in capture.frames if frame.path.is_file()), key=lambda frame: str(frame.path))
+    skipped = tuple(sorted(frame.file_path for frame in capture.frames if not frame.path.is_file()))
+    if len(frames) < 2:
+        missing = f" ({len(skipped)} of {len(capture.frames)} images missing, the first {skipped[0]})" if skipped else ""
+        raise UserError(f"{capture.path}: needs at least two frames with images (one is held out for testing), "
+                        f"got {len(frames)}{missing}")
     paths = [frame.path for frame in frames]
     height, width = common_shape(paths, (3, 4))
     stated = [fit_lens(frame, (width, height)) for frame in frames]
@@ -425,4 +430,5 @@ def load_capture(data_dir: Path, resolution: int | None, with_images: bool,
     aabb = (-capture.aabb_scale,) * 3 + (capture.aabb_scale,) * 3
     images, alphas = load_images(paths, size, background, composite=True) if with_images else (None, None)
     return Dataset("capture", images, cameras, holdout_splits(len(frames)), CAPTURE_NEAR,
-                   farthest_corner(c2w[:, :3, 3], aabb), None, background, aabb, None if distorted else alphas)
+                   farthest_corner(c2w[:, :3, 3], aabb), None, background, aabb, None if distorted else alphas,
+                   skipped)

@@ -87,15 +87,7 @@ class HashGridConfig(GridFieldDims):
         return HashGridConfig(**{**{k: v for k, v in checked.items() if k != "kind"}, "aabb": tuple(checked["aabb"])})
 
 
-PAIR = torch.tensor([0, 1])  # a cell's lower and upper vertex on one axis
-
-
-def corner_grid(per_axis: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """runtime.fields.hashgrid.corner_grid: per-axis pairs (n, L, 3, 2) as three terms that broadcast to
-    (n, L, 2, 2, 2), corner i = 4·b_z + 2·b_y + b_x."""
-    n, levels = per_axis.shape[:2]
-    return (per_axis[:, :, 0].reshape(n, levels, 1, 1, 2), per_axis[:, :, 1].reshape(n, levels, 1, 2, 1),
-            per_axis[:, :, 2].reshape(n, levels, 2, 1, 1))
+CORNERS = tuple((c & 1, (c >> 1) & 1, c >> 2) for c in range(8))  # corner c = 4·b_z + 2·b_y + b_x: (b_x, b_y, b_z)
 
 
 class GridGather(torch.autograd.Function):
@@ -138,30 +130,31 @@ class GridEncoding(nn.Module):
                             "primes": (np.array(PRIMES, np.int64)[:, None] & self.mask).astype(integer)}.items():
             self.register_buffer(name, torch.from_numpy(np.ascontiguousarray(value)), persistent=False)
 
-    def hashed_index(self, lower: torch.Tensor) -> torch.Tensor:
-        """runtime.fields.hashgrid.hashed_index: the 8 corners' rows on hashed levels, lower (n, l, 3) ->
-        (n, l, 8). The primes are taken modulo the table first, which leaves the masked XOR unchanged and
-        lets the products fit index_dtype."""
-        hx, hy, hz = corner_grid((lower[..., None] + PAIR.to(lower)) * self.primes)
-        return ((hx ^ hy ^ hz) & self.mask).flatten(2)
-
     def forward(self, table: torch.Tensor, unit: torch.Tensor) -> torch.Tensor:
-        """Features of unit-cube points (n, 3) -> (n, L·F), level-major, corners built from per-axis pairs as
-        the graph builds them (corner_grid)."""
-        position = unit[:, None, :] * self.scale
+        """Features of unit-cube points (n, 3) -> (n, L·F), level-major: the graph's corners, indices and weights
+        (runtime.fields.hashgrid: corner c = 4·b_z + 2·b_y + b_x, weight (w_x·w_y)·w_z, hash h_x ^ h_y ^ h_z), worked
+        with the points innermost (L, 3, n), corner by corner: on a CPU the (n, L, 3, 2) pairs broadcast over
+        their short last axes took most of a render's time."""
+        n, levels, dense = unit.shape[0], self.levels, self.dense_levels
+        position = unit.T[None] * self.scale[:, :, None]  # (L, 3, n)
         if self.cell_offset:
-            position = position + self.cell_offset  # (n, L, 3)
+            position = position + self.cell_offset
         cell = torch.floor(position)
-        fraction = (position - cell)[..., None]  # (n, L, 3, 1)
+        fraction = position - cell
         lower = cell.to(self.index_dtype)
-        dense = self.dense_levels
-        index = torch.cat([((lower[:, :dense] * self.strides).sum(-1, keepdim=True) + self.corner_strides) % self.rows,
-                           self.hashed_index(lower[:, dense:])], 1) + self.offset  # (n, L, 8)
-        wx, wy, wz = corner_grid(torch.cat([1.0 - fraction, fraction], -1))
-        weights = (wx * wy * wz).flatten(2)  # (n, L, 8)
-        n = unit.shape[0]
-        gathered = GridGather.apply(table, index.reshape(n * self.levels, 8), weights.reshape(n * self.levels, 8))
-        return gathered.reshape(n, self.levels * self.features)
+        base = (lower[:dense] * self.strides[:, :, None]).sum(1)  # (dense, n): the lower corner's row
+        primes, hashed = self.primes[:, 0], lower[dense:]
+        vertex_hash = [(hashed[:, a] * primes[a], (hashed[:, a] + 1) * primes[a]) for a in range(3)]  # (L − dense, n)
+        vertex_weight = [(1.0 - fraction[:, a], fraction[:, a]) for a in range(3)]  # (L, n)
+        index = torch.empty((levels, n, 8), dtype=self.index_dtype, device=unit.device)
+        weights = torch.empty((levels, n, 8), dtype=unit.dtype, device=unit.device)
+        for c, (bx, by, bz) in enumerate(CORNERS):
+            index[:dense, :, c] = (base + self.corner_strides[:, c, None]) % self.rows
+            index[dense:, :, c] = (vertex_hash[0][bx] ^ vertex_hash[1][by] ^ vertex_hash[2][bz]) & self.mask
+            weights[:, :, c] = vertex_weight[0][bx] * vertex_weight[1][by] * vertex_weight[2][bz]
+        index += self.offset[:, :, None]
+        gathered = GridGather.apply(table, index.view(levels * n, 8), weights.view(levels * n, 8))
+        return gathered.view(levels, n, self.features).transpose(0, 1).reshape(n, levels * self.features)
 
 
 class HashGridField(FieldModule):
