@@ -52,8 +52,8 @@ def fit(data: PathLike, output: PathLike, *, field: str | None = None, preset: s
     """Fit a scene to the dataset at `data` (NeRF-Synthetic, LLFF or a capture's transforms.json) into the
     folder `output`, for exactly one of `minutes` or `iters`; run again to resume from its checkpoint. field:
     the kind (`mlp`, `hashgrid`), fitted with its default preset unless `preset` names another of its kind;
-    neither: the dataset kind's (presets.DEFAULT_FIELDS: `hashgrid` for NeRF-Synthetic and captures, `nerfacto`
-    for LLFF). appearance: a nerfacto fit learns a per-image appearance
+    neither: the dataset kind's (presets.DEFAULT_FIELDS: `hashgrid` for NeRF-Synthetic, `nerfacto` for LLFF
+    and captures). appearance: a nerfacto fit learns a per-image appearance
     embedding (for photos whose exposure differs), its mean folded into the saved field. -> fit's report (test PSNR
     under test.psnr)."""
     data, output, progress = checked_path(data, "data"), checked_path(output, "output"), \

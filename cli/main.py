@@ -207,7 +207,7 @@ def fit_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("-o", "--output", required=True, help="scene directory to write (resumes if it holds a checkpoint)")
     p.add_argument("--field", choices=tuple(DEFAULT_PRESETS),
                    help="field kind: hashgrid (Instant-NGP's hash grid, NeRF-Synthetic's default), nerfacto (nerfstudio's, "
-                        "LLFF's default) or mlp (the standard NeRF MLP, preset small)")
+                        "the default for LLFF and captures) or mlp (the standard NeRF MLP, preset small)")
     p.add_argument("--preset", choices=tuple(PRESET_KINDS),
                    help="small or paper (mlp kind), hashgrid, nerfacto or nerfacto-big (default: the field kind's)")
     p.add_argument("--resolution", type=int, help="image width in pixels (default: the dataset's)")

@@ -331,7 +331,7 @@ def test_fields_fits_both_kinds_alike_and_hides_exactly_in_each(report):
     for preset in ("small", "hashgrid"):
         assert [row for row in rows if row["row"] == "curve" and row["preset"] == preset], preset
         hides = [row for row in rows if row["row"] == "hide" and row["preset"] == preset]
-        assert hides and all(row["exact"] for row in hides)
+        assert hides and all(row["exact"] and row["api_exact"] for row in hides)
         assert {row["view"] for row in hides} == {2, 5}  # a third and two thirds round the 8 cameras
         assert {row["backend"] for row in rows if row["row"] == "rate" and row["preset"] == preset} == \
             {"onnxruntime", "torch"}

@@ -195,17 +195,16 @@ def test_a_photo_hides_exactly_in_fern_fitted_as_nerfacto(shared_data, tmp_path,
                                tmp_path, capfd)
 
 
-def test_without_a_field_llff_fits_nerfacto_and_nerf_synthetic_and_captures_the_hash_grid(tmp_path, capfd):
+def test_without_a_field_llff_and_captures_fit_nerfacto_and_nerf_synthetic_the_hash_grid(tmp_path, capfd):
     import json
 
     from helpers import run_main, turning_llff
     from noisenerf.cli.main import main
 
     turning_llff(tmp_path / "llff")
-    datasets = {"nerfacto": [tmp_path / "llff"],
-                "hashgrid": [write_procedural_dataset(tmp_path / "blender", size=16, n_train=3, n_val=0, n_test=1),
-                             write_procedural_dataset(tmp_path / "capture", size=16, n_train=3, n_val=0, n_test=1,
-                                                      format="capture")]}
+    datasets = {"nerfacto": [tmp_path / "llff", write_procedural_dataset(tmp_path / "capture", size=16, n_train=3,
+                                                                         n_val=0, n_test=1, format="capture")],
+                "hashgrid": [write_procedural_dataset(tmp_path / "blender", size=16, n_train=3, n_val=0, n_test=1)]}
     for kind, folders in datasets.items():
         for folder in folders:
             out = tmp_path / f"{folder.name}_scene"

@@ -7,7 +7,7 @@ PRESET_KINDS = {"small": "mlp", "paper": "mlp", "hashgrid": "hashgrid", "nerfact
 DEFAULT_PRESETS = {"mlp": "small", "hashgrid": "hashgrid", "nerfacto": "nerfacto"}  # the preset `--field KIND` fits with: the kinds fitted
 # the kind new fits take without --field or --preset, by the dataset's kind. NeRF-Synthetic: the hash grid, which in
 # the same minutes fits better than the small preset, its keys no larger, every camera taking every hard secret;
-# LLFF: nerfacto, 7 dB above the hash grid on fern in the same 15 minutes. Captures keep the hash grid until nerfacto
-# does better on one: on lego written as a capture it reached 13.2 dB to the hash grid's 21.8 (docs/field-kinds.md
-# has the figures). The MLP stays the choice for a smaller model file and faster reveals
-DEFAULT_FIELDS = {"blender": "hashgrid", "llff": "nerfacto", "capture": "hashgrid"}
+# LLFF and captures: nerfacto, 7 dB above the hash grid on fern and 4.6 dB on Instant-NGP's fox (a phone capture)
+# in the same 15 minutes (docs/field-kinds.md has the figures). The MLP stays the choice for a smaller model file
+# and faster reveals
+DEFAULT_FIELDS = {"blender": "hashgrid", "llff": "nerfacto", "capture": "nerfacto"}
