@@ -32,6 +32,9 @@ What is accepted, where nerfstudio's loader (nerfstudio/data/dataparsers/nerfstu
 - aabb_scale in [1, 128] (Instant-NGP's box stops growing at 128; nerfstudio ignores it), default 1;
   applied_transform a finite 3×4 with an invertible rotation; applied_scale in [1e-9, 1e9], default 1;
   sharpness a finite number (Instant-NGP drops blurred frames by it only when told to; nothing here does);
+- a frame whose image file is missing is read here like any other; the fit leaves it out (datasets.load_capture),
+  as Instant-NGP does in a file that states sharpness and nerfstudio's instant-ngp dataparser in any, and the
+  import reads no image;
 - the file at most `MAX_CAPTURE_BYTES` (the import's limit before; the fit read any size), 1 to MAX_CAMERAS frames.
 """
 
