@@ -403,7 +403,8 @@ def load_capture(data_dir: Path, resolution: int | None, with_images: bool,
     Frames whose image file is missing are left out (`Dataset.skipped`), as Instant-NGP does for a file that
     states sharpness (colmap2nerf.py's) and nerfstudio's instant-ngp dataparser does for any: colmap2nerf.py's
     capture of Instant-NGP's fox lists 67 frames beside 50 images. The others (file_path relative to the folder)
-    are sorted by image file, then every 8th from the first is held out as test (and val), LLFF's convention (`holdout_splits`): a capture has no test split of its own.
+    are sorted by image file, then every 8th from the first is held out as test (and val), LLFF's convention
+    (`holdout_splits`): a capture has no test split of its own.
     Intrinsics are each frame's (`fit_lens`), scaled with the image to `resolution` (`capture_camera`).
     Poses are normalised as nerfstudio's dataparser does (`normalized_poses`), so the cameras span [-1, 1]^3;
     the box is [-aabb_scale, aabb_scale]^3: Instant-NGP's aabb_scale (default 1) extends it beyond the cameras
@@ -414,8 +415,9 @@ def load_capture(data_dir: Path, resolution: int | None, with_images: bool,
     applied_scale change nothing here: the normalisation orients, centres and scales the poses as saved.
     """
     capture = read_capture(data_dir)
-    frames = sorted((frame for frame in capture.frames if frame.path.is_file()), key=lambda frame: str(frame.path))
-    skipped = tuple(sorted(frame.file_path for frame in capture.frames if not frame.path.is_file()))
+    present = [frame.path.is_file() for frame in capture.frames]
+    frames = sorted((f for f, found in zip(capture.frames, present) if found), key=lambda frame: str(frame.path))
+    skipped = tuple(sorted(f.file_path for f, found in zip(capture.frames, present) if not found))
     if len(frames) < 2:
         missing = f" ({len(skipped)} of {len(capture.frames)} images missing, the first {skipped[0]})" if skipped else ""
         raise UserError(f"{capture.path}: needs at least two frames with images (one is held out for testing), "

@@ -143,6 +143,7 @@ class GridEncoding(nn.Module):
         fraction = position - cell
         lower = cell.to(self.index_dtype)
         base = (lower[:dense] * self.strides[:, :, None]).sum(1)  # (dense, n): the lower corner's row
+        # the primes are taken modulo the table: the masked XOR is unchanged and the products fit index_dtype
         primes, hashed = self.primes[:, 0], lower[dense:]
         vertex_hash = [(hashed[:, a] * primes[a], (hashed[:, a] + 1) * primes[a]) for a in range(3)]  # (L − dense, n)
         vertex_weight = [(1.0 - fraction[:, a], fraction[:, a]) for a in range(3)]  # (L, n)
