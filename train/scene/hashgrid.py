@@ -132,30 +132,42 @@ class GridEncoding(nn.Module):
 
     def forward(self, table: torch.Tensor, unit: torch.Tensor) -> torch.Tensor:
         """Features of unit-cube points (n, 3) -> (n, L·F), level-major: the graph's corners, indices and weights
-        (runtime.fields.hashgrid: corner c = 4·b_z + 2·b_y + b_x, weight (w_x·w_y)·w_z, hash h_x ^ h_y ^ h_z), worked
-        with the points innermost (L, 3, n), corner by corner: on a CPU the (n, L, 3, 2) pairs broadcast over
-        their short last axes took most of a render's time."""
-        n, levels, dense = unit.shape[0], self.levels, self.dense_levels
+        (runtime.fields.hashgrid: corner c = 4·b_z + 2·b_y + b_x, weight (w_x·w_y)·w_z, hash h_x ^ h_y ^ h_z)."""
+        n, levels = unit.shape[0], self.levels
+        index = torch.empty((levels, n, 8), dtype=self.index_dtype, device=unit.device)
+        weights = torch.empty((levels, n, 8), dtype=unit.dtype, device=unit.device)
+        with torch.no_grad():  # GridGather takes no gradient through indices or weights
+            self.write_bags(unit, index, weights)
+        gathered = GridGather.apply(table, index.view(-1, 8), weights.view(-1, 8))
+        return gathered.view(levels, n, self.features).transpose(0, 1).reshape(n, levels * self.features)
+
+    def write_bags(self, unit: torch.Tensor, index: torch.Tensor, weights: torch.Tensor) -> None:
+        """Each (level, point)'s 8 corner rows and weights into index and weights (L, n, 8): unit (n, 3). Worked
+        with the points innermost (L, 3, n), the x-y pairs once, each corner written straight into its column (on
+        a CPU, temporaries copied into the columns took a third of a render's time)."""
+        dense = self.dense_levels
         position = unit.T[None] * self.scale[:, :, None]  # (L, 3, n)
         if self.cell_offset:
             position = position + self.cell_offset
         cell = torch.floor(position)
         fraction = position - cell
         lower = cell.to(self.index_dtype)
-        base = (lower[:dense] * self.strides[:, :, None]).sum(1)  # (dense, n): the lower corner's row
-        # the primes are taken modulo the table: the masked XOR is unchanged and the products fit index_dtype
+        # dense levels: row = Σ_a (lower_a + b_a)·stride_a, wrapped; hashed: ⊕_a (lower_a + b_a)·prime_a, masked
+        # (the primes are taken modulo the table: the masked XOR is unchanged and the products fit index_dtype)
+        dense_terms = [(lower[:dense, a] * self.strides[:, a, None], (lower[:dense, a] + 1) * self.strides[:, a, None])
+                       for a in range(3)]  # (dense, n)
         primes, hashed = self.primes[:, 0], lower[dense:]
-        vertex_hash = [(hashed[:, a] * primes[a], (hashed[:, a] + 1) * primes[a]) for a in range(3)]  # (L − dense, n)
-        vertex_weight = [(1.0 - fraction[:, a], fraction[:, a]) for a in range(3)]  # (L, n)
-        index = torch.empty((levels, n, 8), dtype=self.index_dtype, device=unit.device)
-        weights = torch.empty((levels, n, 8), dtype=unit.dtype, device=unit.device)
-        for c, (bx, by, bz) in enumerate(CORNERS):
-            index[:dense, :, c] = (base + self.corner_strides[:, c, None]) % self.rows
-            index[dense:, :, c] = (vertex_hash[0][bx] ^ vertex_hash[1][by] ^ vertex_hash[2][bz]) & self.mask
-            weights[:, :, c] = vertex_weight[0][bx] * vertex_weight[1][by] * vertex_weight[2][bz]
+        hash_terms = [((hashed[:, a] * primes[a]) & self.mask, ((hashed[:, a] + 1) * primes[a]) & self.mask)
+                      for a in range(3)]  # (L − dense, n)
+        weight_terms = [(1.0 - fraction[:, a], fraction[:, a]) for a in range(3)]  # (L, n)
+        pairs = [(dense_terms[0][bx] + dense_terms[1][by], hash_terms[0][bx] ^ hash_terms[1][by],
+                  weight_terms[0][bx] * weight_terms[1][by]) for bx, by in ((0, 0), (1, 0), (0, 1), (1, 1))]
+        for c, (_, _, bz) in enumerate(CORNERS):
+            dense_xy, hash_xy, weight_xy = pairs[c & 3]
+            torch.remainder(dense_xy + dense_terms[2][bz], self.rows, out=index[:dense, :, c])
+            torch.bitwise_xor(hash_xy, hash_terms[2][bz], out=index[dense:, :, c])
+            torch.mul(weight_xy, weight_terms[2][bz], out=weights[:, :, c])
         index += self.offset[:, :, None]
-        gathered = GridGather.apply(table, index.view(levels * n, 8), weights.view(levels * n, 8))
-        return gathered.view(levels, n, self.features).transpose(0, 1).reshape(n, levels * self.features)
 
 
 class HashGridField(FieldModule):
