@@ -47,15 +47,17 @@ def resolve_device(name: str):
 
 def fit(data: PathLike, output: PathLike, *, field: str | None = None, preset: str | None = None,
         resolution: int | None = None, minutes: float | None = None, iters: int | None = None,
-        seed: int | None = None, skip: bool = True, appearance: bool = False, device: str = "auto",
-        progress: ProgressFn | None = None) -> dict:
+        seed: int | None = None, skip: bool = True, appearance: bool = False, all_test_views: bool = False,
+        device: str = "auto", progress: ProgressFn | None = None) -> dict:
     """Fit a scene to the dataset at `data` (NeRF-Synthetic, LLFF or a capture's transforms.json) into the
     folder `output`, for exactly one of `minutes` or `iters`; run again to resume from its checkpoint. field:
     the kind (`mlp`, `hashgrid`), fitted with its default preset unless `preset` names another of its kind;
     neither: the dataset kind's (presets.DEFAULT_FIELDS: `hashgrid` for NeRF-Synthetic, `nerfacto` for LLFF
     and captures). appearance: a nerfacto fit learns a per-image appearance
-    embedding (for photos whose exposure differs), its mean folded into the saved field. -> fit's report (test PSNR
-    under test.psnr)."""
+    embedding (for photos whose exposure differs), its mean folded into the saved field. The closing test renders
+    stop at a tenth of the training time (train.scene.fit.TEST_SHARE; the first held-out view always), or render
+    every held-out view with `all_test_views`. -> fit's report (test PSNR under test.psnr, over test.views of
+    test.held_out)."""
     data, output, progress = checked_path(data, "data"), checked_path(output, "output"), \
         optional(checked_callback, progress, "progress")
     field, preset, device = optional(checked_text, field, "field"), optional(checked_text, preset, "preset"), \
@@ -63,7 +65,7 @@ def fit(data: PathLike, output: PathLike, *, field: str | None = None, preset: s
     resolution, iters, seed = (optional(checked_int, value, name) for value, name in
                                ((resolution, "resolution"), (iters, "iters"), (seed, "seed")))
     minutes, skip = optional(checked_number, minutes, "minutes"), checked_flag(skip, "skip")
-    appearance = checked_flag(appearance, "appearance")
+    appearance, all_test_views = checked_flag(appearance, "appearance"), checked_flag(all_test_views, "all_test_views")
 
     from noisenerf.runtime.files import check_output_directory
     from noisenerf.train.scene.presets import DEFAULT_FIELDS, DEFAULT_PRESETS, PRESET_KINDS
@@ -82,7 +84,7 @@ def fit(data: PathLike, output: PathLike, *, field: str | None = None, preset: s
     if appearance and chosen_kind not in (None, "nerfacto"):
         raise UserError(f"--appearance is for nerfacto fits, not {chosen_kind}")
     from noisenerf.train.scene.datasets import load_dataset
-    from noisenerf.train.scene.fit import APPEARANCE_DIM, PRESETS, Budget, fit as fit_scene
+    from noisenerf.train.scene.fit import APPEARANCE_DIM, PRESETS, TEST_SHARE, Budget, fit as fit_scene
 
     torch_device = resolve_device(device)
     check_output_directory(output)
@@ -98,7 +100,8 @@ def fit(data: PathLike, output: PathLike, *, field: str | None = None, preset: s
     if appearance:
         config = dataclasses.replace(config, proposal=dataclasses.replace(config.proposal,
                                                                           appearance_dim=APPEARANCE_DIM))
-    return fit_scene(dataset, Path(output), config, Budget(iters, minutes), torch_device, progress=progress)
+    return fit_scene(dataset, Path(output), config, Budget(iters, minutes), torch_device,
+                     test_share=None if all_test_views else TEST_SHARE, progress=progress)
 
 
 def hide(scene, secret: PathLike | np.ndarray | None = None, output: PathLike | None = None, *,

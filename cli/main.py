@@ -64,11 +64,15 @@ def cmd_fit(args) -> None:
     with TerminalProgress(quiet=args.quiet) as bar:
         report = api.fit(args.data_dir, args.output, field=args.field, preset=args.preset, resolution=args.resolution,
                          minutes=args.minutes, iters=args.iters, seed=args.seed, skip=not args.no_skip,
-                         appearance=args.appearance,
+                         appearance=args.appearance, all_test_views=args.all_test_views,
                          device=args.device, progress=bar)
     test, skipped = report["test"], report["skipped_frames"]
+    left = test["held_out"] - test["views"]
     emit(report, args.json, [f"scene: {report['scene']}", f"steps: {report['steps']} in {report['seconds']} s",
-                             f"test PSNR {test['psnr']:.2f} dB, SSIM {test['ssim']:.4f} over {test['views']} views"]
+                             f"test PSNR {test['psnr']:.2f} dB, SSIM {test['ssim']:.4f} over {test['views']} of "
+                             f"{test['held_out']} held-out views" + (f" ({left} more would have taken the closing "
+                                                                     "renders past a tenth of the training time: "
+                                                                     "--all-test-views)" if left else "")]
          + ([f"left out {len(skipped)} frames whose images are missing ({', '.join(skipped[:3])}"
              f"{', …' if len(skipped) > 3 else ''})"] if skipped else []))
 
@@ -218,6 +222,9 @@ def fit_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--appearance", action="store_true",
                    help="nerfacto: learn a per-image appearance embedding (photos whose exposure differs), its mean "
                         "folded into the saved field")
+    p.add_argument("--all-test-views", action="store_true",
+                   help="render every held-out view for the closing test PSNR (default: as many as a tenth of the "
+                        "training time allows, the first always)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     device_argument(p)
 

@@ -436,7 +436,7 @@ def test_fit_refuses_a_fisheye_capture_in_one_line(tmp_path, capfd):
 def test_fit_runs_on_a_distorted_capture(tmp_path, capfd):
     folder = write_procedural_dataset(tmp_path / "data", size=32, n_train=7, n_val=0, n_test=2, format="capture")
     result = run_main(main, ["fit", folder, "-o", tmp_path / "scene", "--minutes", "0.05", "--resolution", "24",
-                             "--json", "--quiet", "--device", "cpu"], capfd)
+                             "--json", "--quiet", "--device", "cpu", "--all-test-views"], capfd)
     assert result.code == 0, result.err
     report = json.loads(result.out)
     assert report["test"]["views"] == 2 and np.isfinite(report["test"]["psnr"])
@@ -450,7 +450,7 @@ def test_a_distorted_capture_fits_hides_and_reveals_end_to_end(tmp_path, capfd):
     folder = write_procedural_dataset(tmp_path / "data", size=32, n_train=14, n_val=0, n_test=2, format="capture")
     dataset = load_dataset(folder, resolution=24)
     report = fit(dataset, tmp_path / "scene", tiny_fit("hashgrid"), Budget(iters=300), torch.device("cpu"),
-                 curve_seconds=0)
+                 curve_seconds=0, test_share=None)
     assert report["test"]["views"] == 2 and report["test"]["psnr"] > 16.0  # a grey guess scores about 9 dB
     assert run_main(main, ["export", tmp_path / "scene", "-o", tmp_path / "model.onnx"], capfd).code == 0
     secret = tmp_path / "secret.png"

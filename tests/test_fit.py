@@ -10,10 +10,10 @@ import numpy as np
 import pytest
 import torch
 
-from helpers import assert_refused, tiny_fit
+from helpers import assert_refused, run_main, tiny_fit
 from noisenerf.runtime.errors import UserError
 from noisenerf.train.scene.datasets import load_dataset
-from noisenerf.train.scene.fit import Budget, Fitter, fit
+from noisenerf.train.scene.fit import Budget, Fitter, fit, held_out_quality, held_out_views, pooled_quality
 from noisenerf.train.scene.fit_proposal import ProposalFitter
 from noisenerf.train.scene.occupancy import carve
 from noisenerf.train.scene.procedural import write_procedural_dataset
@@ -38,7 +38,32 @@ def dataset(tmp_path_factory):
 
 
 def quiet_fit(dataset, out, iters, config=TINY):
-    return fit(dataset, out, config, Budget(iters=iters), CPU, curve_seconds=0)
+    return fit(dataset, out, config, Budget(iters=iters), CPU, curve_seconds=0, test_share=None)
+
+
+def test_closing_test_renders_stop_at_their_budget_and_the_views_left_pool_to_every_view(dataset, tmp_path):
+    whole = quiet_fit(dataset, tmp_path / "scene", 10)["test"]
+    views, scene = held_out_views(dataset), load_scene(tmp_path / "scene")
+    assert (whole["views"], whole["held_out"], len(views)) == (2, 2, 2)
+    first = held_out_quality(scene, dataset, views, seconds=0.0)  # the first view always, then none
+    assert (first["views"], first["held_out"], [s["view"] for s in first["per_view"]]) == (1, 2, views[:1])
+    assert pooled_quality([first, held_out_quality(scene, dataset, views[1:])]) == whole
+
+
+def test_fit_says_how_many_held_out_views_its_closing_renders_took(tmp_path, capfd, monkeypatch):
+    from noisenerf.cli.main import main
+    import noisenerf.train.scene.fit as fit_module
+
+    folder = write_procedural_dataset(tmp_path / "d", size=16, n_train=4, n_val=0, n_test=2)
+    monkeypatch.setattr(fit_module, "TEST_SHARE", 0.0)
+    args = ["fit", folder, "--iters", "3", "--quiet", "--device", "cpu", "--field", "mlp"]
+    result = run_main(main, [*args, "-o", tmp_path / "budget"], capfd)
+    assert result.code == 0, result.err
+    assert "over 1 of 2 held-out views (1 more would have taken the closing renders past a tenth of the training " \
+           "time: --all-test-views)" in result.out
+    result = run_main(main, [*args, "-o", tmp_path / "all", "--all-test-views"], capfd)
+    assert result.code == 0, result.err
+    assert "over 2 of 2 held-out views\n" in result.out
 
 
 @BOTH_KINDS

@@ -140,7 +140,8 @@ def fitted(tmp_path_factory):
     # 40 views: with 12, nothing but the views constrains the field (no silhouettes carve it, as the hash grid's
     # fit has), and it paints each view on floaters that the held-out views see through
     data = write_procedural_dataset(folder / "data", size=24, n_train=40, n_val=0, n_test=2)
-    report = fit(load_dataset(data), folder / "scene", TINY, Budget(iters=150), CPU, curve_seconds=0)
+    report = fit(load_dataset(data), folder / "scene", TINY, Budget(iters=150), CPU, curve_seconds=0,
+                 test_share=None)
     return folder, report
 
 
@@ -188,7 +189,8 @@ def test_a_photo_hides_exactly_in_fern_fitted_as_nerfacto(shared_data, tmp_path,
     from helpers import run_main
 
     dataset = load_dataset(shared_data / "scenes" / "llff" / "fern", resolution=40)
-    report = fit(dataset, tmp_path / "scene", PRESETS["nerfacto"], Budget(iters=300), CPU, curve_seconds=0)
+    report = fit(dataset, tmp_path / "scene", PRESETS["nerfacto"], Budget(iters=300), CPU, curve_seconds=0,
+                 test_share=None)
     assert report["test"]["views"] == 3 and report["test"]["psnr"] > 25.0  # 28.5 dB measured
     assert run_main(main, ["export", tmp_path / "scene", "-o", tmp_path / "model.onnx"], capfd).code in (0, None)
     assert_photos_hide_exactly(tmp_path, [shared_data / "secrets" / "imagenet" / "n09472597_volcano.JPEG"], [8],

@@ -157,7 +157,8 @@ def test_a_lego_fit_written_as_a_snapshot_imports_and_hides_exactly(shared_data,
                                                                             geo_features=16), tcnn_layout=True,
                                  occupancy=OccupancyConfig(warmup_steps=20), render_samples=None)
     dataset = load_dataset(shared_data / "scenes" / "blender" / "lego", resolution=32)
-    report = fit(dataset, tmp_path / "fit", config, Budget(iters=400), torch.device("cpu"), curve_seconds=0)
+    report = fit(dataset, tmp_path / "fit", config, Budget(iters=400), torch.device("cpu"), curve_seconds=0,
+                 test_share=None)
     assert report["test"]["psnr"] > 22
     fitted = load_scene(tmp_path / "fit")
     snapshot, network, params = scene_snapshot(fitted)

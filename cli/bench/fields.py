@@ -22,7 +22,7 @@ from noisenerf.runtime.api import reveal
 from noisenerf.runtime.images import load_secret, write_image
 from noisenerf.runtime.model import load_model
 from noisenerf.train.hide.plan import HideConfig
-from noisenerf.train.scene.fit import PRESETS, Budget, fit
+from noisenerf.train.scene.fit import PRESETS, Budget, fit, fitting_frame, held_out_quality, held_out_views, pooled_quality
 from noisenerf.train.scene.render import numpy_field
 from noisenerf.train.scene.scene import load_scene
 
@@ -32,7 +32,8 @@ from noisenerf.cli.bench.report import curves_plot, verdict
 
 PSNR_GOAL_DB = 30.0  # the hash-grid preset's test PSNR on lego at 200 px within 15 minutes
 PSNR_MARGIN_GOAL_DB = 2.0  # and how far above the mlp small preset's, same data, resolution and minutes
-NERFACTO_MARGIN_GOAL_DB = 0.0  # the nerfacto preset's test PSNR above the hash grid's on a capture (fern)
+NERFACTO_MARGIN_GOAL_DB = {"llff": 0.0, "capture": 4.0}  # nerfacto's test PSNR above the hash grid's, by dataset kind
+CAPTURE_PSNR_GOAL_DB = 22.0  # and nerfacto's own on a 360° phone capture at a quarter of its resolution
 TEST_RENDER_SHARE_GOAL = 0.10  # a fit's closing test renders ÷ its training time
 REVEAL_RATIO_GOAL = 1 / 3  # hash-grid reveal time per pixel ÷ the mlp small preset's
 RATE_SAMPLES = 1 << 16  # samples per field-rate batch
@@ -40,7 +41,8 @@ RATE_SAMPLES = 1 << 16  # samples per field-rate batch
 
 @dataclass(frozen=True, kw_only=True)
 class FieldsMeasured(Measured):
-    fits: dict  # preset -> its fit's report (steps, seconds, test)
+    fits: dict  # preset -> its fit's report (steps, seconds, eval_seconds, the fit's own test), test over every view
+    kind: str  # the dataset's (datasets.Dataset.kind)
 
 
 def rate_rows(preset: str, scene, model) -> list[dict]:
@@ -119,6 +121,16 @@ def browser_results(context: BenchContext, bundles: dict[str, Path]) -> dict[str
             for row in rows if row["page"] == "single file" and row["default"]}
 
 
+def every_held_out_view(fit_test: dict, folder: Path, dataset, fit_config) -> dict:
+    """The quality over every held-out view: the fit's own closing renders (bounded in time) and the views they
+    left, rendered here the same way."""
+    rendered = {score["view"] for score in fit_test["per_view"]}
+    left = [view for view in held_out_views(dataset) if view not in rendered]
+    if not left:
+        return fit_test
+    return pooled_quality([fit_test, held_out_quality(load_scene(folder), fitting_frame(dataset, fit_config), left)])
+
+
 def measure_fields(context: BenchContext) -> FieldsMeasured:
     config = context.config
     from noisenerf.export.onnx_export import export_scene
@@ -131,9 +143,11 @@ def measure_fields(context: BenchContext) -> FieldsMeasured:
     rows, fits, hashgrid_context = [], {}, None
     for preset in config.fields_presets:
         folder = context.work / f"fields_{preset}"
-        report = fit(dataset, folder, dataclasses.replace(PRESETS[preset], seed=config.seed),
-                     Budget(minutes=config.fields_minutes), torch.device("cpu"), curve_seconds=config.fields_curve_seconds)
-        fits[preset] = {key: report[key] for key in ("steps", "seconds", "eval_seconds", "test", "samples_evaluated")}
+        fit_config = dataclasses.replace(PRESETS[preset], seed=config.seed)
+        report = fit(dataset, folder, fit_config, Budget(minutes=config.fields_minutes), torch.device("cpu"),
+                     curve_seconds=config.fields_curve_seconds)
+        fits[preset] = {**{key: report[key] for key in ("steps", "seconds", "eval_seconds", "samples_evaluated")},
+                        "fit_test": report["test"], "test": every_held_out_view(report["test"], folder, dataset, fit_config)}
         rows += [{"row": "curve", "preset": preset, "seconds": point["seconds"], "psnr": point["psnr"]}
                  for point in report["curve"]]
         export_scene(folder, folder / "model.onnx")
@@ -153,7 +167,7 @@ def measure_fields(context: BenchContext) -> FieldsMeasured:
         mosaic = {"every hard secret": np.concatenate(list(secrets.values()), axis=1)}
         rows += [{"row": "coverage", **row} for row in coverage.sweep(
             hashgrid_context, mosaic, range(len(hashgrid_context.scene.config.cameras)), "hashgrid fit")]
-    return FieldsMeasured(rows, fits=fits)
+    return FieldsMeasured(rows, fits=fits, kind=dataset.kind)
 
 
 def median_of(rows: list[dict], preset: str, key: str) -> float:
@@ -165,11 +179,14 @@ def describe_fields(context: BenchContext, measured: FieldsMeasured) -> list[str
     config, rows, fits = context.config, measured.rows, measured.fits
     lines = [f"Presets fitted on `{config.data}` at {config.fields_resolution} px for {config.fields_minutes:g} "
              "minutes each on this machine (CPU), one after the other; test PSNR over every held-out view (every 8th "
-             "of a capture or LLFF scene), and the fit's closing test renders' seconds.", "",
-             "| preset | kind | steps | test PSNR dB | SSIM | test renders s | ÷ training time |", "|---|---|---|---|---|---|---|"]
+             "of a capture or LLFF scene), and the fit's closing test renders: their seconds and how many held-out "
+             "views they rendered (at most a tenth of the training time; the bench renders the rest).", "",
+             "| preset | kind | steps | test PSNR dB | SSIM | test renders s | views | ÷ training time |",
+             "|---|---|---|---|---|---|---|---|"]
     for preset, report in fits.items():
         lines.append(f"| {preset} | {PRESETS[preset].field.kind} | {report['steps']:,} | {report['test']['psnr']:.2f} | "
                      f"{report['test']['ssim']:.4f} | {report['eval_seconds']:.1f} | "
+                     f"{report['fit_test']['views']} of {report['test']['views']} | "
                      f"{report['eval_seconds'] / report['seconds']:.3f} |")
     lines.append("")
     psnr = {preset: report["test"]["psnr"] for preset, report in fits.items()}
@@ -178,13 +195,19 @@ def describe_fields(context: BenchContext, measured: FieldsMeasured) -> list[str
         lines.append(f"Goal (lego): the hash grid ≥ {PSNR_GOAL_DB:g} dB and ≥ {PSNR_MARGIN_GOAL_DB:g} dB above the small "
                      f"preset: {grid:.2f} dB, {grid - small:+.2f} dB: "
                      f"**{verdict(grid, PSNR_GOAL_DB, False, grid - small >= PSNR_MARGIN_GOAL_DB)}**.")
-    if "hashgrid" in psnr and "nerfacto" in psnr:
-        margin = psnr["nerfacto"] - psnr["hashgrid"]
-        lines.append(f"Goal (a capture): nerfacto ≥ the hash grid + {NERFACTO_MARGIN_GOAL_DB:g} dB: {margin:+.2f} dB: "
-                     f"**{verdict(margin, NERFACTO_MARGIN_GOAL_DB, False)}**.")
+    if "hashgrid" in psnr and "nerfacto" in psnr and measured.kind in NERFACTO_MARGIN_GOAL_DB:
+        margin, goal = psnr["nerfacto"] - psnr["hashgrid"], NERFACTO_MARGIN_GOAL_DB[measured.kind]
+        floor = CAPTURE_PSNR_GOAL_DB if measured.kind == "capture" else None
+        lines.append(f"Goal ({measured.kind}): nerfacto ≥ the hash grid + {goal:g} dB"
+                     + (f" and ≥ {floor:g} dB: {psnr['nerfacto']:.2f} dB, " if floor else ": ") + f"{margin:+.2f} dB: "
+                     f"**{verdict(margin, goal, False, floor is None or psnr['nerfacto'] >= floor)}**.")
     if "nerfacto" in fits:
-        share = fits["nerfacto"]["eval_seconds"] / fits["nerfacto"]["seconds"]
-        lines.append(f"Goal: nerfacto's test renders ≤ {TEST_RENDER_SHARE_GOAL:.0%} of its training time: {share:.1%}: "
+        nerfacto = fits["nerfacto"]
+        share, rendered = nerfacto["eval_seconds"] / nerfacto["seconds"], nerfacto["fit_test"]["views"]
+        every = nerfacto["eval_seconds"] / rendered * nerfacto["test"]["views"] / nerfacto["seconds"]
+        lines.append(f"Goal: nerfacto's closing test renders ≤ {TEST_RENDER_SHARE_GOAL:.0%} of its training time: "
+                     f"{share:.1%} ({rendered} of {nerfacto['test']['views']} held-out views, "
+                     f"{nerfacto['eval_seconds'] / rendered:.1f} s a view; every view would take {every:.1%}): "
                      f"**{verdict(share, TEST_RENDER_SHARE_GOAL, True)}**.")
     lines += ["", "Photos hidden with the defaults at two views the other experiments do not use (a third and two thirds "
                   "round the cameras), medians:", "",

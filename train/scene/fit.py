@@ -56,6 +56,7 @@ if TYPE_CHECKING:
 
 
 CURVE_RAYS = 4096  # pixels per view behind each point of the progress curve
+TEST_SHARE = 0.10  # a fit's closing test renders ÷ its training time, at most (the first held-out view always)
 
 
 APPEARANCE_DIM = 32  # nerfstudio's appearance embedding width, what `fit --appearance` learns
@@ -381,19 +382,38 @@ def tie_tcnn_layout(field) -> None:
         weight[:2] = weight[:2].mean(0)
 
 
-def held_out_quality(scene: Scene, dataset: Dataset, views: list[int], skipping: bool = True) -> dict:
+def held_out_quality(scene: Scene, dataset: Dataset, views: list[int], skipping: bool = True,
+                     seconds: float | None = None) -> dict:
     """Mean PSNR / SSIM over views rendered the way recipients render them (runtime + skipping, or
-    hierarchical for scenes with a fine network), through each camera's lens where it has one."""
+    hierarchical for scenes with a fine network), through each camera's lens where it has one, in order. With
+    `seconds`, the next view is started only while the renders so far and one more at their mean stay within it
+    (the first always): a fit's closing report is bounded in time. -> psnr, ssim, views (rendered), held_out
+    (given), per_view [{view, psnr, ssim}], samples_dense, samples_evaluated."""
     field, sampler = numpy_field(scene.render_field), scene.sampler(skipping)
-    scores, dense, evaluated = [], 0, 0
+    scores, dense, evaluated, started = [], 0, 0, time.perf_counter()
     for index in views:
+        spent = time.perf_counter() - started
+        if scores and seconds is not None and spent * (len(scores) + 1) / len(scores) > seconds:
+            break
         image, stats = render_view(dataset.cameras[index], scene.config.render, field, sampler)
         target = dataset.images[index]
-        scores.append((psnr(image, target), ssim(image, target)))
+        scores.append({"view": int(index), "psnr": float(psnr(image, target)), "ssim": float(ssim(image, target))})
         dense += stats.n_samples_dense
         evaluated += stats.n_samples_evaluated
-    return {"psnr": float(np.mean([s[0] for s in scores])), "ssim": float(np.mean([s[1] for s in scores])),
-            "views": len(views), "samples_dense": dense, "samples_evaluated": evaluated}
+    return {**mean_quality(scores), "held_out": len(views), "samples_dense": dense, "samples_evaluated": evaluated}
+
+
+def mean_quality(per_view: list[dict]) -> dict:
+    """Mean PSNR / SSIM of views' scores ({view, psnr, ssim}), with the scores and their count."""
+    return {"psnr": float(np.mean([s["psnr"] for s in per_view])), "ssim": float(np.mean([s["ssim"] for s in per_view])),
+            "views": len(per_view), "per_view": per_view}
+
+
+def pooled_quality(parts: list[dict]) -> dict:
+    """held_out_quality of views rendered in parts, as one: the means over every part's views."""
+    return {**mean_quality([score for part in parts for score in part["per_view"]]),
+            "held_out": sum(part["views"] for part in parts),
+            **{key: sum(part[key] for part in parts) for key in ("samples_dense", "samples_evaluated")}}
 
 
 def curve_psnr(scene: Scene, dataset: Dataset, views: list[int], rays_per_view: int, seed: int) -> float:
@@ -412,27 +432,43 @@ def curve_psnr(scene: Scene, dataset: Dataset, views: list[int], rays_per_view: 
     return float(-10 * np.log10(max(np.mean(np.concatenate(errors)), 1e-10)))
 
 
+def held_out_views(dataset: Dataset) -> list[int]:
+    """The views a fit's closing report renders: the test split, or the training views where there is none."""
+    return list(dataset.splits.get("test") or dataset.splits["train"])
+
+
+def fitting_frame(dataset: Dataset, config: FitConfig) -> Dataset:
+    """The dataset in the frame the config's fit works and saves its cameras in: a nerfacto field's contraction
+    frame (train.scene.fit_proposal), else its own."""
+    if config.proposal is None:
+        return dataset
+    from noisenerf.train.scene.fit_proposal import contraction_frame
+    return contraction_frame(dataset)
+
+
 def new_fitter(dataset: Dataset, config: FitConfig, device: torch.device):
-    """The fitter of the config's field: a nerfacto field's with its proposal sampler in the contraction's frame
-    (train.scene.fit_proposal), else the skipping or hierarchical one."""
+    """The fitter of the config's field: a nerfacto field's with its proposal sampler, else the skipping or
+    hierarchical one; in fitting_frame."""
     if config.proposal is None:
         return Fitter(dataset, config, device)
-    from noisenerf.train.scene.fit_proposal import ProposalFitter, contraction_frame
-    return ProposalFitter(contraction_frame(dataset), config, device)
+    from noisenerf.train.scene.fit_proposal import ProposalFitter
+    return ProposalFitter(fitting_frame(dataset, config), config, device)
 
 
 def fit(dataset: Dataset, out_dir: Path, config: FitConfig, budget: Budget, device: torch.device,
         checkpoint_seconds: float = 60.0, curve_seconds: float = 120.0, curve_views: int = 3,
-        progress: ProgressFn | None = None) -> dict:
+        test_share: float | None = TEST_SHARE, progress: ProgressFn | None = None) -> dict:
     """Fit, checkpointing into out_dir, then save the scene there and report test-view quality. The folder
     is created only once the data has given a fitter, so input the fitter refuses leaves no empty folder.
-    progress: told of the steps (an iteration budget) or seconds (a time budget) done, and the loss."""
+    test_share: the closing test renders' time ÷ the training time, at most (held_out_quality); None renders
+    every held-out view. progress: told of the steps (an iteration budget) or seconds (a time budget) done, and
+    the loss."""
     out_dir = check_output_directory(out_dir)
     fitter = new_fitter(dataset, config, device)
     dataset = fitter.dataset
     out_dir.mkdir(exist_ok=True)
     resumed = fitter.load_checkpoint(out_dir)
-    test_views = list(dataset.splits.get("test") or dataset.splits["train"])
+    test_views = held_out_views(dataset)
     curve_subset = test_views[:: max(1, len(test_views) // curve_views)][:curve_views]
     curve_path = out_dir / "curve.json"
     curve = read_json(curve_path, "fit curve")["curve"] if resumed and curve_path.is_file() else []
@@ -469,7 +505,8 @@ def fit(dataset: Dataset, out_dir: Path, config: FitConfig, budget: Budget, devi
         "wall_seconds": round(started - wall_start, 1), "resumed": resumed,
         "samples_evaluated": fitter.samples_evaluated, "fingerprint": scene.fingerprint(),
         "occupancy": scene.grid.occupancy_fraction(), "curve": curve, "skipped_frames": list(dataset.skipped),
-        "test": held_out_quality(scene, dataset, test_views),
+        "test": held_out_quality(scene, dataset, test_views,
+                                 seconds=None if test_share is None else test_share * fit_seconds),
     }
     report["eval_seconds"] = round(time.perf_counter() - started, 1)
     write_json(out_dir / "fit_report.json", report)
