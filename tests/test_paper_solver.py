@@ -1,5 +1,7 @@
 """The paper's method: dead-ray revival, block streaming, the recipes, and quality on a small secret."""
 
+import dataclasses
+
 import pytest
 import torch
 
@@ -81,6 +83,42 @@ def test_blocks_give_the_same_noise_as_one_batch(view, secret):
                                  clean, torch.float32))) == 4  # 144 pixels in blocks of 37
     torch.testing.assert_close(many_noise, one_noise, rtol=0, atol=1e-5)
     torch.testing.assert_close(many_colors, one_colors, rtol=0, atol=1e-6)
+
+
+@pytest.mark.parametrize("moving_share", [0.3, 0.9])
+def test_adam_gives_the_same_bits_worked_in_place_or_on_the_gathered_moving_rows(moving_share, monkeypatch):
+    import noisenerf.train.hide.paper as paper
+
+    generator = torch.Generator().manual_seed(7)
+    o, k, dims = 8, 6, 5
+    touched = torch.rand(o, k, generator=generator) < moving_share
+    start = OpenPixels.start(torch.randn(o, k, dims, generator=generator), torch.rand(o, 3, generator=generator),
+                             torch.rand(o, 3, generator=generator), None)
+    # the invariants the optimiser keeps: untouched rows have zero moments and zero gradient
+    mask = touched[:, :, None]
+    first, second = torch.randn(o, k, dims, generator=generator) * mask, torch.rand(o, k, dims, generator=generator) * mask
+    grad = torch.randn(o, k, dims, generator=generator) * mask
+    steps = torch.randint(1, 40, (o,), generator=generator)
+    frozen = torch.zeros(o, dtype=torch.bool)
+    frozen[[1, 6]] = True
+    results = []
+    for share in (0.0, 2.0):  # every row in place; the moving rows gathered
+        monkeypatch.setattr(paper, "IN_PLACE_SHARE", share)
+        state = dataclasses.replace(start, noise=start.noise.clone(), first=first.clone(), second=second.clone(),
+                                    touched=touched, frozen=frozen)
+        paper.adam_step(state, grad, steps, lr=0.1)
+        results.append(state)
+    for name in ("noise", "first", "second"):
+        assert torch.equal(getattr(results[0], name), getattr(results[1], name)), name
+    moved = results[0].noise != start.noise
+    assert not moved[frozen].any() and not moved[~touched[:, :, None].expand(-1, -1, dims)].any()
+    assert moved[touched & ~frozen[:, None]].any(-1).all()
+    m1 = 0.9 * first + 0.1 * grad
+    m2 = 0.999 * second + 0.001 * grad ** 2
+    expected = start.noise - 0.1 * (m1 / (1 - 0.9 ** steps[:, None, None])) / (
+        (m2 / (1 - 0.999 ** steps[:, None, None])).sqrt() + 1e-8)
+    rows = touched & ~frozen[:, None]
+    assert torch.allclose(results[0].noise[rows], expected[rows], atol=1e-6)
 
 
 def test_recipes_follow_their_schedules():

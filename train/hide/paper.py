@@ -153,20 +153,36 @@ def decay_rate(settings: PaperSettings, t: int) -> float:
     return settings.weight_decay * settings.weight_decay_decay ** (t / settings.iters)
 
 
-def adam_direction(grad: torch.Tensor, moments: tuple[torch.Tensor, torch.Tensor], steps: torch.Tensor,
-                   pixels: torch.Tensor | None = None, betas=(0.9, 0.999), eps: float = 1e-8
-                   ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """Adam with a step count per pixel (APS updates pixels at different times). grad, moments: (m, k, dims),
-    or (r, dims) rows of pixels `pixels` (r,); steps: (m,) counts after this update -> direction, new moments."""
-    first = betas[0] * moments[0] + (1 - betas[0]) * grad
-    second = betas[1] * moments[1] + (1 - betas[1]) * grad * grad
-    # per pixel, then per row: pow's vectorised and scalar paths round differently
+IN_PLACE_SHARE = 0.5  # Adam works every row in place once this share of them moves (else gathers the moving ones)
+
+
+def adam_step(state: OpenPixels, grad: torch.Tensor, steps: torch.Tensor, lr: float, betas=(0.9, 0.999),
+              eps: float = 1e-8) -> None:
+    """Adam with a step count per pixel (APS updates pixels at different times), in place on the state's noise and
+    moments (o, k, dims) at the rows that move: those a gradient has reached (`touched`) of pixels not frozen.
+    grad: (o, k, dims); steps: (o,) counts after this update. Where most rows move, every row is worked in place
+    and the frozen pixels' put back (a row no gradient has reached has zero moments and gradient, so a direction of
+    exactly 0); elsewhere the moving rows are gathered. The same bits either way."""
+    # per pixel, then broadcast: pow's vectorised and scalar paths round differently
     correction1, correction2 = (1 - betas[0] ** steps.float()), (1 - betas[1] ** steps.float())
-    if pixels is None:
-        correction1, correction2 = correction1[:, None, None], correction2[:, None, None]
-    else:
-        correction1, correction2 = correction1[pixels, None], correction2[pixels, None]
-    return (first / correction1) / ((second / correction2).sqrt() + eps), first, second
+    moving = state.touched & ~state.frozen[:, None]
+    if moving.float().mean() < IN_PLACE_SHARE:
+        rows = moving.nonzero(as_tuple=True)
+        first = betas[0] * state.first[rows] + (1 - betas[0]) * grad[rows]
+        second = betas[1] * state.second[rows] + (1 - betas[1]) * grad[rows] * grad[rows]
+        state.first[rows], state.second[rows] = first, second
+        direction = (first / correction1[rows[0], None]) / ((second / correction2[rows[0], None]).sqrt() + eps)
+        state.noise[rows] = state.noise[rows] - lr * direction
+        return
+    frozen = state.frozen.nonzero()[:, 0]
+    saved = [tensor[frozen] for tensor in (state.noise, state.first, state.second)]
+    state.first.mul_(betas[0]).add_(grad * (1 - betas[0]))
+    scratch = grad * (1 - betas[1])
+    state.second.mul_(betas[1]).add_(scratch.mul_(grad))
+    denominator = torch.div(state.second, correction2[:, None, None], out=scratch).sqrt_().add_(eps)
+    state.noise.sub_((state.first / correction1[:, None, None]).div_(denominator).mul_(lr))
+    for tensor, rows in zip((state.noise, state.first, state.second), saved):
+        tensor[frozen] = rows
 
 
 @dataclass(frozen=True)
@@ -539,12 +555,8 @@ def iteration(problem: BlockProblem, state: OpenPixels, t: int, settings: PaperS
         # a check's colours are exact: they also release a pixel frozen on colours that missed a sample come alive
         checked = (t - 1) % problem.recheck_interval(state.noise.shape[1]) == 0
         state.frozen = finished if checked else state.frozen | finished
-    # a row no gradient has reached has zero moments and so a zero Adam direction (exactly): skip it
+    # the rows a gradient has reached: only they move (elsewhere Adam's direction is exactly 0)
     state.touched |= problem.gradient_rows(state.noise.shape[1])
-    masked = settings.skip_dead or settings.finish_within is not None  # Adam on chosen rows, not the whole block
-    rows = (state.touched & ~state.frozen[:, None]).nonzero(as_tuple=True) if masked else (slice(None),)
-    direction, first_rows, second_rows = adam_direction(grad[rows], (state.first[rows], state.second[rows]),
-                                                        state.steps + 1, rows[0] if masked else None)
     sizes = selection_sizes(settings, state.noise.shape[0])
     aps = settings.adaptive_selection and len(sizes) > 1
     # APS keeps the old state of the pixels it does not choose; otherwise update in place
@@ -552,8 +564,7 @@ def iteration(problem: BlockProblem, state: OpenPixels, t: int, settings: PaperS
                                     second=state.second.clone()) if aps else state
     if settings.weight_decay:
         decay_encoded(tentative, lr * decay_rate(settings, t))
-    tentative.first[rows], tentative.second[rows] = first_rows, second_rows
-    tentative.noise[rows] = tentative.noise[rows] - lr * direction
+    adam_step(tentative, grad, state.steps + 1, lr)
     if not aps:
         state.steps += (~state.frozen).long()
         return state
