@@ -24,7 +24,7 @@ from torch import nn
 from torch.nn import functional
 
 from noisenerf.runtime.fields.hashgrid import (
-    DEGREE2, DEGREE3, DENSITY_EXPONENT_CAP, HASHGRID, PRIMES, GridLevels, config_levels, corner_offsets, sh_matrix,
+    DEGREE2, DEGREE3, DENSITY_EXPONENT_CAP, HASHGRID, PRIMES, GridLevels, config_levels, sh_matrix,
 )
 from noisenerf.train.scene.field_module import FieldModule
 
@@ -125,7 +125,6 @@ class GridEncoding(nn.Module):
         integer = np.int32 if self.index_dtype == torch.int32 else np.int64
         strides = np.stack([np.ones_like(levels.resolution), levels.resolution, levels.resolution ** 2], 1)[:dense]
         for name, value in {"scale": levels.scale[:, None], "strides": strides.astype(integer),
-                            "corner_strides": (corner_offsets() @ strides.T).T.astype(integer),
                             "rows": levels.rows[:dense, None].astype(integer), "offset": levels.offset[:, None].astype(integer),
                             "primes": (np.array(PRIMES, np.int64)[:, None] & self.mask).astype(integer)}.items():
             self.register_buffer(name, torch.from_numpy(np.ascontiguousarray(value)), persistent=False)
@@ -161,7 +160,7 @@ class GridEncoding(nn.Module):
                       for a in range(3)]  # (L − dense, n)
         weight_terms = [(1.0 - fraction[:, a], fraction[:, a]) for a in range(3)]  # (L, n)
         pairs = [(dense_terms[0][bx] + dense_terms[1][by], hash_terms[0][bx] ^ hash_terms[1][by],
-                  weight_terms[0][bx] * weight_terms[1][by]) for bx, by in ((0, 0), (1, 0), (0, 1), (1, 1))]
+                  weight_terms[0][bx] * weight_terms[1][by]) for bx, by, _ in CORNERS[:4]]
         for c, (_, _, bz) in enumerate(CORNERS):
             dense_xy, hash_xy, weight_xy = pairs[c & 3]
             torch.remainder(dense_xy + dense_terms[2][bz], self.rows, out=index[:dense, :, c])
