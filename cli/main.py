@@ -174,11 +174,14 @@ def cmd_bench(args) -> None:
 
     if args.payload_bytes < 0:
         raise UserError("--payload-bytes must be 0 or more")
+    if args.paper_changes_secrets is not None and args.paper_changes_secrets < 1:
+        raise UserError("--paper-changes-secrets must be at least 1")
     config = BenchConfig(scene=args.scene, secret=args.secret, data=args.data, photos=tuple(args.photos),
                          view=args.view, small_width=args.small_width, twok_rows=args.twok_rows,
                          paper_width=args.paper_width, paper_iters=args.paper_iters,
                          paper_scenes=tuple((folder, view_argument(view)) for folder, view in args.paper_scene),
-                         paper_secrets=tuple(args.paper_secrets), speed_width=args.speed_width, payload_bytes=args.payload_bytes,
+                         paper_secrets=tuple(args.paper_secrets),
+                         paper_changes_secrets=args.paper_changes_secrets, speed_width=args.speed_width, payload_bytes=args.payload_bytes,
                          browser_size=args.browser_size, cluster_size=args.cluster_size,
                          cluster_tile=args.cluster_tile, cluster_photo=size_argument(args.cluster_photo, "--cluster-photo"),
                          big_secret=size_argument(args.big_secret, "--big-secret"),
@@ -320,6 +323,8 @@ def bench_arguments(p: argparse.ArgumentParser) -> None:
                         "default: --scene at --view)")
     p.add_argument("--paper-secrets", nargs="*", default=[],
                    help="paper_quality, paper_changes: the photos hidden (default: the first three --photos)")
+    p.add_argument("--paper-changes-secrets", type=int, metavar="N",
+                   help="paper_changes: switch each change off on the first N of those photos only (default: all)")
     p.add_argument("--twok-rows", type=int, default=1, help="tile rows of the 2048² secret actually hidden (1-4)")
     p.add_argument("--payload-bytes", type=int, default=1 << 20, help="size of the payload experiment's file")
     p.add_argument("--browser-size", type=int, default=2048, help="side of the browser experiment's tiled secret")

@@ -21,7 +21,7 @@ from noisenerf.cli.bench import (EXPERIMENTS, REGISTRY, BenchConfig, BenchContex
 from noisenerf.cli.bench.browser import RUNS, browser_missing
 from noisenerf.cli.bench.context import Measured
 from noisenerf.cli.bench.keys import far_views
-from noisenerf.cli.bench.paper import PAPER_CHANGES, paper_goal_line
+from noisenerf.cli.bench.paper import PAPER_CHANGES, paper_changes_secret_paths, paper_goal_line
 from noisenerf.cli.bench.registry import selected
 from noisenerf.cli.bench.report import verdict
 from noisenerf.cli.bench.run import stress_section
@@ -248,6 +248,22 @@ def test_a_paper_scene_with_a_view_that_is_no_camera_index_is_refused(tmp_path):
                             timeout=120)
     assert result.returncode == 2 and result.stderr.count("\n") == 1, result.stderr
     assert result.stderr.strip().endswith("error: --paper-scene takes a scene directory and a camera index; got view '7a'")
+    assert not (tmp_path / "out").exists()
+
+
+def test_paper_changes_run_on_the_first_photos_asked_for_or_all():
+    photos = ("a.png", "b.png", "c.png")
+    assert paper_changes_secret_paths(BenchConfig(scene="x", secret="y", paper_secrets=photos)) == photos
+    assert paper_changes_secret_paths(BenchConfig(scene="x", secret="y", paper_secrets=photos,
+                                                  paper_changes_secrets=2)) == ("a.png", "b.png")
+
+
+def test_paper_changes_on_no_photo_is_refused(tmp_path):
+    result = subprocess.run([sys.executable, "-m", "noisenerf.cli.main", "bench", "--scene", "x", "--secret", "y",
+                             "--paper-changes-secrets", "0", "-o", str(tmp_path / "out")], capture_output=True,
+                            text=True, timeout=120)
+    assert result.returncode == 2 and result.stderr.count("\n") == 1, result.stderr
+    assert result.stderr.strip().endswith("error: --paper-changes-secrets must be at least 1")
     assert not (tmp_path / "out").exists()
 
 

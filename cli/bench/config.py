@@ -25,6 +25,7 @@ class BenchConfig:
     # bench's scene at its view
     paper_scenes: tuple[tuple[str, int], ...] = ()
     paper_secrets: tuple[str, ...] = ()  # the photos they hide; (): the first paper_photos of photos
+    paper_changes_secrets: int | None = None  # paper_changes: each change switched off on the first this many (None: all)
     speed_width: int = 64  # the paper_speed experiment's secrets (square), hidden with and without skipping
     ablation_samples: int = 64
     ablation_width: int | None = None  # None = 100 (the authors' secret) on CUDA, small_width on CPU

@@ -198,17 +198,24 @@ def plot_paper_quality(rows: list[dict], path: Path) -> None:
     save_figure(figure, path)
 
 
+def paper_changes_secret_paths(config: BenchConfig) -> tuple[str, ...]:
+    """The photos paper_changes switches each change off on: the first paper_changes_secrets of paper_quality's."""
+    return paper_secret_paths(config)[:config.paper_changes_secrets]
+
+
 def measure_paper_changes(context: BenchContext) -> Measured:
-    """Our changes to the default recipe, each switched off alone (PAPER_CHANGES), on paper_quality's scenes,
-    views and photos at its width; paper_quality's runs are the row with every change on."""
+    """Our changes to the default recipe, each switched off alone (PAPER_CHANGES), on paper_quality's scenes and
+    views at its width, on its photos or the first paper_changes_secrets of them; paper_quality's runs of those
+    photos are the row with every change on."""
     config, device = context.config, context.device
     quality: PaperQuality = context.needed["paper_quality"]
+    names = {Path(path).name for path in paper_changes_secret_paths(config)}
     rows = [{"variant": "all changes", "scene": target.name, "photo": name, **final_of(run)}
-            for target, name, run in quality.runs]
+            for target, name, run in quality.runs if name in names]
     for variant, off in PAPER_CHANGES.items():
         settings = dataclasses.replace(quality.settings, record_at=(config.paper_iters,), **off)
         for target in paper_targets(context):
-            for path in paper_secret_paths(config):
+            for path in paper_changes_secret_paths(config):
                 photo = square_secret(load_secret(path)[0], quality.secret_size[0])
                 run = paper_curve(target.scene, photo, target.view, config.paper_samples, settings, device,
                                   label=variant)
@@ -226,8 +233,10 @@ def final_of(run: PaperRun) -> dict:
 
 def describe_paper_changes(context: BenchContext, measured: Measured) -> list[str]:
     width, _ = measured.secret_size
-    lines = [f"Each of our changes to the recipe switched off alone, on paper_quality's scenes, views and photos "
-             f"({width}×{width}); the first row is paper_quality's, with all of them on.", "",
+    photos = sorted(dict.fromkeys(row["photo"] for row in measured.rows))
+    lines = [f"Each of our changes to the recipe switched off alone, on paper_quality's scenes and views, on the "
+             f"same {len(photos)} photos ({', '.join(photos)}; {width}×{width}); the first row is paper_quality's runs "
+             "of them, with all of them on.", "",
              "| variant | scene | mean SSIM | lowest SSIM | mean authors' SSIM | mean PSNR dB | s a secret |",
              "|---|---|---|---|---|---|---|"]
     for variant, scene in dict.fromkeys((row["variant"], row["scene"]) for row in measured.rows):
