@@ -233,7 +233,7 @@ def final_of(run: PaperRun) -> dict:
 
 def describe_paper_changes(context: BenchContext, measured: Measured) -> list[str]:
     width, _ = measured.secret_size
-    photos = sorted(dict.fromkeys(row["photo"] for row in measured.rows))
+    photos = sorted({row["photo"] for row in measured.rows})
     lines = [f"Each of our changes to the recipe switched off alone, on paper_quality's scenes and views, on the "
              f"same {len(photos)} photos ({', '.join(photos)}; {width}×{width}); the first row is paper_quality's runs "
              "of them, with all of them on.", "",
