@@ -227,8 +227,6 @@ def test_paper_changes_switch_each_change_off_alone_on_the_same_photos(report):
     assert [row["variant"] for row in rows] == ["all changes", *PAPER_CHANGES]
     assert {row["photo"] for row in rows} == {"secret.png"} and {row["scene"] for row in rows} == {"scene"}
     assert rows[0]["ssim"] == [row for row in quality if row["iteration"] == 60][0]["ssim"]  # paper_quality's run
-    assert [row["samples"] for row in rows] == [3, 3, 3, 3, 3, 64]  # the last at the authors' samples, not the bench's
-    assert rows[-1]["ssim"] != rows[0]["ssim"]
     text = "\n".join(sections["paper_changes"].lines)
     assert all(f"| {variant} | scene |" in text for variant in PAPER_CHANGES)
     assert "(goal: ≥ 0.9913, the paper's Table 1 for NeRF-Synthetic, none under 0.98: not met)" in "\n".join(

@@ -80,5 +80,5 @@ def test_hide_settings_are_built_and_pickled_without_torch():
     assert (exact["layout"], exact["n_samples"], exact["compact"]) == ("compact", 1,
                                                                        dataclasses.asdict(CompactSettings()))
     assert "paper" not in exact and "exact" not in paper
-    assert (paper["layout"], paper["n_samples"], paper["network"]) == ("sample", 16, "coarse")
+    assert (paper["layout"], paper["n_samples"], paper["network"]) == ("sample", 64, "coarse")
     assert (paper["paper"]["iters"], paper["paper"]["revival"], paper["paper"]["pass_samples"]) == (7, "dead", 1 << 16)

@@ -5,8 +5,6 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from noisenerf.train.hide.methods import METHODS
-
 
 @dataclass(frozen=True)
 class BenchConfig:
@@ -18,7 +16,7 @@ class BenchConfig:
     photos: tuple[str, ...] = ()  # secrets hidden at native size in the photos experiment
     view: int = 0
     small_width: int = 48  # secret width for the curves that include the paper's method on a CPU
-    paper_samples: int = METHODS["paper"].default_samples
+    paper_samples: int = 64
     paper_iters: int = 300  # the paper's iteration count (lower only to test the bench quickly)
     paper_recipe: str = "noisenerf"
     paper_width: int | None = None  # paper-quality secrets (square): None = 400 (the paper's) on CUDA, small_width on CPU
@@ -29,7 +27,7 @@ class BenchConfig:
     paper_secrets: tuple[str, ...] = ()  # the photos they hide; (): the first paper_photos of photos
     paper_changes_secrets: int | None = None  # paper_changes: each change switched off on the first this many (None: all)
     speed_width: int = 64  # the paper_speed experiment's secrets (square), hidden with and without skipping
-    ablation_samples: int = 64  # the authors' (the paper's Table 3)
+    ablation_samples: int = 64
     ablation_width: int | None = None  # None = 100 (the authors' secret) on CUDA, small_width on CPU
     device: str = "cpu"  # where the paper-mode and error-vs-time experiments run (cpu or cuda)
     twok_size: int = 2048

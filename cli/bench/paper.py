@@ -37,22 +37,11 @@ ABLATION = {  # the paper's Table 3 on the paper's recipe as the paper ran it (n
     "authors + revival (all)": ("authors", False, False, "all"), "noisenerf (the default)": ("noisenerf", False, False, "all"),
 }
 
-
-@dataclass(frozen=True)
-class SwitchedOff:
-    """One of our changes switched off alone: the recipe's settings it replaces, and the samples per ray of the
-    secret view it runs at (None: paper_quality's)."""
-
-    settings: dict = dataclasses.field(default_factory=dict)
-    samples: int | None = None
-
-
-PAPER_CHANGES = {  # our changes to the authors' method, each switched off alone
-    "the authors' weight decay (0.8·0.3^(t/T))": SwitchedOff({"weight_decay": 0.8}),
-    "the authors' step to lr 0.01 at 50": SwitchedOff({"lr_step_at": 50}),
-    "finished pixels not retired": SwitchedOff({"finish_within": None}),
-    "raw colours free to saturate": SwitchedOff({"saturation_bound": float("inf")}),
-    "the authors' 64 samples per ray": SwitchedOff(samples=64),
+PAPER_CHANGES = {  # our changes to the authors' method, each by the settings that switch it off alone
+    "the authors' weight decay (0.8·0.3^(t/T))": {"weight_decay": 0.8},
+    "the authors' step to lr 0.01 at 50": {"lr_step_at": 50},
+    "finished pixels not retired": {"finish_within": None},
+    "raw colours free to saturate": {"saturation_bound": float("inf")},
 }
 
 
@@ -128,9 +117,9 @@ def ablation_secret(context: BenchContext) -> np.ndarray:
 
 
 def measure_paper_quality(context: BenchContext) -> PaperQuality:
-    """The paper's method at the paper's scale: photos as square secrets at each target's view, the method's
-    samples per ray, 300 iterations, the default recipe; SSIM both ways, PSNR, time and peak memory. On a CPU
-    the secrets are downscaled (the report says so); on CUDA a last run at twice the width measures memory only."""
+    """The paper's method at the paper's scale: photos as square secrets at each target's view, 64 samples,
+    300 iterations, the default recipe; SSIM both ways, PSNR, time and peak memory. On a CPU the secrets
+    are downscaled (the report says so); on CUDA a last run at twice the width measures memory only."""
     config, device, width = context.config, context.device, paper_width(context)
     settings = quality_settings(context)
     rows, runs = [], []
@@ -221,17 +210,16 @@ def measure_paper_changes(context: BenchContext) -> Measured:
     config, device = context.config, context.device
     quality: PaperQuality = context.needed["paper_quality"]
     names = {Path(path).name for path in paper_changes_secret_paths(config)}
-    rows = [{"variant": "all changes", "scene": target.name, "photo": name, "samples": config.paper_samples,
-             **final_of(run)} for target, name, run in quality.runs if name in names]
+    rows = [{"variant": "all changes", "scene": target.name, "photo": name, **final_of(run)}
+            for target, name, run in quality.runs if name in names]
     for variant, off in PAPER_CHANGES.items():
-        settings = dataclasses.replace(quality.settings, record_at=(config.paper_iters,), **off.settings)
+        settings = dataclasses.replace(quality.settings, record_at=(config.paper_iters,), **off)
         for target in paper_targets(context):
             for path in paper_changes_secret_paths(config):
                 photo = square_secret(load_secret(path)[0], quality.secret_size[0])
-                samples = off.samples or config.paper_samples
-                run = paper_curve(target.scene, photo, target.view, samples, settings, device, label=variant)
-                rows.append({"variant": variant, "scene": target.name, "photo": Path(path).name, "samples": samples,
-                             **final_of(run)})
+                run = paper_curve(target.scene, photo, target.view, config.paper_samples, settings, device,
+                                  label=variant)
+                rows.append({"variant": variant, "scene": target.name, "photo": Path(path).name, **final_of(run)})
                 print(f"paper_changes: {variant}, {target.name}, {Path(path).name}: SSIM {rows[-1]['ssim']:.4f}, "
                       f"{run.seconds:.1f} s", file=sys.stderr, flush=True)
     return Measured(rows, quality.secret_size)

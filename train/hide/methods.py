@@ -72,9 +72,7 @@ METHODS: dict[str, Method] = {method.name: method for method in (
     # one sample per ray makes every pixel a piecewise-linear problem (exact.py)
     Method("exact", (ExactSettings, CompactSettings), ("compact", "ray", "sample"), default_samples=1,
            from_arguments=lambda args, device_type: (), fixed_samples=True, exact=True, spreads=True),
-    # the coarse network the paper's authors render with, at a quarter of their 64 samples (nerf-pytorch's N_samples):
-    # a secret comes back as well at 16 on both scene families, in a quarter of the time where most samples are live
-    # (a forward-facing scene's); docs/methods.md has the figures
-    Method("paper", (PaperSettings,), ("sample", "ray"), default_samples=16, from_arguments=paper_arguments,
+    # nerf-pytorch's N_samples, the coarse sampling (and network) the paper's authors render with
+    Method("paper", (PaperSettings,), ("sample", "ray"), default_samples=64, from_arguments=paper_arguments,
            add_arguments=paper_flags, default_network="coarse"),
 )}
